@@ -1,0 +1,57 @@
+"""``make bench``: run every benchmark module, repeat, and write ``bench/results.json`` + ``bench/results.md``.
+
+Each module in :data:`MODULES` has ``run() -> dict[str, float]``. Every figure is reported with its
+median and spread (min, max) over ``--repeat`` runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import os
+import platform
+import time
+from pathlib import Path
+
+import numpy as np
+
+MODULES = ['fixego_ros.bench.core', 'fixego_ros.bench.render', 'fixego_ros.bench.servo']
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog='python -m fixego_ros.bench')
+    ap.add_argument('--out', default='bench')
+    ap.add_argument('--repeat', type=int, default=3)
+    ap.add_argument('--only', default='', help='comma-separated module suffixes, e.g. core,render')
+    args = ap.parse_args(argv)
+    only = {s.strip() for s in args.only.split(',') if s.strip()}
+    runs: dict[str, list[float]] = {}
+    for mod in MODULES:
+        if only and mod.rsplit('.', 1)[-1] not in only:
+            continue
+        try:
+            m = importlib.import_module(mod)
+        except ImportError as e:
+            print(f'skip {mod}: {e}')
+            continue
+        for _ in range(args.repeat):
+            for k, v in m.run().items():
+                runs.setdefault(f'{mod.rsplit(".", 1)[-1]}.{k}', []).append(float(v))
+    results = {k: {'median': float(np.median(v)), 'min': float(np.min(v)), 'max': float(np.max(v)), 'runs': len(v)}
+               for k, v in runs.items()}
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    meta = {'when': time.strftime('%Y-%m-%d %H:%M:%S'), 'machine': platform.platform(),
+            'cpus': os.cpu_count(), 'repeat': args.repeat}
+    (out / 'results.json').write_text(json.dumps({'meta': meta, 'results': results}, indent=1))
+    lines = ['| figure | median | min | max | runs |', '|---|---:|---:|---:|---:|']
+    lines += [f'| {k} | {r["median"]:.3g} | {r["min"]:.3g} | {r["max"]:.3g} | {r["runs"]} |'
+              for k, r in results.items()]
+    (out / 'results.md').write_text(f'# Benchmarks\n\n{meta}\n\n' + '\n'.join(lines) + '\n')
+    print('\n'.join(lines))
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

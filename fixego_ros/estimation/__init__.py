@@ -1,0 +1,1 @@
+"""ROS-free estimation core: two-frame coplanarity solve, local bundle adjustment, incremental estimator."""

@@ -1,0 +1,32 @@
+"""Covariance from a least-squares Jacobian, with weakly observed directions capped, never NaN/inf."""
+
+from __future__ import annotations
+
+import numpy as np
+
+VAR_MAX = 1.0e6  # variance reported for an unobserved direction (m^2 or rad^2)
+
+
+def covariance_from_jacobian(J: np.ndarray, sigma2: float, var_max: float = VAR_MAX) -> np.ndarray:
+    """``sigma2 (J^T J)^-1`` through an eigen-decomposition; null directions get ``var_max``."""
+    n = J.shape[1]
+    if J.size == 0 or not np.all(np.isfinite(J)) or not np.isfinite(sigma2):
+        return np.eye(n) * var_max
+    H = J.T @ J
+    w, V = np.linalg.eigh(0.5 * (H + H.T))
+    floor = max(sigma2, 1e-30) / var_max
+    cov = (V * (sigma2 / np.maximum(w, floor))) @ V.T
+    return 0.5 * (cov + cov.T)
+
+
+def residual_variance(r: np.ndarray, n_params: int, prior_sigma: float) -> float:
+    """Residual variance ``sum r^2 / (m - n)``; the prior noise variance when there is no redundancy.
+
+    The prior is also a floor: with perfect data the covariance then reflects the expected sensor
+    noise rather than collapsing to zero.
+    """
+    dof = len(r) - n_params
+    prior = prior_sigma**2
+    if dof <= 0:
+        return prior
+    return max(float(np.sum(np.square(r)) / dof), prior)

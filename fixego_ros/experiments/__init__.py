@@ -1,0 +1,1 @@
+"""Numerical experiments on point-level synthetic scenes (the papers' §4.1) and their generators."""

@@ -1,0 +1,290 @@
+"""The rig model: two calibrated pan/tilt cameras and the calibration file of DESIGN.md §4.
+
+Frames (DESIGN.md §2): a camera's optical frame is x right, y down, z forward. Its *zero-pose frame*
+is the optical frame at pan = tilt = 0, and ``R_zero_cam(pan, tilt) = R_y(pan) R_x(tilt)``. The rig
+frame is the right camera's zero-pose frame; the left zero-pose frame has rotation ``R_L`` and centre
+``c_L`` in the rig frame. Joint angles as the device reports them are mapped to kinematic angles by
+the rig file's ``pan_tilt`` block: ``angle = sign * reading + offset``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import yaml
+
+from fixego_ros.geometry.rotation import from_quat_xyzw, quat_xyzw, rot_x, rot_y
+
+SIDES = ('right', 'left')
+
+
+class RigError(ValueError):
+    """A rig file or dictionary is missing a key or has a bad value; the message names the key."""
+
+
+def pan_tilt_rotation(pan: float, tilt: float) -> np.ndarray:
+    """``R_zero_cam``: optical frame at (pan, tilt) expressed in the zero-pose frame."""
+    return rot_y(pan) @ rot_x(tilt)
+
+
+def normalize_rays(v: np.ndarray) -> np.ndarray:
+    """Unit vectors along the rows of ``v`` (shape (N, 3) or (3,))."""
+    v = np.asarray(v, dtype=float)
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+@dataclass(frozen=True)
+class CameraModel:
+    """Pinhole camera with OpenCV's 5-parameter distortion (k1, k2, p1, p2, k3)."""
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    dist: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0)
+
+    @property
+    def K(self) -> np.ndarray:
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    @property
+    def dist_array(self) -> np.ndarray:
+        return np.asarray(self.dist, dtype=float)
+
+    @property
+    def has_distortion(self) -> bool:
+        return bool(np.any(self.dist_array != 0.0))
+
+    @property
+    def center(self) -> np.ndarray:
+        """Principal point (where the fixation servo keeps its point)."""
+        return np.array([self.cx, self.cy])
+
+    def horizontal_fov(self) -> float:
+        """Horizontal angle of view in rad (pinhole, ignoring distortion)."""
+        return float(2.0 * np.arctan2(self.width / 2.0, self.fx))
+
+    def pixels_to_rays(self, uv: np.ndarray) -> np.ndarray:
+        """Unit rays in the optical frame for pixels (N, 2), undistorting with OpenCV."""
+        uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+        if uv.size == 0:
+            return np.zeros((0, 3))
+        if self.has_distortion:
+            # iterative with a tight criterion: the default 5 iterations leave ~px errors at the corners
+            xy = cv2.undistortPoints(uv.reshape(-1, 1, 2), self.K, self.dist_array, None, None, None,
+                                     (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-10)).reshape(-1, 2)
+        else:
+            xy = np.column_stack([(uv[:, 0] - self.cx) / self.fx, (uv[:, 1] - self.cy) / self.fy])
+        return normalize_rays(np.column_stack([xy, np.ones(len(xy))]))
+
+    def rays_to_pixels(self, rays: np.ndarray, distort: bool = True) -> np.ndarray:
+        """Pixels (N, 2) of optical-frame rays (N, 3) with z > 0; ``distort=False`` gives ideal pixels."""
+        rays = np.asarray(rays, dtype=np.float64).reshape(-1, 3)
+        xy = rays[:, :2] / rays[:, 2:3]
+        if distort and self.has_distortion:
+            pts = np.column_stack([xy, np.ones(len(xy))]).reshape(-1, 1, 3)
+            uv, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), self.K, self.dist_array)
+            return uv.reshape(-1, 2)
+        return np.column_stack([self.fx * xy[:, 0] + self.cx, self.fy * xy[:, 1] + self.cy])
+
+    def to_dict(self) -> dict[str, Any]:
+        return {'width': self.width, 'height': self.height, 'fx': self.fx, 'fy': self.fy,
+                'cx': self.cx, 'cy': self.cy, 'dist': [float(d) for d in self.dist]}
+
+
+@dataclass(frozen=True)
+class PanTiltCalibration:
+    """Maps the device's joint angles (rad) to the kinematic angles of DESIGN.md §2."""
+
+    pan_sign: float = 1.0
+    tilt_sign: float = 1.0
+    pan_offset: float = 0.0
+    tilt_offset: float = 0.0
+
+    def kinematic(self, pan_reading: float, tilt_reading: float) -> tuple[float, float]:
+        return (self.pan_sign * pan_reading + self.pan_offset,
+                self.tilt_sign * tilt_reading + self.tilt_offset)
+
+    def reading(self, pan: float, tilt: float) -> tuple[float, float]:
+        """Inverse of :meth:`kinematic`: what the device reports for kinematic (pan, tilt)."""
+        return ((pan - self.pan_offset) / self.pan_sign, (tilt - self.tilt_offset) / self.tilt_sign)
+
+    def to_dict(self) -> dict[str, float]:
+        return {'pan_sign': self.pan_sign, 'tilt_sign': self.tilt_sign,
+                'pan_offset': self.pan_offset, 'tilt_offset': self.tilt_offset}
+
+
+@dataclass(frozen=True)
+class Rig:
+    """Two cameras, the left camera's zero pose in the rig frame, and each camera's pan/tilt calibration."""
+
+    right: CameraModel
+    left: CameraModel
+    R_L: np.ndarray = field(default_factory=lambda: np.eye(3))
+    c_L: np.ndarray = field(default_factory=lambda: np.array([-0.2, 0.0, 0.0]))
+    pan_tilt_right: PanTiltCalibration = PanTiltCalibration()
+    pan_tilt_left: PanTiltCalibration = PanTiltCalibration()
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def camera(self, side: str) -> CameraModel:
+        return {'right': self.right, 'left': self.left}[_check_side(side)]
+
+    def calibration(self, side: str) -> PanTiltCalibration:
+        return {'right': self.pan_tilt_right, 'left': self.pan_tilt_left}[_check_side(side)]
+
+    def zero_rotation(self, side: str) -> np.ndarray:
+        """Zero-pose frame of ``side`` expressed in the rig frame."""
+        return np.eye(3) if _check_side(side) == 'right' else self.R_L
+
+    def center(self, side: str) -> np.ndarray:
+        """Projection centre of ``side`` in the rig frame."""
+        return np.zeros(3) if _check_side(side) == 'right' else np.asarray(self.c_L, dtype=float)
+
+    def cam_to_rig(self, side: str, pan_reading: float, tilt_reading: float) -> np.ndarray:
+        """Rotation of the camera's optical frame into the rig frame at the given joint readings."""
+        pan, tilt = self.calibration(side).kinematic(pan_reading, tilt_reading)
+        return self.zero_rotation(side) @ pan_tilt_rotation(pan, tilt)
+
+    def pixels_to_rig_rays(self, side: str, uv: np.ndarray, pan_reading: float,
+                           tilt_reading: float) -> np.ndarray:
+        """Rig-frame unit rays (N, 3) of pixels seen by ``side`` at the given joint readings."""
+        rays = self.camera(side).pixels_to_rays(uv)
+        return rays @ self.cam_to_rig(side, pan_reading, tilt_reading).T
+
+    def to_dict(self) -> dict[str, Any]:
+        out = dict(self.extra)
+        out.update({
+            'right': self.right.to_dict(),
+            'left': self.left.to_dict(),
+            'left_in_rig': {'translation': [float(x) for x in self.c_L],
+                            'rotation_xyzw': [float(x) for x in quat_xyzw(self.R_L)]},
+            'pan_tilt': {'right': self.pan_tilt_right.to_dict(), 'left': self.pan_tilt_left.to_dict()},
+        })
+        return out
+
+    def save(self, path: str | Path) -> None:
+        Path(path).write_text(yaml.safe_dump(self.to_dict(), sort_keys=False))
+
+
+def _check_side(side: str) -> str:
+    if side not in SIDES:
+        raise ValueError(f"side must be 'right' or 'left', got {side!r}")
+    return side
+
+
+def _number(d: dict[str, Any], key: str, where: str, positive: bool = False) -> float:
+    if key not in d:
+        raise RigError(f'rig file: missing key {where}.{key}')
+    try:
+        value = float(d[key])
+    except (TypeError, ValueError):
+        raise RigError(f'rig file: {where}.{key} must be a number, got {d[key]!r}') from None
+    if not np.isfinite(value):
+        raise RigError(f'rig file: {where}.{key} must be finite, got {value}')
+    if positive and value <= 0:
+        raise RigError(f'rig file: {where}.{key} must be > 0, got {value}')
+    return value
+
+
+def _vector(d: dict[str, Any], key: str, where: str, length: int) -> np.ndarray:
+    if key not in d:
+        raise RigError(f'rig file: missing key {where}.{key}')
+    try:
+        v = np.asarray(d[key], dtype=float).reshape(-1)
+    except (TypeError, ValueError):
+        raise RigError(f'rig file: {where}.{key} must be a list of {length} numbers') from None
+    if v.shape != (length,) or not np.all(np.isfinite(v)):
+        raise RigError(f'rig file: {where}.{key} must be a list of {length} finite numbers, got {d[key]!r}')
+    return v
+
+
+def _mapping(d: Any, key: str, where: str) -> dict[str, Any]:
+    if not isinstance(d, dict) or key not in d:
+        raise RigError(f'rig file: missing key {where + "." if where else ""}{key}')
+    if not isinstance(d[key], dict):
+        raise RigError(f'rig file: {where + "." if where else ""}{key} must be a mapping')
+    return d[key]
+
+
+def _camera(d: dict[str, Any], side: str) -> CameraModel:
+    c = _mapping(d, side, '')
+    width, height = _number(c, 'width', side, True), _number(c, 'height', side, True)
+    if width != int(width) or height != int(height):
+        raise RigError(f'rig file: {side}.width/height must be integers')
+    dist = _vector(c, 'dist', side, 5) if 'dist' in c else np.zeros(5)
+    return CameraModel(int(width), int(height), _number(c, 'fx', side, True), _number(c, 'fy', side, True),
+                       _number(c, 'cx', side), _number(c, 'cy', side), tuple(float(x) for x in dist))
+
+
+def _calibration(d: dict[str, Any], side: str) -> PanTiltCalibration:
+    pt = d.get('pan_tilt')
+    if pt is None:
+        return PanTiltCalibration()
+    c = _mapping({'pan_tilt': pt}, 'pan_tilt', '')
+    if side not in c:
+        return PanTiltCalibration()
+    c = _mapping(c, side, 'pan_tilt')
+    where = f'pan_tilt.{side}'
+    values = {k: _number(c, k, where) for k in ('pan_sign', 'tilt_sign', 'pan_offset', 'tilt_offset') if k in c}
+    for k in ('pan_sign', 'tilt_sign'):
+        if k in values and values[k] not in (1.0, -1.0):
+            raise RigError(f'rig file: {where}.{k} must be 1 or -1, got {values[k]}')
+    return PanTiltCalibration(**values)
+
+
+def rig_from_dict(d: Any) -> Rig:
+    """Validate a parsed rig file (DESIGN.md §4); errors name the offending key."""
+    if not isinstance(d, dict):
+        raise RigError('rig file: top level must be a mapping with keys right, left, left_in_rig')
+    right, left = _camera(d, 'right'), _camera(d, 'left')
+    lir = _mapping(d, 'left_in_rig', '')
+    c_L = _vector(lir, 'translation', 'left_in_rig', 3)
+    q = _vector(lir, 'rotation_xyzw', 'left_in_rig', 4)
+    try:
+        R_L = from_quat_xyzw(q)
+    except ValueError as e:
+        raise RigError(f'rig file: left_in_rig.rotation_xyzw: {e}') from None
+    known = {'right', 'left', 'left_in_rig', 'pan_tilt'}
+    extra = {k: v for k, v in d.items() if k not in known}
+    return Rig(right, left, R_L, c_L, _calibration(d, 'right'), _calibration(d, 'left'), extra)
+
+
+def load_rig(path: str | Path) -> Rig:
+    """Load and validate a rig YAML file."""
+    path = Path(path)
+    try:
+        data = yaml.safe_load(path.read_text())
+    except OSError as e:
+        raise RigError(f'rig file {path}: cannot read ({e.strerror})') from None
+    except yaml.YAMLError as e:
+        raise RigError(f'rig file {path}: not valid YAML ({e})') from None
+    try:
+        return rig_from_dict(data)
+    except RigError as e:
+        raise RigError(f'{path}: {e}') from None
+
+
+def default_rig_path() -> Path:
+    """``config/rig.yaml`` of the installed package (share/) or of the source tree."""
+    here = Path(__file__).resolve().parents[2] / 'config' / 'rig.yaml'
+    if here.exists():
+        return here
+    try:
+        from ament_index_python.packages import get_package_share_directory
+        return Path(get_package_share_directory('fixego_ros')) / 'config' / 'rig.yaml'
+    except Exception:  # ament index absent or package not installed
+        return here
+
+
+def make_rig(width: int = 640, height: int = 480, hfov_deg: float = 21.0, baseline: float = 0.2,
+             dist: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0)) -> Rig:
+    """A rig of two identical cameras side by side (left camera at x = -baseline), as in the papers."""
+    f = (width / 2.0) / np.tan(np.radians(hfov_deg) / 2.0)
+    cam = CameraModel(width, height, f, f, (width - 1) / 2.0, (height - 1) / 2.0, tuple(dist))
+    return Rig(cam, cam, np.eye(3), np.array([-baseline, 0.0, 0.0]))

@@ -1,0 +1,164 @@
+"""Rotations and rigid motions (SE(3)) used everywhere: one implementation, tested by property tests.
+
+Convention for a motion ``Pose(R, t)``: it maps coordinates in the *later/child* frame into the
+*earlier/parent* frame, ``x_parent = R @ x_child + t``. So the rig motion from frame i to i+1 of
+DESIGN.md §5 (rig axes at i+1 expressed at i, origin of i+1 expressed at i) is exactly ``Pose(R, T)``,
+and motions chain by ``P_{j,t} = P_{j,j+1} @ P_{j+1,j+2} @ ... @ P_{t-1,t}``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+# base_link axes (x fwd, y left, z up) expressed from rig axes (x right, y down, z fwd): v_base = M v_rig
+RIG_TO_BASE = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """Cross-product matrix: ``skew(a) @ b == np.cross(a, b)``."""
+    x, y, z = np.asarray(v, dtype=float)
+    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+
+
+def rot_x(a: float) -> np.ndarray:
+    """Rotation about x by ``a`` rad (right-handed)."""
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+
+def rot_y(a: float) -> np.ndarray:
+    """Rotation about y by ``a`` rad (right-handed)."""
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def rot_z(a: float) -> np.ndarray:
+    """Rotation about z by ``a`` rad (right-handed)."""
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def exp_so3(rvec: np.ndarray) -> np.ndarray:
+    """Rotation matrix of a rotation vector (axis * angle), Rodrigues' formula (hot path: no scipy)."""
+    x, y, z = (float(v) for v in rvec)
+    th2 = x * x + y * y + z * z
+    if th2 < 1e-16:
+        a, b = 1.0 - th2 / 6.0, 0.5 - th2 / 24.0
+    else:
+        th = th2**0.5
+        a, b = np.sin(th) / th, (1.0 - np.cos(th)) / th2
+    return np.array([
+        [1.0 - b * (y * y + z * z), b * x * y - a * z, b * x * z + a * y],
+        [b * x * y + a * z, 1.0 - b * (x * x + z * z), b * y * z - a * x],
+        [b * x * z - a * y, b * y * z + a * x, 1.0 - b * (x * x + y * y)],
+    ])
+
+
+def log_so3(R: np.ndarray) -> np.ndarray:
+    """Rotation vector (axis * angle, angle in [0, pi]) of a rotation matrix."""
+    return Rotation.from_matrix(np.asarray(R, dtype=float)).as_rotvec()
+
+
+def project_to_so3(R: np.ndarray) -> np.ndarray:
+    """Nearest rotation matrix (removes drift after many products)."""
+    u, _, vt = np.linalg.svd(R)
+    d = np.sign(np.linalg.det(u @ vt))
+    return u @ np.diag([1.0, 1.0, d]) @ vt
+
+
+def quat_xyzw(R: np.ndarray) -> np.ndarray:
+    """Unit quaternion (x, y, z, w) of a rotation matrix, w >= 0."""
+    q = Rotation.from_matrix(R).as_quat()
+    return -q if q[3] < 0 else q
+
+
+def from_quat_xyzw(q: np.ndarray) -> np.ndarray:
+    """Rotation matrix of a quaternion (x, y, z, w); normalises it, rejects zero or non-finite input."""
+    q = np.asarray(q, dtype=float)
+    n = np.linalg.norm(q)
+    if q.shape != (4,) or not np.all(np.isfinite(q)) or n < 1e-9:
+        raise ValueError(f'not a valid quaternion (x, y, z, w): {q.tolist()}')
+    return Rotation.from_quat(q / n).as_matrix()
+
+
+def rotation_angle(R: np.ndarray) -> float:
+    """Angle of a rotation matrix in rad."""
+    return float(np.linalg.norm(log_so3(R)))
+
+
+@dataclass(frozen=True)
+class Pose:
+    """Rigid motion ``x_parent = R x_child + t`` (see module docstring)."""
+
+    R: np.ndarray
+    t: np.ndarray
+
+    @staticmethod
+    def identity() -> Pose:
+        return Pose(np.eye(3), np.zeros(3))
+
+    @staticmethod
+    def from_rvec(rvec: np.ndarray, t: np.ndarray) -> Pose:
+        return Pose(exp_so3(rvec), np.asarray(t, dtype=float).copy())
+
+    @staticmethod
+    def from_matrix(M: np.ndarray) -> Pose:
+        return Pose(np.asarray(M[:3, :3], dtype=float).copy(), np.asarray(M[:3, 3], dtype=float).copy())
+
+    def __matmul__(self, other: Pose) -> Pose:
+        return Pose(self.R @ other.R, self.R @ other.t + self.t)
+
+    def inverse(self) -> Pose:
+        return Pose(self.R.T, -self.R.T @ self.t)
+
+    def apply(self, x: np.ndarray) -> np.ndarray:
+        """Map points (3,) or (N, 3) from the child frame into the parent frame."""
+        return np.asarray(x) @ self.R.T + self.t
+
+    def rvec(self) -> np.ndarray:
+        return log_so3(self.R)
+
+    def matrix(self) -> np.ndarray:
+        M = np.eye(4)
+        M[:3, :3] = self.R
+        M[:3, 3] = self.t
+        return M
+
+    def is_finite(self) -> bool:
+        return bool(np.all(np.isfinite(self.R)) and np.all(np.isfinite(self.t)))
+
+    def normalized(self) -> Pose:
+        return Pose(project_to_so3(self.R), self.t)
+
+
+def compose_all(motions: list[Pose]) -> Pose:
+    """``motions[0] @ motions[1] @ ...`` (identity for an empty list)."""
+    out = Pose.identity()
+    for m in motions:
+        out = out @ m
+    return out
+
+
+def rig_pose_to_base_link(pose_rig: Pose) -> Pose:
+    """Pose of the rig at t in the rig frame at 0 -> pose of base_link in odom (REP-105 axes)."""
+    return Pose(RIG_TO_BASE @ pose_rig.R @ RIG_TO_BASE.T, RIG_TO_BASE @ pose_rig.t)
+
+
+def base_link_pose_to_rig(pose_base: Pose) -> Pose:
+    """Inverse of :func:`rig_pose_to_base_link`."""
+    return Pose(RIG_TO_BASE.T @ pose_base.R @ RIG_TO_BASE, RIG_TO_BASE.T @ pose_base.t)
+
+
+def rotation_error_paper(R_est: np.ndarray, R_true: np.ndarray) -> float:
+    """Papers' rotation error ``||theta_hat r_hat - theta r|| / |theta|`` (axis-angle vectors)."""
+    true = log_so3(R_true)
+    theta = np.linalg.norm(true)
+    return float(np.linalg.norm(log_so3(R_est) - true) / max(theta, 1e-12))
+
+
+def translation_error_paper(t_est: np.ndarray, t_true: np.ndarray) -> float:
+    """Papers' translation error ``||T_hat - T|| / ||T||``."""
+    return float(np.linalg.norm(np.asarray(t_est) - t_true) / max(np.linalg.norm(t_true), 1e-12))

@@ -1,0 +1,41 @@
+"""Shared fixtures. ROS tests get a private rclpy context on a private domain id, so they never see
+other ROS traffic, and DDS discovery stays on localhost."""
+
+from __future__ import annotations
+
+import os
+import random
+
+import pytest
+
+os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+os.environ.setdefault('MPLBACKEND', 'Agg')
+
+
+def private_domain_id() -> int:
+    """A domain id unlikely to collide with anything else on this machine (0..101 and 215..232 valid)."""
+    return random.Random(os.getpid()).randint(120, 200)
+
+
+@pytest.fixture
+def ros_context():
+    """An initialised rclpy Context on a private domain, shut down after the test."""
+    rclpy = pytest.importorskip('rclpy')
+    ctx = rclpy.context.Context()
+    rclpy.init(context=ctx, domain_id=private_domain_id())
+    try:
+        yield ctx
+    finally:
+        if ctx.ok():
+            rclpy.shutdown(context=ctx)
+
+
+def spin_until(executor, predicate, timeout_s: float = 5.0, step_s: float = 0.02) -> bool:
+    """Spin ``executor`` until ``predicate()`` is true or ``timeout_s`` passes; returns the predicate."""
+    import time
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        executor.spin_once(timeout_sec=step_s)
+    return bool(predicate())

@@ -1,0 +1,188 @@
+"""Two-frame solver, local BA and the incremental estimator on point-level synthetic scenes."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from fixego_ros.estimation.coplanarity import RayPairs, sampson_residuals
+from fixego_ros.estimation.estimator import (
+    CameraFrame,
+    Estimator,
+    EstimatorConfig,
+    FrameObservation,
+    fixations_of,
+    step_pairs,
+)
+from fixego_ros.estimation.local_ba import BAProblem, BATerm, refine_latest
+from fixego_ros.estimation.status import StepStatus
+from fixego_ros.estimation.twoframe import SolverConfig, TwoFrameSolver
+from fixego_ros.experiments.point_scene import PRESETS, PointScene, random_motion_sequence
+from fixego_ros.geometry.rotation import Pose, exp_so3
+
+CLEAN = replace(PRESETS['dense'], n_flow=20, window_px=100.0, noise_px=0.0)
+
+
+def scene_and_steps(cfg, seed, n_steps=2):
+    rng = np.random.default_rng(seed)
+    scene = PointScene(cfg, rng)
+    steps = random_motion_sequence(cfg, n_steps, rng)
+    poses, noisy, clean = scene.frames(steps)
+    return scene, steps, poses, noisy, clean
+
+
+def pairs_of(scene, obs, k):
+    return step_pairs(scene.rig, fixations_of(obs[k - 1]), obs[k])
+
+
+@pytest.mark.parametrize('offsets', [(0.0, 0.0), (0.05, -0.03)])
+@pytest.mark.parametrize('seed', [1, 2, 3])
+def test_noise_free_motion_recovered_cold_start(seed, offsets):
+    cfg = replace(CLEAN, pan_offset_rad=offsets[0], tilt_offset_rad=offsets[1])
+    scene, steps, _, _, clean = scene_and_steps(cfg, seed)
+    pairs = pairs_of(scene, clean, 1)
+    assert np.linalg.norm(pairs.centers, axis=1).max() > 0        # left camera rows are present
+    res = TwoFrameSolver(SolverConfig(sigma=1e-4 / scene.rig.right.fx, prior_step=0.25)).solve(pairs)
+    assert res.status.usable, res.message
+    assert np.linalg.norm(res.pose.rvec() - steps[0].rvec()) <= 1e-6
+    assert np.linalg.norm(res.pose.t - steps[0].t) <= 1e-6
+    assert np.all(np.isfinite(res.covariance))
+
+
+def test_noise_free_paper_preset_recovered_through_estimator():
+    """Papers' 3 flow points per camera: 8 constraints, still exact without noise (both cameras)."""
+    cfg = replace(PRESETS['paper'], noise_px=0.0)
+    scene, steps, poses, _, clean = scene_and_steps(cfg, 7, n_steps=4)
+    est = Estimator(scene.rig, EstimatorConfig(solver=SolverConfig(sigma=1e-3 / scene.rig.right.fx,
+                                                                   prior_step=0.25)))
+    for k, obs in enumerate(clean):
+        r = est.update(obs)
+        assert np.linalg.norm(r.pose.t - poses[k].t) <= 1e-6
+        assert np.linalg.norm(r.pose_raw.t - poses[k].t) <= 1e-6
+
+
+def test_residuals_are_angles_not_shrinkable_by_scale():
+    scene, steps, _, noisy, _ = scene_and_steps(replace(CLEAN, noise_px=1.0), 4)
+    pairs = pairs_of(scene, noisy, 1)
+    r1 = sampson_residuals(steps[0].R, steps[0].t, pairs)
+    r_small = sampson_residuals(steps[0].R, steps[0].t * 1e-3, pairs)
+    # shrinking T must not drive the (right camera) residuals to zero, unlike raw determinants
+    right = np.linalg.norm(pairs.centers, axis=1) == 0
+    assert np.allclose(r1[right], r_small[right])
+    assert 0.1 < np.std(r1) * scene.rig.right.fx < 3.0                  # ~ pixel noise / f, in radians
+
+
+def test_covariance_shrinks_as_points_are_added():
+    stds = []
+    for n in (5, 20, 80):
+        # a turning rig close to the scene: every direction observed, so the bound is not capped
+        cfg = replace(PRESETS['dense'], n_flow=n, noise_px=0.5, max_yaw_deg=8.0, fixation_depth=3.0)
+        scene, steps, _, noisy, _ = scene_and_steps(cfg, 11)
+        pairs = pairs_of(scene, noisy, 1)
+        res = TwoFrameSolver(SolverConfig(sigma=0.5 / scene.rig.right.fx, prior_step=0.25)).solve(
+            pairs, initial=steps[0])
+        stds.append(np.sqrt(np.trace(res.covariance)))
+    assert stds[0] > stds[1] > stds[2]
+
+
+def test_degenerate_inputs_give_status_not_exception():
+    solver = TwoFrameSolver()
+    rays = np.array([[0.0, 0.0, 1.0], [0.1, 0.0, 1.0], [0.0, 0.1, 1.0]])
+    few = RayPairs.build([(rays, rays, np.zeros(3), 1.0)])
+    assert solver.solve(few).status is StepStatus.INSUFFICIENT
+    many = np.random.default_rng(0).normal(size=(30, 3)) + [0, 0, 5]
+    zero_flow = RayPairs.build([(many, many, np.zeros(3), 1.0)])
+    res = solver.solve(zero_flow)
+    assert res.status is StepStatus.STATIONARY and np.allclose(res.pose.t, 0)
+    rotated = RayPairs.build([(many, many @ exp_so3([0, 0.01, 0]), np.zeros(3), 1.0)])
+    res = solver.solve(rotated)
+    # b_i = M^T a_i, so a_i = M b_i: the rotation is M
+    assert res.status is StepStatus.STATIONARY and np.allclose(res.pose.R, exp_so3([0, 0.01, 0]), atol=1e-9)
+    nan = many.copy()
+    nan[::2] = np.nan
+    res = solver.solve(RayPairs.build([(nan, many, np.zeros(3), 1.0)]))
+    assert res.n_constraints == 15 and res.pose.is_finite()
+    parallel = RayPairs.build([(np.tile([0, 0, 1.0], (10, 1)), np.tile([0, 0, 1.0], (10, 1)), np.zeros(3), 1.0)])
+    res = solver.solve(parallel)
+    assert res.pose.is_finite() and np.all(np.isfinite(res.covariance))
+
+
+def _ba_setup(seed, noise, true_prefix=False):
+    cfg = replace(PRESETS['paper'], noise_px=noise)
+    scene, steps, _, noisy, _ = scene_and_steps(cfg, seed, n_steps=2)
+    est = Estimator(scene.rig, EstimatorConfig(window=0, solver=SolverConfig(sigma=2 / scene.rig.right.fx)))
+    results = [est.update(o) for o in noisy]
+    terms = []
+    for side in ('right', 'left'):
+        K = scene.rig.camera(side)
+        ft = noisy[2].camera(side)
+        first = steps[0] if true_prefix else results[1].step
+        for j, prefix in ((0, first), (1, Pose.identity())):
+            terms.append(BATerm(prefix, noisy[j].camera(side).fixation_ray, ft.fixation_ray,
+                                scene.rig.center(side), ft.cam_to_rig, K.fx, K.fy))
+    return BAProblem(terms), results[2].step, step_pairs(scene.rig, fixations_of(noisy[1]), noisy[2]), steps
+
+
+@pytest.mark.parametrize('seed', range(6))
+@pytest.mark.parametrize('mode, minimizer', [('paper', 'powell'), ('paper', 'trf'), ('joint', 'trf')])
+def test_local_ba_never_increases_its_cost(seed, mode, minimizer):
+    problem, start, pairs, _ = _ba_setup(seed, 2.0)
+    res = refine_latest(problem, start, mode, pairs, 2.0 / 1381.0, minimizer=minimizer)
+    assert res.cost_after <= res.cost_before
+    assert res.pose.is_finite()
+    if mode == 'paper':
+        assert res.cost_before == pytest.approx(problem.cost(start))
+        assert res.cost_after == pytest.approx(problem.cost(res.pose))
+
+
+def test_ba_cost_is_zero_at_truth_and_epipolar_distance_in_pixels():
+    problem, _, _, steps = _ba_setup(5, 0.0, true_prefix=True)
+    assert problem.cost(steps[1]) < 1e-12
+    # a 1 mrad yaw error moves the fixation point off the epipolar line by pixels, not by radians
+    wrong = Pose(exp_so3([0, 1e-3, 0]) @ steps[1].R, steps[1].t)
+    assert 1e-2 < np.sqrt(problem.cost(wrong)) < 1e3
+
+
+def test_estimator_window_never_spans_reselection_and_memory_is_bounded():
+    cfg = replace(PRESETS['paper'], noise_px=0.5)
+    scene, _, _, noisy, _ = scene_and_steps(cfg, 3, n_steps=30)
+    est = Estimator(scene.rig, EstimatorConfig(window=5))
+    for k, obs in enumerate(noisy):
+        if k >= 10:   # the right camera re-selects its fixation point at frame 10
+            obs.right.fixation_id = 1
+        est.update(obs)
+        if k in (10, 11, 12):
+            problem, _ = est._ba_problem(noisy[min(k + 1, len(noisy) - 1)])
+        assert len(est._window) <= 5
+    # at frame 11 the right camera's window holds only frame 10 (same id), the left one 4 frames
+    est2 = Estimator(scene.rig, EstimatorConfig(window=5))
+    for obs in noisy[:11]:
+        est2.update(obs)
+    problem, full = est2._ba_problem(noisy[11])
+    centers = np.array([t.center[0] for t in problem.terms])
+    assert np.sum(centers == 0) == 1 and np.sum(centers != 0) == 4 and full
+
+
+def test_estimator_flags_bad_steps_and_never_returns_nan():
+    cfg = replace(PRESETS['dense'], noise_px=0.2)
+    scene, _, _, noisy, _ = scene_and_steps(cfg, 8, n_steps=6)
+    est = Estimator(scene.rig)
+    for obs in noisy[:3]:
+        est.update(obs)
+    empty = FrameObservation(3.0, None, None)
+    r = est.update(empty)
+    assert r.status is StepStatus.PREDICTED and r.pose.is_finite()
+    bad = CameraFrame(np.array([np.nan, 0, 1]), 0, np.eye(3), np.full((5, 3), np.nan), np.full((5, 3), np.nan))
+    r = est.update(FrameObservation(4.0, bad, bad))
+    assert not r.status.usable and r.pose.is_finite() and np.all(np.isfinite(r.pose_covariance))
+    est.reset()
+    assert est.update(noisy[0]).status is StepStatus.INIT
+
+
+def test_config_validation():
+    with pytest.raises(ValueError, match='window'):
+        EstimatorConfig(window=2)
+    with pytest.raises(ValueError, match='mode'):
+        EstimatorConfig(mode='magic')

@@ -1,0 +1,156 @@
+"""Rotation/composition helpers (property tests) and the rig model (pixels <-> rays, kinematics, file)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import yaml
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from fixego_ros.geometry.rig import (
+    CameraModel,
+    RigError,
+    default_rig_path,
+    load_rig,
+    make_rig,
+    pan_tilt_rotation,
+    rig_from_dict,
+)
+from fixego_ros.geometry.rotation import (
+    Pose,
+    base_link_pose_to_rig,
+    exp_so3,
+    from_quat_xyzw,
+    log_so3,
+    quat_xyzw,
+    rig_pose_to_base_link,
+    rotation_error_paper,
+    skew,
+)
+
+finite = st.floats(-3.0, 3.0, allow_nan=False)
+vec3 = st.tuples(finite, finite, finite).map(np.array)
+rotvec = st.tuples(*[st.floats(-1.8, 1.8)] * 3).map(np.array)
+poses = st.tuples(rotvec, vec3).map(lambda p: Pose.from_rvec(*p))
+
+
+@given(rotvec)
+def test_exp_log_roundtrip_and_orthonormal(w):
+    R = exp_so3(w)
+    assert np.allclose(R @ R.T, np.eye(3), atol=1e-12)
+    assert np.isclose(np.linalg.det(R), 1.0)
+    if np.linalg.norm(w) < np.pi - 1e-6:
+        assert np.allclose(log_so3(R), w, atol=1e-9)
+
+
+@given(vec3, vec3)
+def test_skew_is_cross(a, b):
+    assert np.allclose(skew(a) @ b, np.cross(a, b))
+
+
+@settings(max_examples=60)
+@given(poses, poses, poses, vec3)
+def test_composition_associative_and_applies_in_order(a, b, c, x):
+    left, right = (a @ b) @ c, a @ (b @ c)
+    assert np.allclose(left.R, right.R, atol=1e-12) and np.allclose(left.t, right.t, atol=1e-9)
+    assert np.allclose((a @ b).apply(x), a.apply(b.apply(x)), atol=1e-9)
+
+
+@given(poses)
+def test_inverse(p):
+    e = p @ p.inverse()
+    assert np.allclose(e.R, np.eye(3), atol=1e-12) and np.allclose(e.t, 0, atol=1e-9)
+
+
+@given(rotvec)
+def test_quaternion_roundtrip(w):
+    R = exp_so3(w)
+    q = quat_xyzw(R)
+    assert q[3] >= 0 and np.isclose(np.linalg.norm(q), 1)
+    assert np.allclose(from_quat_xyzw(q), R, atol=1e-12)
+
+
+@given(poses)
+def test_base_link_conversion_roundtrip_and_axes(p):
+    back = base_link_pose_to_rig(rig_pose_to_base_link(p))
+    assert np.allclose(back.R, p.R) and np.allclose(back.t, p.t)
+
+
+def test_base_link_axes():
+    # moving forward along the rig's optical z is +x in base_link; rig down (+y) is base_link -z
+    assert np.allclose(rig_pose_to_base_link(Pose(np.eye(3), np.array([0, 0, 1.0]))).t, [1, 0, 0])
+    assert np.allclose(rig_pose_to_base_link(Pose(np.eye(3), np.array([0, 1.0, 0]))).t, [0, 0, -1])
+    assert np.allclose(rig_pose_to_base_link(Pose(np.eye(3), np.array([1.0, 0, 0]))).t, [0, -1, 0])
+
+
+def test_quaternion_rejects_bad_input():
+    with pytest.raises(ValueError):
+        from_quat_xyzw(np.zeros(4))
+    with pytest.raises(ValueError):
+        from_quat_xyzw(np.array([np.nan, 0, 0, 1]))
+
+
+def test_rotation_error_is_papers_measure():
+    R = exp_so3([0, 0.01, 0])
+    assert rotation_error_paper(R, R) == pytest.approx(0.0, abs=1e-12)
+    assert rotation_error_paper(exp_so3([0, 0.02, 0]), R) == pytest.approx(1.0)
+
+
+def test_pan_tilt_signs_follow_design():
+    z = np.array([0, 0, 1.0])
+    assert pan_tilt_rotation(0.3, 0.0) @ z @ np.array([1, 0, 0]) > 0     # +pan looks right (+x)
+    assert pan_tilt_rotation(0.0, 0.3) @ z @ np.array([0, 1, 0]) < 0     # +tilt looks up (-y)
+
+
+def test_pixels_rays_roundtrip_with_distortion():
+    cam = CameraModel(640, 480, 600.0, 610.0, 320.0, 240.0, (-0.2, 0.05, 0.001, -0.001, 0.0))
+    uv = np.array([[10.0, 20.0], [320.0, 240.0], [600.0, 450.0]])
+    rays = cam.pixels_to_rays(uv)
+    assert np.allclose(np.linalg.norm(rays, axis=1), 1.0)
+    assert np.allclose(cam.rays_to_pixels(rays), uv, atol=1e-3)
+    assert np.allclose(rays[1], [0, 0, 1])
+
+
+def test_rig_rays_apply_calibration():
+    rig = make_rig()
+    centre = rig.right.center[None]
+    assert np.allclose(rig.pixels_to_rig_rays('right', centre, 0.0, 0.0), [[0, 0, 1]])
+    d = rig.pixels_to_rig_rays('left', centre, np.radians(30), 0.0)[0]
+    assert np.isclose(np.degrees(np.arctan2(d[0], d[2])), 30.0)
+
+
+def test_default_rig_file_loads_and_roundtrips(tmp_path):
+    rig = load_rig(default_rig_path())
+    assert rig.right.width == 640 and np.allclose(rig.c_L, [-0.2, 0, 0])
+    assert 20.0 < np.degrees(rig.right.horizontal_fov()) < 22.0
+    rig.save(tmp_path / 'r.yaml')
+    again = load_rig(tmp_path / 'r.yaml')
+    assert again.right == rig.right and np.allclose(again.R_L, rig.R_L)
+
+
+@pytest.mark.parametrize('mutate, key', [
+    (lambda d: d.pop('left'), 'left'),
+    (lambda d: d['right'].pop('fx'), 'right.fx'),
+    (lambda d: d['right'].__setitem__('fy', 'abc'), 'right.fy'),
+    (lambda d: d['left'].__setitem__('fx', -3.0), 'left.fx'),
+    (lambda d: d['right'].__setitem__('dist', [0, 0]), 'right.dist'),
+    (lambda d: d['left_in_rig'].__setitem__('rotation_xyzw', [0, 0, 0, 0]), 'left_in_rig.rotation_xyzw'),
+    (lambda d: d['left_in_rig'].pop('translation'), 'left_in_rig.translation'),
+    (lambda d: d['pan_tilt']['left'].__setitem__('pan_sign', 2), 'pan_tilt.left.pan_sign'),
+    (lambda d: d['right'].__setitem__('cx', float('nan')), 'right.cx'),
+])
+def test_rig_errors_name_the_key(mutate, key):
+    d = yaml.safe_load(default_rig_path().read_text())
+    mutate(d)
+    with pytest.raises(RigError, match=key.replace('.', r'\.')):
+        rig_from_dict(d)
+
+
+def test_rig_file_errors_name_the_file(tmp_path):
+    p = tmp_path / 'bad.yaml'
+    p.write_text('right: [1, 2\n')
+    with pytest.raises(RigError, match='not valid YAML'):
+        load_rig(p)
+    with pytest.raises(RigError, match='cannot read'):
+        load_rig(tmp_path / 'missing.yaml')
