@@ -54,7 +54,7 @@ def test_noise_free_motion_recovered_cold_start(seed, offsets):
 def test_noise_free_paper_preset_recovered_through_estimator():
     """Papers' 3 flow points per camera: 8 constraints, still exact without noise (both cameras)."""
     cfg = replace(PRESETS['paper'], noise_px=0.0)
-    scene, steps, poses, _, clean = scene_and_steps(cfg, 7, n_steps=4)
+    scene, _, poses, _, clean = scene_and_steps(cfg, 7, n_steps=4)
     est = Estimator(scene.rig, EstimatorConfig(solver=SolverConfig(sigma=1e-3 / scene.rig.right.fx,
                                                                    prior_step=0.25)))
     for k, obs in enumerate(clean):

@@ -1,0 +1,318 @@
+"""camera_node: one per camera (``side:=right|left``). Tracks a fixation point and servoes the VISCA
+pan/tilt head to keep it at the image centre; publishes joint states at image stamps and the fixation.
+
+Topics (namespace /fixego, see README): subscribes ``<side>/image_raw`` (unless ``video_device``),
+in passive mode also ``<side>/joint_states``; publishes ``<side>/joint_states`` (active mode),
+``<side>/fixation`` (geometry_msgs/PointStamped: x, y = pixel, z = fixation id; nothing is published
+for a frame without a valid fixation) and ``/diagnostics``. Services ``~/reselect``, ``~/home``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PointStamped
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from sensor_msgs.msg import Image, JointState
+from std_srvs.srv import Trigger
+
+from fixego_ros.geometry.rig import default_rig_path, load_rig
+from fixego_ros.nodes.common import (
+    ERROR,
+    OK,
+    RELIABLE_QOS,
+    SENSOR_QOS,
+    WARN,
+    ImageError,
+    OnceLogger,
+    array_to_image,
+    diagnostic_status,
+    image_to_gray,
+    publish_diagnostics,
+    sec_to_stamp,
+    stamp_to_sec,
+)
+from fixego_ros.tracking.fixation import FixationParams, FixationTracker, LimitCheck
+from fixego_ros.tracking.servo import FixationServo, JointHistory, ServoLoop, ServoParams
+from fixego_ros.visca.driver import ViscaCamera
+from fixego_ros.visca.profiles import get_profile
+
+PARAMS: dict[str, tuple[object, str]] = {
+    'side': ('right', 'which camera: right | left (topic prefix and joint names)'),
+    'port': ('', 'VISCA serial device; empty = passive mode (no serial port)'),
+    'baud': (9600, 'serial baud rate (EVI cameras: 9600)'),
+    'address': (1, 'VISCA camera address 1..7'),
+    'profile': ('evi_d30', 'camera profile: evi_d30 | evi_d100 | evi_d70 | evi_g20 | path to calibrate .json'),
+    'passive': (False, 'follow recorded joint states and only track (replays); also implied by empty port'),
+    'video_device': ('', 'V4L2 device (index or path) read with OpenCV instead of subscribing image_raw'),
+    'video_fps': (30.0, 'frame rate to poll video_device at'),
+    'rig_file': ('', 'rig calibration YAML (DESIGN.md §4); empty = the package config/rig.yaml'),
+    'serial_timeout_s': (0.3, 'bound on every serial reply wait'),
+    'servo_gain': (0.9, 'fraction of the angular error corrected per command'),
+    'servo_deadband_px': (0.75, 'no command while the fixation is this close to the principal point'),
+    'servo_move_time_s': (0.08, 'speed codes chosen so a correction takes about this long'),
+    'servo_max_command_rate_hz': (15.0, 'AbsolutePosition commands per second at most (serial bandwidth)'),
+    'servo_feedforward': (True, 'lead a drifting fixation point by its estimated angular rate'),
+    'search_radius_px': (60.0, 'fixation selection window radius around the centre'),
+    'min_corner_score': (2e-4, 'minimum corner (min-eigenvalue) score of a fixation point'),
+    'template_half_px': (10, 'half size of the NCC validity template'),
+    'ncc_min': (0.7, 'template correlation below which the track counts as lost'),
+    'fb_max_px': (1.0, 'forward-backward LK error above which the track counts as lost'),
+    'border_margin_px': (40.0, 're-select when the fixation comes this close to the image border'),
+    'limit_margin_deg': (5.0, 're-select when pan/tilt comes this close to a limit'),
+    'limit_reselect_offset_px': (120.0, 'after a limit re-selection, pick the new point this far off centre '
+                                        'on the side that moves the head back into its range'),
+    'joint_max_wait_s': (0.25, 'how long an image stamp may wait for the PosInq reading after it'),
+    'diagnostics_period_s': (1.0, 'diagnostics publishing period'),
+}
+
+
+class CameraNode(Node):
+    def __init__(self, **kwargs) -> None:
+        super().__init__('camera_node', **kwargs)
+        for name, (default, text) in PARAMS.items():
+            self.declare_parameter(name, default, ParameterDescriptor(description=text))
+        g = lambda n: self.get_parameter(n).value  # noqa: E731
+        self.side = str(g('side'))
+        if self.side not in ('right', 'left'):
+            raise ValueError(f"side must be 'right' or 'left', got {self.side!r}")
+        rig = load_rig(g('rig_file') or default_rig_path())
+        self.camera = rig.camera(self.side)
+        self.calibration = rig.calibration(self.side)
+        self.profile = get_profile(str(g('profile')))
+        self.frame_id = f'{self.side}_optical_frame'
+        self.once = OnceLogger(self)
+        self.tracker = FixationTracker(self.camera, FixationParams(
+            search_radius_px=float(g('search_radius_px')), min_corner_score=float(g('min_corner_score')),
+            template_half=int(g('template_half_px')), ncc_min=float(g('ncc_min')),
+            fb_max_px=float(g('fb_max_px')), border_margin_px=float(g('border_margin_px'))))
+        pr = self.profile
+        self.limits = LimitCheck((pr.pan_rad(pr.pan_min), pr.pan_rad(pr.pan_max)),
+                                 (pr.tilt_rad(pr.tilt_min), pr.tilt_rad(pr.tilt_max)),
+                                 math.radians(float(g('limit_margin_deg'))), float(g('limit_reselect_offset_px')))
+        self.servo_params = ServoParams(gain=float(g('servo_gain')), deadband_px=float(g('servo_deadband_px')),
+                                        move_time_s=float(g('servo_move_time_s')),
+                                        max_command_rate_hz=float(g('servo_max_command_rate_hz')),
+                                        feedforward=bool(g('servo_feedforward')))
+        self.joint_max_wait_s = float(g('joint_max_wait_s'))
+        port = str(g('port'))
+        self.passive = bool(g('passive')) or not port
+        self.driver: ViscaCamera | None = None
+        self.loop: ServoLoop | None = None
+        self.servo = FixationServo(self.camera, self.profile, self.servo_params, self.calibration)
+        ns = f'/fixego/{self.side}'
+        self.joint_names = [f'{self.side}_pan', f'{self.side}_tilt']
+        self.pub_fix = self.create_publisher(PointStamped, f'{ns}/fixation', RELIABLE_QOS)
+        self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', RELIABLE_QOS)
+        self.pub_joint = None
+        if self.passive:
+            self.history = JointHistory()
+            self.create_subscription(JointState, f'{ns}/joint_states', self._on_joint_state, RELIABLE_QOS)
+        else:
+            self.driver = ViscaCamera(port, baud=int(g('baud')), address=int(g('address')), profile=self.profile,
+                                      timeout_s=float(g('serial_timeout_s')))
+            try:
+                self.driver.open()
+            except Exception as e:
+                self.get_logger().error(f'cannot open {port}: {e}; retrying in the background')
+            self.loop = ServoLoop(self.driver, self.servo_params, clock=self._now)
+            self.history = self.loop.history
+            self.pub_joint = self.create_publisher(JointState, f'{ns}/joint_states', RELIABLE_QOS)
+            self.loop.start()
+            self.create_timer(0.02, self._flush_joints)
+        self._pending: deque = deque(maxlen=200)
+        self.video = None
+        self.pub_image = None
+        vdev = str(g('video_device'))
+        if vdev:
+            import cv2
+            self.video = cv2.VideoCapture(int(vdev) if vdev.isdigit() else vdev)
+            if not self.video.isOpened():
+                self.get_logger().error(f'cannot open video device {vdev!r}')
+            self.pub_image = self.create_publisher(Image, f'{ns}/image_raw', SENSOR_QOS)
+            self.create_timer(1.0 / max(1.0, float(g('video_fps'))), self._poll_video)
+        else:
+            self.create_subscription(Image, f'{ns}/image_raw', self._on_image, SENSOR_QOS)
+        self.create_service(Trigger, '~/reselect', self._srv_reselect)
+        self.create_service(Trigger, '~/home', self._srv_home)
+        self.create_timer(float(g('diagnostics_period_s')), self._publish_diagnostics)
+        self.stats = {'frames': 0, 'frames_without_fixation': 0, 'joint_states': 0, 'joint_states_dropped': 0}
+        self.get_logger().info(
+            f'{self.side} camera: {"passive" if self.passive else f"VISCA on {port}"}, profile {self.profile.name}'
+            + ('' if self.profile.verified else ' (UNVERIFIED numbers: run `fixego ptz calibrate`)'))
+
+    # ---------------------------------------------------------------------------------------- time
+    def _now(self) -> float:
+        return self.get_clock().now().nanoseconds * 1e-9
+
+    # ---------------------------------------------------------------------------------------- input
+    def _on_joint_state(self, msg: JointState) -> None:
+        try:
+            i, j = msg.name.index(self.joint_names[0]), msg.name.index(self.joint_names[1])
+            self.history.add(stamp_to_sec(msg.header.stamp), float(msg.position[i]), float(msg.position[j]))
+        except (ValueError, IndexError):
+            self.once.warn('joint_names', f'joint_states without {self.joint_names}: ignored')
+
+    def _poll_video(self) -> None:
+        if self.video is None:
+            return
+        ok, frame = self.video.read()
+        if not ok:
+            self.once.warn('video', 'video device returned no frame')
+            return
+        self.once.clear('video', 'video device delivers frames again')
+        msg = array_to_image(frame, sec_to_stamp(self._now()), self.frame_id, encoding='bgr8')
+        if self.pub_image is not None:
+            self.pub_image.publish(msg)
+        self._on_image(msg)
+
+    def _on_image(self, msg: Image) -> None:
+        try:
+            gray = image_to_gray(msg)
+        except ImageError as e:
+            self.once.warn('image', f'image ignored: {e}')
+            return
+        if gray.shape != (self.camera.height, self.camera.width):
+            self.once.warn('size', f'image is {gray.shape[1]}x{gray.shape[0]} but the rig file says '
+                                   f'{self.camera.width}x{self.camera.height}: ignored')
+            return
+        self.once.clear('image')
+        self.once.clear('size')
+        self.stats['frames'] += 1
+        t = stamp_to_sec(msg.header.stamp)
+        if not self.passive:
+            self._pending.append(msg.header.stamp)
+            self._flush_joints()
+        joints = self.history.at(t, max_extrapolation_s=0.1)
+        if joints is not None:
+            offset = self.limits.check(*joints)
+            if offset is not None:
+                self.tracker.request_reselect('limit', offset)
+        st = self.tracker.update(gray, t)
+        if st.reselected:
+            self.servo.reset()
+            self.get_logger().info(f'fixation {st.fixation_id} selected at ({st.pixel[0]:.1f}, '
+                                   f'{st.pixel[1]:.1f}): {st.reason}')
+        if not st.valid:
+            self.stats['frames_without_fixation'] += 1
+            self.once.warn('fixation', f'no valid fixation point ({st.reason})')
+            if self.loop is not None:
+                self.loop.set_target(None)
+            return
+        self.once.clear('fixation', 'fixation point valid again')
+        out = PointStamped()
+        out.header.stamp = msg.header.stamp
+        out.header.frame_id = self.frame_id
+        out.point.x, out.point.y, out.point.z = float(st.pixel[0]), float(st.pixel[1]), float(st.fixation_id)
+        self.pub_fix.publish(out)
+        if self.loop is not None:
+            if joints is None:
+                self.once.warn('joints', 'no recent pan/tilt reading: not servoing')
+                return
+            self.once.clear('joints')
+            self.loop.set_target(self.servo.target(st.pixel, joints, t, self._now()))
+
+    def _flush_joints(self) -> None:
+        """Publish joint states for image stamps once a reading after them exists (interpolation)."""
+        latest = self.history.latest()
+        now = self._now()
+        while self._pending:
+            stamp = self._pending[0]
+            t = stamp_to_sec(stamp)
+            if latest is not None and latest[0] >= t:
+                q = self.history.at(t, max_extrapolation_s=0.0)
+            elif now - t > self.joint_max_wait_s:
+                q = None
+            else:
+                return
+            self._pending.popleft()
+            if q is None:
+                self.stats['joint_states_dropped'] += 1
+                self.once.warn('joint_drop', 'no PosInq readings around an image stamp: joint state dropped')
+                continue
+            self.once.clear('joint_drop')
+            js = JointState()
+            js.header.stamp = stamp
+            js.header.frame_id = ''
+            js.name = list(self.joint_names)
+            js.position = [float(q[0]), float(q[1])]
+            self.pub_joint.publish(js)
+            self.stats['joint_states'] += 1
+
+    # ---------------------------------------------------------------------------------------- services
+    def _srv_reselect(self, request, response):
+        self.tracker.request_reselect('manual')
+        response.success = True
+        response.message = 'a new fixation point will be selected on the next frame'
+        return response
+
+    def _srv_home(self, request, response):
+        if self.loop is None:
+            response.success = False
+            response.message = 'passive mode: no serial port'
+            return response
+        self.loop.request_home()
+        self.tracker.request_reselect('home')
+        response.success = True
+        response.message = 'homing'
+        return response
+
+    # ---------------------------------------------------------------------------------------- diagnostics
+    def _publish_diagnostics(self) -> None:
+        st = self.tracker.last
+        values: dict[str, object] = dict(self.stats)
+        values.update({
+            'mode': 'passive' if self.passive else 'active',
+            'fixation_id': st.fixation_id if st else -1,
+            'fixation_valid': bool(st and st.valid),
+            'fixation_age_s': round(st.age_s, 3) if st else 0.0,
+            'tracking_quality': round(st.quality, 3) if st else 0.0,
+            'last_reason': st.reason if st else '',
+            'reselections': len(self.tracker.reselections),
+        })
+        level, message = OK, 'tracking'
+        if not (st and st.valid):
+            level, message = WARN, f'no valid fixation ({st.reason if st else "no image yet"})'
+        if self.driver is not None and self.loop is not None:
+            values.update({f'serial_{k}': v for k, v in self.driver.stats.items()})
+            values.update({'serial_state': self.driver.state, 'serial_comm_errors': self.driver.comm_errors,
+                           'serial_last_error': self.driver.last_error,
+                           'servo_loop_hz': round(self.loop.loop_rate_hz(), 2),
+                           'servo_commands': self.loop.stats['commands']})
+            if not self.driver.connected:
+                level, message = ERROR, f'serial port {self.driver.state}: {self.driver.last_error}'
+        publish_diagnostics(self, self.pub_diag, [diagnostic_status(
+            f'fixego camera_node {self.side}', self.driver.port if self.driver else 'passive', level, message,
+            values)])
+
+    def destroy_node(self) -> None:
+        if self.loop is not None:
+            self.loop.stop()
+        if self.driver is not None:
+            self.driver.close()
+        if self.video is not None:
+            self.video.release()
+        super().destroy_node()
+
+
+def main(args: list[str] | None = None) -> None:
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = CameraNode()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == '__main__':
+    main()

@@ -1,0 +1,241 @@
+"""sim_rig_node: the simulated rig, live. Two VISCA cameras on pseudo-terminals plus rendered images.
+
+The node moves the rig along a trajectory in (scaled) wall-clock time and, at the frame rate, renders
+each camera's view from the rig pose and the *true* pan/tilt of that camera's VISCA emulator, so two
+real ``camera_node``s driving the emulators over serial close the fixation loop exactly as on a rig.
+It publishes images and camera_info for both cameras, the true pose on ``/fixego/ground_truth/pose``
+(``base_link`` in ``odom``, ``odom`` = base_link at the first frame), and ``/diagnostics``. The pty
+paths are logged and written as JSON ``{"right": ..., "left": ...}`` to ``pty_file``.
+
+When the trajectory ends it publishes a final diagnostics status and, with ``exit_at_end``, stops
+(``main`` returns); otherwise it keeps rendering the final pose (or loops, with ``loop``).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseStamped
+from rcl_interfaces.msg import ParameterDescriptor, ParameterType
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from sensor_msgs.msg import CameraInfo, Image
+
+from fixego_ros.geometry.rig import default_rig_path, load_rig
+from fixego_ros.geometry.rotation import Pose, rig_pose_to_base_link
+from fixego_ros.nodes.common import (
+    OK,
+    RELIABLE_QOS,
+    SENSOR_QOS,
+    WARN,
+    array_to_image,
+    diagnostic_status,
+    publish_diagnostics,
+)
+from fixego_ros.sim.bag_writer import camera_info_msg, pose_msg
+from fixego_ros.sim.render import Renderer
+from fixego_ros.sim.run import resize_rig, rig_with_hfov
+from fixego_ros.sim.trajectories import NAMES, make_trajectory
+from fixego_ros.sim.world import make_room
+
+SIDES = ('right', 'left')
+
+
+def _desc(text: str, kind: int, read_only: bool = True) -> ParameterDescriptor:
+    return ParameterDescriptor(description=text, type=kind, read_only=read_only)
+
+
+class SimRigNode(Node):
+    """Renders the rig's two cameras from the trajectory and the emulated heads' true angles."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__('sim_rig_node', **kwargs)
+        S, D, I, B = (ParameterType.PARAMETER_STRING, ParameterType.PARAMETER_DOUBLE,
+                      ParameterType.PARAMETER_INTEGER, ParameterType.PARAMETER_BOOL)
+        params = {
+            'trajectory': ('paper', _desc(f'trajectory: {", ".join(NAMES)}', S)),
+            'speed': (0.0, _desc('rig speed in m/s (0: the trajectory default)', D)),
+            'duration': (0.0, _desc('truncate the trajectory to this many seconds (0: whole)', D)),
+            'fps': (30.0, _desc('frame rate of both cameras', D)),
+            'time_scale': (1.0, _desc('trajectory seconds per wall-clock second (0 freezes the rig)', D)),
+            'rig_file': ('', _desc('rig calibration file (empty: config/rig.yaml)', S)),
+            'width': (0, _desc('image width (0: the rig file; intrinsics scaled)', I)),
+            'height': (0, _desc('image height (0: the rig file; intrinsics scaled)', I)),
+            'hfov_deg': (0.0, _desc('horizontal angle of view in deg (0: the rig file; papers: 21)', D)),
+            'seed': (0, _desc('seed of textures, noise and the random trajectory', I)),
+            'encoding': ('mono8', _desc('mono8 or rgb8', S)),
+            'noise_sigma': (2.0, _desc('sensor noise sigma in grey levels', D)),
+            'texel': (0.002, _desc('texture resolution in m', D)),
+            'loop': (False, _desc('restart the trajectory at its end', B)),
+            'exit_at_end': (True, _desc('shut the node down when the trajectory ends (not looping)', B)),
+            'pty_file': ('/tmp/fixego_sim_ptys.json', _desc('JSON file receiving the two pty paths', S)),
+            'profile': ('evi_d30', _desc('VISCA camera profile of the emulators', S)),
+            'baud': (9600, _desc('emulated serial baud rate', I)),
+            'start_pan_deg_right': (22.5, _desc('initial pan of the right head (deg)', D)),
+            'start_pan_deg_left': (-22.5, _desc('initial pan of the left head (deg)', D)),
+            'start_tilt_deg': (0.0, _desc('initial tilt of both heads (deg)', D)),
+        }
+        for name, (default, desc) in params.items():
+            self.declare_parameter(name, default, desc)
+        p = {name: self.get_parameter(name).value for name in params}
+        if p['trajectory'] not in NAMES:
+            raise ValueError(f'trajectory must be one of {NAMES}, got {p["trajectory"]!r}')
+        if p['fps'] <= 0:
+            raise ValueError(f'fps must be > 0, got {p["fps"]}')
+        self.p = p
+
+        rig = load_rig(p['rig_file'] or default_rig_path())
+        if p['width'] > 0 or p['height'] > 0:
+            w = p['width'] or round(rig.right.width * p['height'] / rig.right.height)
+            h = p['height'] or round(rig.right.height * p['width'] / rig.right.width)
+            rig = resize_rig(rig, w, h)
+        if p['hfov_deg'] > 0:
+            rig = rig_with_hfov(rig, p['hfov_deg'])
+        self.rig = rig
+        self.trajectory = make_trajectory(p['trajectory'], speed=p['speed'] or None, seed=p['seed'],
+                                          duration=p['duration'] or None)
+        t_build = time.monotonic()
+        world = make_room(p['seed'], p['texel'])
+        self.renderer = Renderer(world, rig, p['encoding'], p['noise_sigma'], p['seed'])
+        self.get_logger().info(f'world ready in {time.monotonic() - t_build:.1f} s '
+                               f'({world.memory_bytes() / 1e6:.0f} MB of texture)')
+        self._inv0: Pose | None = None  # odom = base_link at the first published frame
+
+        from fixego_ros.visca.emulator import ViscaEmulator
+        self.emulators = {}
+        self.ptys: dict[str, str] = {}
+        for side in SIDES:
+            emu = ViscaEmulator(profile=p['profile'], address=1, baud=p['baud'],
+                                start_pan_deg=p[f'start_pan_deg_{side}'], start_tilt_deg=p['start_tilt_deg'])
+            self.ptys[side] = emu.start()
+            self.emulators[side] = emu
+        self._write_pty_file()
+        self.get_logger().info(f'VISCA emulators: right {self.ptys["right"]}, left {self.ptys["left"]} '
+                               f'(written to {p["pty_file"] or "-"})')
+
+        self.pub_image = {s: self.create_publisher(Image, f'/fixego/{s}/image_raw', SENSOR_QOS) for s in SIDES}
+        self.pub_info = {s: self.create_publisher(CameraInfo, f'/fixego/{s}/camera_info', SENSOR_QOS)
+                         for s in SIDES}
+        self.pub_gt = self.create_publisher(PoseStamped, '/fixego/ground_truth/pose', RELIABLE_QOS)
+        self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', RELIABLE_QOS)
+
+        self.frames = 0
+        self.finished = False
+        self._ended = False
+        self._render_ms: list[float] = []
+        self._t0 = time.monotonic()
+        self._loop_offset = 0.0
+        self.timer = self.create_timer(1.0 / p['fps'], self._tick)
+        self.diag_timer = self.create_timer(1.0, self._diagnostics)
+
+    # ------------------------------------------------------------------------------------------
+    def _write_pty_file(self) -> None:
+        path = self.p['pty_file']
+        if not path:
+            return
+        path = Path(path)
+        tmp = path.with_name(f'.{path.name}.{os.getpid()}')
+        tmp.write_text(json.dumps(self.ptys))
+        os.replace(tmp, path)
+
+    def sim_time(self, now: float) -> float:
+        """Trajectory time at monotonic time ``now``."""
+        return (now - self._t0) * self.p['time_scale'] - self._loop_offset
+
+    def _tick(self) -> None:
+        try:
+            self._frame()
+        except Exception:
+            if self.context.ok():
+                raise
+            # Ctrl-C shut the context down while we were publishing: not an error
+
+    def _frame(self) -> None:
+        now = time.monotonic()
+        stamp = self.get_clock().now().to_msg()
+        t = self.sim_time(now)
+        if t > self.trajectory.duration and not self._ended:
+            if self.p['loop'] and self.trajectory.duration > 0:
+                self._loop_offset += self.trajectory.duration
+                t -= self.trajectory.duration
+            else:
+                self._end()
+                if self.finished:
+                    return
+        pose = self.trajectory.pose_at(t)
+        t_render = time.perf_counter()
+        for side in SIDES:
+            pan, tilt = self.emulators[side].pan_tilt_rad(now)
+            img = self.renderer.render(side, pose, pan, tilt)
+            self.pub_image[side].publish(array_to_image(img, stamp, f'{side}_optical_frame', self.p['encoding']))
+            info = camera_info_msg(self.rig, side, 0.0)
+            info.header.stamp = stamp
+            self.pub_info[side].publish(info)
+        self._render_ms.append((time.perf_counter() - t_render) * 1e3 / 2)
+        if self._inv0 is None:
+            self._inv0 = pose.inverse()
+        gt = pose_msg(rig_pose_to_base_link(self._inv0 @ pose), 0.0)
+        gt.header.stamp = stamp
+        self.pub_gt.publish(gt)
+        self.frames += 1
+
+    def _end(self) -> None:
+        self._ended = True
+        publish_diagnostics(self, self.pub_diag, [self._status(OK, 'trajectory finished')])
+        self.get_logger().info(f'trajectory {self.p["trajectory"]!r} finished after {self.frames} frames')
+        if self.p['exit_at_end']:
+            self.finished = True
+            self.timer.cancel()
+
+    def _status(self, level, message: str):
+        ms = np.array(self._render_ms[-100:]) if self._render_ms else np.zeros(1)
+        return diagnostic_status('fixego: sim_rig', 'sim_rig_node', level, message, {
+            'trajectory': self.p['trajectory'], 'frames': self.frames,
+            'sim_time_s': f'{min(self.sim_time(time.monotonic()), self.trajectory.duration):.2f}',
+            'duration_s': f'{self.trajectory.duration:.2f}', 'render_ms_per_camera': f'{np.median(ms):.2f}',
+            'pty_right': self.ptys.get('right', ''), 'pty_left': self.ptys.get('left', '')})
+
+    def _diagnostics(self) -> None:
+        if self.finished:
+            return
+        late = len(self._render_ms) > 10 and np.median(self._render_ms[-30:]) * 2 > 1e3 / self.p['fps']
+        level, msg = (WARN, 'rendering slower than the frame rate') if late else (OK, 'running')
+        publish_diagnostics(self, self.pub_diag, [self._status(level, 'finished' if self._ended else msg)])
+
+    def close(self) -> None:
+        """Stop the emulators and remove the pty file if it is still ours."""
+        for emu in self.emulators.values():
+            emu.stop()
+        path = self.p.get('pty_file')
+        if path and os.path.exists(path):
+            try:
+                if json.loads(Path(path).read_text()) == self.ptys:
+                    os.remove(path)
+            except (OSError, ValueError):
+                pass
+
+
+def main(args=None) -> None:
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = SimRigNode()
+        while rclpy.ok() and not node.finished:
+            rclpy.spin_once(node, timeout_sec=0.1)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.close()
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == '__main__':
+    main()

@@ -1,0 +1,203 @@
+"""Write a simulated sequence as an image-level rosbag2/MCAP bag with the topic contract of DESIGN.md §3.
+
+Storage and ``metadata.yaml`` come from ``rosbags`` (rosbag2 format version 9, with offered QoS
+profiles and RIHS01 type hashes, which is what ``ros2 bag info/play`` expect); the messages are real
+ROS 2 messages serialised to CDR by rclpy, so what a subscriber gets from ``ros2 bag play`` is
+value-identical to what the nodes would publish (alignment padding is zeroed for reproducibility,
+see :func:`canonical_cdr`).
+
+Topics (namespace ``/fixego``): ``{right,left}/image_raw``, ``{right,left}/camera_info``,
+``{right,left}/joint_states``, ``ground_truth/pose`` and, simulator only,
+``ground_truth/{right,left}/fixation`` (geometry_msgs/PointStamped: ``point.x, point.y`` = true pixel
+of the servo's fixation point, no message while it is behind the camera; ``point.z`` = fixation id, which
+increases by one at each re-selection).
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from fixego_ros.geometry.rig import Rig
+from fixego_ros.geometry.rotation import Pose, quat_xyzw
+from fixego_ros.sim.run import Frame, SimSettings, Simulation
+
+NS = '/fixego'
+SIDES = ('right', 'left')
+
+
+def topics() -> dict[str, str]:
+    """Topic -> message type of a simulated bag, in writing order."""
+    out = {f'{NS}/ground_truth/pose': 'geometry_msgs/msg/PoseStamped'}
+    for side in SIDES:
+        out[f'{NS}/{side}/image_raw'] = 'sensor_msgs/msg/Image'
+        out[f'{NS}/{side}/camera_info'] = 'sensor_msgs/msg/CameraInfo'
+        out[f'{NS}/{side}/joint_states'] = 'sensor_msgs/msg/JointState'
+        out[f'{NS}/ground_truth/{side}/fixation'] = 'geometry_msgs/msg/PointStamped'
+    return out
+
+
+def camera_info_msg(rig: Rig, side: str, t: float):
+    from sensor_msgs.msg import CameraInfo
+
+    from fixego_ros.nodes.common import sec_to_stamp
+    cam = rig.camera(side)
+    msg = CameraInfo()
+    msg.header.stamp = sec_to_stamp(t)
+    msg.header.frame_id = f'{side}_optical_frame'
+    msg.width, msg.height = cam.width, cam.height
+    msg.distortion_model = 'plumb_bob'
+    msg.d = [float(x) for x in cam.dist]
+    msg.k = [float(x) for x in cam.K.ravel()]
+    msg.r = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
+    msg.p = [cam.fx, 0.0, cam.cx, 0.0, 0.0, cam.fy, cam.cy, 0.0, 0.0, 0.0, 1.0, 0.0]
+    return msg
+
+
+def pose_msg(pose: Pose, t: float, frame_id: str = 'odom'):
+    from geometry_msgs.msg import PoseStamped
+
+    from fixego_ros.nodes.common import sec_to_stamp
+    msg = PoseStamped()
+    msg.header.stamp = sec_to_stamp(t)
+    msg.header.frame_id = frame_id
+    msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = (float(x) for x in pose.t)
+    q = quat_xyzw(pose.R)
+    o = msg.pose.orientation
+    o.x, o.y, o.z, o.w = (float(x) for x in q)
+    return msg
+
+
+def frame_messages(frame: Frame, rig: Rig, epoch: float, encoding: str) -> list[tuple[str, object]]:
+    """(topic, message) pairs of one frame, in a fixed order."""
+    from geometry_msgs.msg import PointStamped
+    from sensor_msgs.msg import JointState
+
+    from fixego_ros.nodes.common import array_to_image, sec_to_stamp
+
+    t = epoch + frame.t
+    out: list[tuple[str, object]] = [(f'{NS}/ground_truth/pose', pose_msg(frame.gt_base, t))]
+    for side in SIDES:
+        st = frame.states[side]
+        stamp = sec_to_stamp(t)
+        im = array_to_image(frame.images[side], stamp, f'{side}_optical_frame', encoding)
+        js = JointState()
+        js.header.stamp = stamp
+        js.name = [f'{side}_pan', f'{side}_tilt']
+        js.position = [float(st.pan_reading), float(st.tilt_reading)]
+        out += [(f'{NS}/{side}/image_raw', im), (f'{NS}/{side}/camera_info', camera_info_msg(rig, side, t)),
+                (f'{NS}/{side}/joint_states', js)]
+        if np.all(np.isfinite(st.pixel)):   # no message (never NaN) while the point is behind the camera
+            fx = PointStamped()
+            fx.header.stamp = stamp
+            fx.header.frame_id = f'{side}_optical_frame'
+            fx.point.x, fx.point.y = float(st.pixel[0]), float(st.pixel[1])
+            fx.point.z = float(st.fixation_id)
+            out.append((f'{NS}/ground_truth/{side}/fixation', fx))
+    return out
+
+
+def _qos(sensor: bool):
+    from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
+    infinite = QosTime(9223372036, 854775807)
+    return Qos(QosHistory.KEEP_LAST, 5 if sensor else 10,
+               QosReliability.BEST_EFFORT if sensor else QosReliability.RELIABLE,
+               QosDurability.VOLATILE, infinite, infinite, QosLiveliness.AUTOMATIC, infinite, False)
+
+
+def canonical_cdr(msg, msgtype: str, typestore) -> bytes:
+    """rclpy's CDR encoding of ``msg`` with zeroed alignment padding and no trailing bytes.
+
+    rclpy (Fast-CDR) leaves padding bytes uninitialised and may append a few junk bytes after the
+    message (which ``rosbags``' strict reader rejects), so the same message would serialise to
+    different bytes from run to run. Re-encoding the decoded fields through rosbags fixes both; the
+    result is checked to decode with rclpy to exactly the original message.
+    """
+    from rclpy.serialization import deserialize_message, serialize_message
+
+    raw = serialize_message(msg)
+    msgdef = typestore.get_msgdef(msgtype)
+    decoder = msgdef.deserialize_cdr_le if raw[1] == 1 else msgdef.deserialize_cdr_be
+    fields, _ = decoder(raw[4:], 0, msgdef.cls, typestore)
+    out = bytes(typestore.serialize_cdr(fields, msgtype, little_endian=raw[1] == 1))
+    back = deserialize_message(out, type(msg))
+    if back != msg:
+        raise ValueError(f'{msgtype}: CDR re-encoding changed the message')
+    return out
+
+
+class Progress:
+    """Plain-text progress bar on stderr (at most ~4 updates per second)."""
+
+    def __init__(self, total: int, label: str, enabled: bool = True, stream=None) -> None:
+        self.total, self.label, self.enabled = max(total, 1), label, enabled
+        self.stream = stream or sys.stderr
+        self.start = time.monotonic()
+        self._last = -1.0
+
+    def update(self, done: int) -> None:
+        now = time.monotonic()
+        if not self.enabled or (now - self._last < 0.25 and done < self.total):
+            return
+        self._last = now
+        frac = done / self.total
+        rate = done / max(now - self.start, 1e-9)
+        eta = (self.total - done) / rate if rate > 0 else 0.0
+        bar = '#' * int(30 * frac) + '.' * (30 - int(30 * frac))
+        self.stream.write(f'\r{self.label} [{bar}] {done}/{self.total} frames  {rate:5.1f} fps  ETA {eta:5.1f} s')
+        if done >= self.total:
+            self.stream.write('\n')
+        self.stream.flush()
+
+
+@dataclass
+class BagSummary:
+    path: Path
+    frames: int
+    messages: int
+    duration_s: float
+    bytes: int
+    reselections: dict[str, int]
+    wall_s: float
+
+
+def write_bag(out_dir: str | Path, rig: Rig, settings: SimSettings | None = None, progress: bool = True,
+              sim: Simulation | None = None) -> BagSummary:
+    """Simulate ``settings`` on ``rig`` and write the bag directory ``out_dir`` (must not exist)."""
+    settings = settings or (sim.s if sim is not None else SimSettings())
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    out_dir = Path(out_dir)
+    if out_dir.exists():
+        raise FileExistsError(f'{out_dir} exists already; rosbag2 directories are never overwritten')
+    sim = sim or Simulation(rig, settings)
+    typestore = get_typestore(Stores.ROS2_JAZZY)
+    wall0 = time.monotonic()
+    bar = Progress(len(sim), f'fixego sim {settings.trajectory}', progress)
+    n_msgs = 0
+    with Writer(out_dir, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        writer.set_custom_data('fixego_sim', ' '.join(f'{k}={v}' for k, v in settings.to_dict().items()))
+        conns = {topic: writer.add_connection(topic, msgtype, typestore=typestore,
+                                              offered_qos_profiles=[_qos(topic.endswith('image_raw'))])
+                 for topic, msgtype in topics().items()}
+        for frame in sim.frames():
+            stamp_ns = round((settings.epoch + frame.t) * 1e9)
+            for topic, msg in frame_messages(frame, rig, settings.epoch, settings.encoding):
+                writer.write(conns[topic], stamp_ns, canonical_cdr(msg, conns[topic].msgtype, typestore))
+                n_msgs += 1
+            bar.update(frame.index + 1)
+    rig.save(out_dir / 'rig.yaml')
+    meta = {'simulator': settings.to_dict(),
+            'topics_simulator_only': [f'{NS}/ground_truth/{s}/fixation' for s in SIDES],
+            'step_marks_s': None if sim.trajectory.marks is None
+            else [float(settings.epoch + m) for m in sim.trajectory.marks]}
+    (out_dir / 'sim.yaml').write_text(yaml.safe_dump(meta, sort_keys=False))
+    size = sum(f.stat().st_size for f in out_dir.iterdir() if f.is_file())
+    return BagSummary(out_dir, len(sim), n_msgs, float(sim.stamps[-1]), size,
+                      {s: sv.reselections for s, sv in sim.servos.items()}, time.monotonic() - wall0)

@@ -1,0 +1,225 @@
+"""Fixation point selection and tracking on grey images (ROS-free; also used offline by the replay).
+
+A fixation point is a well-textured static scene point that the servo keeps at the image centre.
+Selection picks the strongest corner (minimum eigenvalue of the structure tensor) near a preferred
+pixel, weighted towards it. Tracking is pyramidal Lucas-Kanade with two validity checks: the
+forward-backward error and the normalised cross-correlation against the template taken at selection
+(so slow drift onto another structure is caught). A new point, with a new id, is selected when the
+track fails, the point nears the image border, or the caller asks (manual, pan/tilt near a limit).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from fixego_ros.geometry.rig import CameraModel
+
+
+@dataclass
+class FixationParams:
+    search_radius_px: float = 60.0     # selection window radius around the preferred pixel
+    min_corner_score: float = 2e-4     # min-eigenvalue score (image scaled to 0..1) a point must reach
+    corner_block: int = 7
+    template_half: int = 10            # template is (2h+1)^2 px
+    lk_win: int = 21
+    lk_levels: int = 3
+    fb_max_px: float = 1.0             # forward-backward error bound
+    ncc_min: float = 0.7               # template correlation bound
+    border_margin_px: float = 40.0     # re-select when the point comes this close to the border
+    max_age_s: float = 0.0             # > 0: re-select points older than this
+
+
+@dataclass(frozen=True)
+class FixationState:
+    pixel: tuple[float, float] | None  # (u, v) in the raw image, None when there is no valid fixation
+    fixation_id: int                   # increments on each re-selection; -1 before the first
+    quality: float                     # template NCC in [-1, 1] (1 at selection)
+    reselected: bool                   # this frame started a new fixation
+    reason: str                        # why it was (re)selected or why it is invalid; '' when tracking
+    stamp: float
+    age_s: float = 0.0
+
+    @property
+    def valid(self) -> bool:
+        return self.pixel is not None
+
+
+@dataclass
+class _Track:
+    pixel: np.ndarray
+    template: np.ndarray
+    fixation_id: int
+    t_selected: float
+
+
+@dataclass
+class Reselection:
+    stamp: float
+    fixation_id: int
+    reason: str
+    pixel: tuple[float, float]
+
+
+class FixationTracker:
+    """Feed grey frames in order with :meth:`update`; call :meth:`request_reselect` to force a new point."""
+
+    def __init__(self, camera: CameraModel, params: FixationParams | None = None) -> None:
+        self.camera = camera
+        self.params = params or FixationParams()
+        self._prev: np.ndarray | None = None
+        self._track: _Track | None = None
+        self._next_id = 0
+        self._request: tuple[str, tuple[float, float]] | None = None
+        self.reselections: list[Reselection] = []
+        self.last: FixationState | None = None
+
+    @property
+    def fixation_id(self) -> int:
+        return self._track.fixation_id if self._track else self._next_id - 1
+
+    def request_reselect(self, reason: str = 'manual', offset_px: tuple[float, float] = (0.0, 0.0)) -> None:
+        """Select a new point on the next frame, near the centre plus ``offset_px``."""
+        self._request = (reason, (float(offset_px[0]), float(offset_px[1])))
+
+    def reset(self) -> None:
+        self._prev, self._track, self._request = None, None, None
+
+    # ------------------------------------------------------------------------------------------------
+    def update(self, gray: np.ndarray, stamp: float) -> FixationState:
+        gray = np.ascontiguousarray(gray if gray.ndim == 2 else cv2.cvtColor(gray, cv2.COLOR_BGR2GRAY))
+        if gray.dtype != np.uint8:
+            gray = np.clip(gray, 0, 255).astype(np.uint8)
+        state = self._update(gray, float(stamp))
+        self._prev = gray
+        self.last = state
+        return state
+
+    def _update(self, gray: np.ndarray, stamp: float) -> FixationState:
+        p = self.params
+        if self._request is not None:
+            reason, offset = self._request
+            self._request = None
+            return self._select(gray, stamp, reason, offset)
+        if self._track is None or self._prev is None or self._prev.shape != gray.shape:
+            return self._select(gray, stamp, 'initial' if self._next_id == 0 else 'lost')
+        ok, pixel, quality, why = self._follow(gray)
+        if ok and not self._near_border(pixel):
+            if p.max_age_s > 0 and stamp - self._track.t_selected > p.max_age_s:
+                return self._select(gray, stamp, 'max_age')
+            self._track.pixel = pixel
+            return FixationState((float(pixel[0]), float(pixel[1])), self._track.fixation_id, quality, False, '',
+                                 stamp, stamp - self._track.t_selected)
+        return self._select(gray, stamp, why if not ok else 'left_image')
+
+    def _near_border(self, px: np.ndarray) -> bool:
+        m = self.params.border_margin_px
+        h, w = self.camera.height, self.camera.width
+        return bool(px[0] < m or px[1] < m or px[0] > w - 1 - m or px[1] > h - 1 - m)
+
+    def _patch(self, gray: np.ndarray, px: np.ndarray) -> np.ndarray | None:
+        h = self.params.template_half
+        size = 2 * h + 1
+        if (px[0] < h + 1 or px[1] < h + 1 or px[0] > gray.shape[1] - h - 2 or px[1] > gray.shape[0] - h - 2):
+            return None
+        return cv2.getRectSubPix(gray, (size, size), (float(px[0]), float(px[1]))).astype(np.float32)
+
+    @staticmethod
+    def _ncc(a: np.ndarray, b: np.ndarray) -> float:
+        a = a - a.mean()
+        b = b - b.mean()
+        den = math.sqrt(float((a * a).sum()) * float((b * b).sum()))
+        return float((a * b).sum() / den) if den > 1e-9 else 0.0
+
+    def _follow(self, gray: np.ndarray) -> tuple[bool, np.ndarray, float, str]:
+        p, tr = self.params, self._track
+        assert tr is not None and self._prev is not None
+        lk = {'winSize': (p.lk_win, p.lk_win), 'maxLevel': p.lk_levels,
+              'criteria': (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)}
+        p0 = tr.pixel.reshape(1, 1, 2).astype(np.float32)
+        p1, st1, _ = cv2.calcOpticalFlowPyrLK(self._prev, gray, p0, None, **lk)
+        if p1 is None or not st1[0, 0]:
+            return False, tr.pixel, 0.0, 'lost'
+        back, st2, _ = cv2.calcOpticalFlowPyrLK(gray, self._prev, p1, None, **lk)
+        if back is None or not st2[0, 0] or float(np.linalg.norm(back - p0)) > p.fb_max_px:
+            return False, tr.pixel, 0.0, 'lost'
+        px = p1.reshape(2).astype(np.float64)
+        patch = self._patch(gray, px)
+        if patch is None:
+            return False, px, 0.0, 'left_image'
+        q = self._ncc(tr.template, patch)
+        if q < p.ncc_min:
+            return False, px, q, 'lost'
+        return True, px, q, ''
+
+    def _select(self, gray: np.ndarray, stamp: float, reason: str,
+                offset: tuple[float, float] = (0.0, 0.0)) -> FixationState:
+        p = self.params
+        cam = self.camera
+        h, w = gray.shape
+        m = max(p.border_margin_px, p.template_half + 2)
+        cx = min(max(cam.cx + offset[0], m), w - 1 - m)
+        cy = min(max(cam.cy + offset[1], m), h - 1 - m)
+        r = p.search_radius_px
+        x0, x1 = int(max(m, cx - r)), int(min(w - m, cx + r + 1))
+        y0, y1 = int(max(m, cy - r)), int(min(h - m, cy + r + 1))
+        self._track = None
+        if x1 - x0 < 3 or y1 - y0 < 3:
+            return FixationState(None, self.fixation_id, 0.0, False, 'no_texture', stamp)
+        pad = p.corner_block
+        roi = gray[max(0, y0 - pad):y1 + pad, max(0, x0 - pad):x1 + pad].astype(np.float32) / 255.0
+        score = cv2.cornerMinEigenVal(roi, p.corner_block, 3)
+        oy, ox = y0 - max(0, y0 - pad), x0 - max(0, x0 - pad)
+        score = score[oy:oy + (y1 - y0), ox:ox + (x1 - x0)]
+        yy, xx = np.mgrid[y0:y1, x0:x1]
+        weight = np.exp(-((xx - cx) ** 2 + (yy - cy) ** 2) / (2.0 * (0.5 * r) ** 2))
+        weighted = score * weight
+        iy, ix = np.unravel_index(int(np.argmax(weighted)), weighted.shape)
+        if score[iy, ix] < p.min_corner_score:
+            return FixationState(None, self.fixation_id, 0.0, False, 'no_texture', stamp)
+        pt = np.array([[[x0 + ix, y0 + iy]]], dtype=np.float32)
+        cv2.cornerSubPix(gray, pt, (3, 3), (-1, -1), (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.01))
+        px = pt.reshape(2).astype(np.float64)
+        template = self._patch(gray, px)
+        if template is None:
+            return FixationState(None, self.fixation_id, 0.0, False, 'no_texture', stamp)
+        fid = self._next_id
+        self._next_id += 1
+        self._track = _Track(px, template, fid, stamp)
+        pixel = (float(px[0]), float(px[1]))
+        self.reselections.append(Reselection(stamp, fid, reason, pixel))
+        return FixationState(pixel, fid, 1.0, True, reason, stamp, 0.0)
+
+
+@dataclass
+class LimitCheck:
+    """Decides when pan/tilt is close enough to a limit that a new fixation point should be chosen, and
+    where: on the side of the image that moves the camera back towards the middle of its range."""
+
+    pan_range_rad: tuple[float, float]
+    tilt_range_rad: tuple[float, float]
+    margin_rad: float = math.radians(5.0)
+    offset_px: float = 120.0
+    armed: dict[str, bool] = field(default_factory=lambda: {'pan': True, 'tilt': True})
+
+    def check(self, pan: float, tilt: float) -> tuple[float, float] | None:
+        """Pixel offset (du, dv) for a re-selection, or None. VISCA signs: + pan right, + tilt up."""
+        du = dv = 0.0
+        lo, hi = self.pan_range_rad
+        if pan > hi - self.margin_rad:
+            du = -self.offset_px
+        elif pan < lo + self.margin_rad:
+            du = self.offset_px
+        lo, hi = self.tilt_range_rad
+        if tilt > hi - self.margin_rad:
+            dv = self.offset_px          # look lower: a point below the centre (larger v)
+        elif tilt < lo + self.margin_rad:
+            dv = -self.offset_px
+        fire = (du != 0.0 and self.armed['pan']) or (dv != 0.0 and self.armed['tilt'])
+        # re-arm only once the axis is clear of the margin, so one approach triggers one re-selection
+        self.armed['pan'] = du == 0.0
+        self.armed['tilt'] = dv == 0.0
+        return (du, dv) if fire else None

@@ -1,0 +1,269 @@
+"""Fixation servo (ROS-free): absolute pan/tilt targets from the fixation pixel, and the serial loop.
+
+Why absolute positions: the target is computed from the joint angles *at the image time* (interpolated
+from timed PosInq readings), so the command is right however late it is sent; velocity commands would
+integrate the latency into overshoot. The serial loop alternates one PosInq (~17 ms at 9600 baud)
+with at most one AbsolutePosition (~20 ms incl. ACK) when a new target exists and the command-rate
+limit allows, so the port is never flooded and joint readings keep coming at a steady rate.
+"""
+
+from __future__ import annotations
+
+import bisect
+import math
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from fixego_ros.geometry.rig import CameraModel, PanTiltCalibration, pan_tilt_rotation
+from fixego_ros.visca import protocol as vp
+from fixego_ros.visca.driver import ViscaCamera
+from fixego_ros.visca.profiles import CameraProfile
+
+
+class JointHistory:
+    """Timed joint readings; linear interpolation to an image stamp (bounded extrapolation)."""
+
+    def __init__(self, maxlen: int = 512) -> None:
+        self._t: deque[float] = deque(maxlen=maxlen)
+        self._q: deque[tuple[float, float]] = deque(maxlen=maxlen)
+        self._lock = threading.Lock()
+
+    def add(self, t: float, pan: float, tilt: float) -> None:
+        with self._lock:
+            if self._t and t <= self._t[-1]:
+                return
+            self._t.append(t)
+            self._q.append((pan, tilt))
+
+    def __len__(self) -> int:
+        return len(self._t)
+
+    def latest(self) -> tuple[float, float, float] | None:
+        with self._lock:
+            return (self._t[-1], *self._q[-1]) if self._t else None
+
+    def at(self, t: float, max_extrapolation_s: float = 0.05) -> tuple[float, float] | None:
+        with self._lock:
+            if not self._t:
+                return None
+            ts = list(self._t)
+            i = bisect.bisect_left(ts, t)
+            if i == 0:
+                return self._q[0] if ts[0] - t <= max_extrapolation_s else None
+            if i == len(ts):
+                # beyond the last reading: hold it (the joints may be still) only for a short while
+                return self._q[-1] if t - ts[-1] <= max_extrapolation_s else None
+            t0, t1 = ts[i - 1], ts[i]
+            a = (t - t0) / (t1 - t0)
+            (p0, q0), (p1, q1) = self._q[i - 1], self._q[i]
+            return p0 + a * (p1 - p0), q0 + a * (q1 - q0)
+
+
+@dataclass
+class ServoParams:
+    gain: float = 0.9                  # fraction of the angular error corrected per command
+    deadband_px: float = 0.75          # no command when the point is this close to the centre
+    move_time_s: float = 0.08          # speed chosen so the correction takes about this long
+    max_command_rate_hz: float = 15.0  # AbsolutePosition commands per second at most
+    min_inquiry_period_s: float = 0.0  # > 0 slows the PosInq loop (0 = as fast as the line allows)
+    feedforward: bool = True           # lead a drifting fixation point by its estimated angular rate
+    rate_window_s: float = 0.4         # history used to estimate that rate
+    lead_extra_s: float = 0.04         # lead beyond the image age (command + motion start latency)
+
+
+@dataclass(frozen=True)
+class Target:
+    pan: int
+    tilt: int
+    pan_speed: int
+    tilt_speed: int
+
+
+def centring_angles(camera: CameraModel, pixel: tuple[float, float], pan: float, tilt: float,
+                    calibration: PanTiltCalibration | None = None) -> tuple[float, float]:
+    """Device angles (rad) that put ``pixel`` (seen at device angles pan, tilt) on the optical axis.
+
+    Exact for the kinematics R_y(pan) R_x(tilt) of DESIGN.md §2, through the rig's sign/offset map.
+    """
+    cal = calibration or PanTiltCalibration()
+    kp, kt = cal.kinematic(pan, tilt)
+    ray = camera.pixels_to_rays(np.asarray(pixel, dtype=float).reshape(1, 2))[0]
+    w = pan_tilt_rotation(kp, kt) @ ray
+    new_kp = math.atan2(w[0], w[2])
+    new_kt = math.atan2(-w[1], math.hypot(w[0], w[2]))
+    return cal.reading(new_kp, new_kt)
+
+
+def servo_target(camera: CameraModel, profile: CameraProfile, pixel: tuple[float, float],
+                 joints: tuple[float, float], params: ServoParams,
+                 calibration: PanTiltCalibration | None = None) -> Target | None:
+    """The AbsolutePosition command (units, speed codes) that re-centres ``pixel``; None inside the deadband."""
+    err = math.hypot(pixel[0] - camera.cx, pixel[1] - camera.cy)
+    if err < params.deadband_px:
+        return None
+    pan, tilt = joints
+    want_p, want_t = centring_angles(camera, pixel, pan, tilt, calibration)
+    tp = pan + params.gain * (want_p - pan)
+    tt = tilt + params.gain * (want_t - tilt)
+    pan_u, tilt_u = profile.clamp(profile.pan_units(math.degrees(tp)), profile.tilt_units(math.degrees(tt)))
+    dp = abs(math.degrees(tp - pan)) / max(params.move_time_s, 1e-3)
+    dt = abs(math.degrees(tt - tilt)) / max(params.move_time_s, 1e-3)
+    return Target(pan_u, tilt_u, profile.pan_code_for(dp), profile.tilt_code_for(dt))
+
+
+class FixationServo:
+    """:func:`servo_target` plus feed-forward: when the rig turns, the fixated point's centring angles
+    drift; a line fitted to recent (image time, centring angles) gives their rate, and the command leads
+    by the image's age plus :attr:`ServoParams.lead_extra_s`. Removes the lag error a pure proportional
+    servo has on a drifting scene. Call :meth:`reset` when the fixation point changes."""
+
+    def __init__(self, camera: CameraModel, profile: CameraProfile, params: ServoParams | None = None,
+                 calibration: PanTiltCalibration | None = None) -> None:
+        self.camera, self.profile = camera, profile
+        self.params = params or ServoParams()
+        self.calibration = calibration
+        self._hist: deque[tuple[float, float, float]] = deque(maxlen=64)
+        self.rate = (0.0, 0.0)
+
+    def reset(self) -> None:
+        self._hist.clear()
+        self.rate = (0.0, 0.0)
+
+    def target(self, pixel: tuple[float, float], joints: tuple[float, float], t_image: float,
+               now: float) -> Target | None:
+        p, cam, pr = self.params, self.camera, self.profile
+        pan, tilt = joints
+        want_p, want_t = centring_angles(cam, pixel, pan, tilt, self.calibration)
+        self._hist.append((t_image, want_p, want_t))
+        while self._hist and t_image - self._hist[0][0] > p.rate_window_s:
+            self._hist.popleft()
+        rp = rt = 0.0
+        if p.feedforward and len(self._hist) >= 4:
+            h = np.asarray(self._hist)
+            tc = h[:, 0] - h[:, 0].mean()
+            den = float(tc @ tc)
+            if den > 1e-9:
+                rp, rt = float(tc @ (h[:, 1] - h[:, 1].mean()) / den), float(tc @ (h[:, 2] - h[:, 2].mean()) / den)
+        self.rate = (rp, rt)
+        lead = max(0.0, now - t_image) + p.lead_extra_s
+        goal_p, goal_t = want_p + rp * lead, want_t + rt * lead
+        err_px = math.hypot(pixel[0] - cam.cx, pixel[1] - cam.cy)
+        moving_px = math.hypot(rp * cam.fx, rt * cam.fy) * lead
+        if err_px < p.deadband_px and moving_px < p.deadband_px:
+            return None
+        tp = pan + p.gain * (goal_p - pan)
+        tt = tilt + p.gain * (goal_t - tilt)
+        pan_u, tilt_u = pr.clamp(pr.pan_units(math.degrees(tp)), pr.tilt_units(math.degrees(tt)))
+        dp = abs(math.degrees(tp - pan)) / max(p.move_time_s, 1e-3) + abs(math.degrees(rp))
+        dt = abs(math.degrees(tt - tilt)) / max(p.move_time_s, 1e-3) + abs(math.degrees(rt))
+        return Target(pan_u, tilt_u, pr.pan_code_for(dp), pr.tilt_code_for(dt))
+
+
+class ServoLoop:
+    """Owns the serial line of one camera on a thread: timed PosInq readings + rate-limited targets.
+
+    ``clock`` gives the time base of :attr:`history` (the node passes ROS time so readings and image
+    stamps compare directly); the driver's monotonic sample times are mapped onto it.
+    """
+
+    def __init__(self, cam: ViscaCamera, params: ServoParams | None = None,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.cam = cam
+        self.params = params or ServoParams()
+        self.clock = clock
+        self.history = JointHistory()
+        self._target: Target | None = None
+        self._sent: Target | None = None
+        self._home = False
+        self._lock = threading.Lock()
+        self._running = False
+        self._thread: threading.Thread | None = None
+        self._last_cmd = -math.inf
+        self.stats = {'cycles': 0, 'commands': 0, 'errors': 0, 'disconnected_cycles': 0}
+        self.last_error = ''
+        self._t_start = 0.0
+
+    def set_target(self, target: Target | None) -> None:
+        with self._lock:
+            self._target = target
+
+    def request_home(self) -> None:
+        with self._lock:
+            self._home = True
+
+    def loop_rate_hz(self) -> float:
+        dt = time.monotonic() - self._t_start
+        return self.stats['cycles'] / dt if dt > 0 else 0.0
+
+    def start(self) -> None:
+        if self._running:
+            return
+        self._running = True
+        self._t_start = time.monotonic()
+        self._thread = threading.Thread(target=self._run, name='visca-servo', daemon=True)
+        self._thread.start()
+
+    def stop(self, timeout_s: float = 2.0) -> None:
+        self._running = False
+        if self._thread is not None:
+            self._thread.join(timeout=timeout_s)
+            self._thread = None
+
+    def _run(self) -> None:
+        while self._running:
+            t_cycle = time.monotonic()
+            try:
+                self.step()
+            except vp.ViscaDisconnectedError as e:
+                self.stats['disconnected_cycles'] += 1
+                self.last_error = str(e)
+                time.sleep(0.05)
+            except vp.ViscaError as e:
+                self.stats['errors'] += 1
+                self.last_error = f'{type(e).__name__}: {e}'
+                time.sleep(0.005)
+            wait = self.params.min_inquiry_period_s - (time.monotonic() - t_cycle)
+            if wait > 0:
+                time.sleep(wait)
+
+    def step(self) -> None:
+        """One cycle: read the joints, then send the newest target if due. Public for tests/benchmarks."""
+        pan_u, tilt_u, t_mono = self.cam.position_timed()
+        t = t_mono + (self.clock() - time.monotonic())
+        pr = self.cam.profile
+        self.history.add(t, pr.pan_rad(pan_u), pr.tilt_rad(tilt_u))
+        self.stats['cycles'] += 1
+        with self._lock:
+            home, self._home = self._home, False
+            target = self._target
+        if home:
+            self.cam.home(wait=False)
+            self._sent = None
+            return
+        if target is None or target == self._sent:
+            return
+        now = time.monotonic()
+        if now - self._last_cmd < 1.0 / self.params.max_command_rate_hz:
+            return
+        if (target.pan, target.tilt) == (pan_u, tilt_u):
+            self._sent = target
+            return
+        try:
+            self.cam.absolute(target.pan, target.tilt, target.pan_speed, target.tilt_speed, wait=False)
+        except vp.BufferFullError:
+            # a camera that does not supersede motions: free the oldest socket and retry next cycle
+            busy = sorted(self.cam.busy_sockets)
+            if busy:
+                try:
+                    self.cam.cancel(busy[0])
+                except vp.ViscaReplyError:
+                    self.cam.if_clear()
+            raise
+        self._last_cmd = now
+        self._sent = target
+        self.stats['commands'] += 1

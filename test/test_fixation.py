@@ -1,0 +1,120 @@
+"""Fixation tracker, limit re-selection, centring geometry, joint interpolation, and a short ROS-free
+closed loop (tracker + servo + emulator)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from fixego_ros.bench.servo import SyntheticView, run_closed_loop
+from fixego_ros.geometry.rig import CameraModel, PanTiltCalibration, pan_tilt_rotation
+from fixego_ros.tracking.fixation import FixationParams, FixationTracker, LimitCheck
+from fixego_ros.tracking.servo import JointHistory, ServoParams, centring_angles, servo_target
+from fixego_ros.visca.profiles import PROFILES
+
+CAM = CameraModel(320, 240, 500.0, 500.0, 159.5, 119.5)
+
+
+def test_select_and_track_subpixel_shifts():
+    view = SyntheticView(CAM, seed=2)
+    tr = FixationTracker(CAM, FixationParams(search_radius_px=30.0))
+    st = tr.update(view.render(0, 0), 0.0)
+    assert st.valid and st.reselected and st.reason == 'initial' and st.fixation_id == 0
+    assert math.hypot(st.pixel[0] - CAM.cx, st.pixel[1] - CAM.cy) < 30.0
+    scene = view.scene_point(st.pixel, 0, 0)
+    for k in range(1, 20):
+        ox, oy = 1.7 * k, -0.9 * k
+        st = tr.update(view.render(0, 0, ox, oy), k / 30)
+        assert st.valid and not st.reselected and st.fixation_id == 0 and st.quality > 0.9
+        assert np.allclose(st.pixel, view.pixel_of(scene, 0, 0, ox, oy), atol=0.15)
+    assert st.age_s == pytest.approx(19 / 30)
+
+
+def test_no_texture_gives_no_fixation_then_recovers():
+    tr = FixationTracker(CAM)
+    flat = np.full((CAM.height, CAM.width), 90, np.uint8)
+    st = tr.update(flat, 0.0)
+    assert not st.valid and st.pixel is None and st.reason == 'no_texture' and st.fixation_id == -1
+    st = tr.update(SyntheticView(CAM).render(0, 0), 0.1)
+    assert st.valid and st.fixation_id == 0
+
+
+def test_reselection_reasons_and_ids():
+    view = SyntheticView(CAM, seed=4)
+    tr = FixationTracker(CAM, FixationParams(search_radius_px=20.0, border_margin_px=30.0))
+    tr.update(view.render(0, 0), 0.0)
+    # the point walks towards the right border -> 'left_image', new id, new point near the centre
+    k, st = 0, None
+    for k in range(1, 40):
+        st = tr.update(view.render(0, 0, ox=6.0 * k), k * 0.03)
+        if st.reselected:
+            break
+    assert st.reselected and st.reason == 'left_image' and st.fixation_id == 1
+    assert abs(st.pixel[0] - CAM.cx) < 25
+    # content replaced (occlusion / cut): tracking fails -> 'lost'
+    st = tr.update(SyntheticView(CAM, seed=99).render(0, 0), 2.0)
+    assert st.reselected and st.reason == 'lost' and st.fixation_id == 2
+    # manual request with an offset -> new id near centre + offset
+    tr.request_reselect('manual', (-80.0, 40.0))
+    st = tr.update(SyntheticView(CAM, seed=99).render(0, 0), 2.1)
+    assert st.reason == 'manual' and st.fixation_id == 3
+    assert math.hypot(st.pixel[0] - (CAM.cx - 80), st.pixel[1] - (CAM.cy + 40)) < 25
+    assert [r.reason for r in tr.reselections] == ['initial', 'left_image', 'lost', 'manual']
+
+
+def test_limit_check_fires_once_per_approach_towards_the_middle():
+    lc = LimitCheck((-1.0, 1.0), (-0.4, 0.4), margin_rad=0.1, offset_px=100.0)
+    assert lc.check(0.0, 0.0) is None
+    assert lc.check(0.95, 0.0) == (-100.0, 0.0)        # near +pan (right): choose a point to the left
+    assert lc.check(0.97, 0.0) is None                 # still near: no second re-selection
+    assert lc.check(0.5, 0.0) is None
+    assert lc.check(0.5, -0.35) == (0.0, -100.0)       # near tilt bottom: choose a point above (smaller v)
+
+
+def test_centring_angles_are_exact():
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        pan, tilt = rng.uniform(-1.2, 1.2), rng.uniform(-0.4, 0.4)
+        goal = rng.uniform(-0.1, 0.1, size=2) + np.array([pan, tilt])
+        axis = pan_tilt_rotation(*goal) @ np.array([0.0, 0.0, 1.0])
+        ray = pan_tilt_rotation(pan, tilt).T @ axis
+        pixel = CAM.rays_to_pixels(ray[None])[0]
+        assert np.allclose(centring_angles(CAM, tuple(pixel), pan, tilt), goal, atol=1e-9)
+    cal = PanTiltCalibration(pan_sign=-1.0, tilt_sign=1.0, pan_offset=0.1)
+    p, t = centring_angles(CAM, (CAM.cx, CAM.cy), 0.3, 0.05, cal)   # centre pixel: stay put
+    assert (p, t) == pytest.approx((0.3, 0.05))
+    # a point to the right of centre needs more pan (VISCA: + right), below needs less tilt (+ up)
+    p, t = centring_angles(CAM, (CAM.cx + 50, CAM.cy + 50), 0.0, 0.0)
+    assert p > 0 and t < 0
+
+
+def test_servo_target_deadband_speed_and_clamp():
+    d30 = PROFILES['evi_d30']
+    params = ServoParams(gain=1.0, deadband_px=1.0)
+    assert servo_target(CAM, d30, (CAM.cx + 0.5, CAM.cy), (0.0, 0.0), params) is None
+    tg = servo_target(CAM, d30, (CAM.cx + 50, CAM.cy), (0.0, 0.0), params)
+    assert tg.pan == d30.pan_units(math.degrees(math.atan(50 / 500))) and tg.tilt == 0
+    assert 1 <= tg.pan_speed <= 0x18 and 1 <= tg.tilt_speed <= 0x14 and tg.pan_speed > 1
+    tg = servo_target(CAM, d30, (CAM.cx + 100, CAM.cy), (math.radians(99.0), 0.0), params)
+    assert tg.pan == d30.pan_max                           # never beyond the range
+
+
+def test_joint_history_interpolation():
+    h = JointHistory()
+    h.add(1.0, 0.0, 0.0)
+    h.add(2.0, 1.0, -2.0)
+    h.add(1.5, 9.0, 9.0)                                   # out of order: ignored
+    assert h.at(1.25) == pytest.approx((0.25, -0.5))
+    assert h.at(2.04, max_extrapolation_s=0.05) == (1.0, -2.0)
+    assert h.at(2.2, max_extrapolation_s=0.05) is None and h.at(0.5, max_extrapolation_s=0.05) is None
+
+
+def test_closed_loop_converges_ros_free():
+    m = run_closed_loop(duration_s=2.5, baud=115200, settle_s=1.2, drift_px_s=(15.0, -8.0),
+                        start_offset_px=(25.0, -15.0))
+    assert m['servo_errors'] == 0 and m['reselections'] == 0
+    assert m['fixation_err_px_mean'] < 3.0 and m['fixation_err_px_max'] < 6.0
+    assert m['joint_interp_err_deg_p95'] < 0.15
+    assert m['servo_loop_hz'] > 30
