@@ -45,14 +45,6 @@ class SceneConfig:
         return rig
 
 
-def aim(rig: Rig, side: str, X_rig: np.ndarray) -> tuple[float, float]:
-    """Joint readings that put rig-frame point ``X_rig`` on the optical axis of ``side``."""
-    d = rig.zero_rotation(side).T @ (X_rig - rig.center(side))
-    pan = float(np.arctan2(d[0], d[2]))
-    tilt = float(np.arctan2(-d[1], np.hypot(d[0], d[2])))
-    return rig.calibration(side).reading(pan, tilt)
-
-
 def random_motion_sequence(cfg: SceneConfig, n_steps: int, rng: np.random.Generator) -> list[Pose]:
     """The papers' motion model: first step a random direction of length ``step_length`` with a yaw in
     ±max_yaw; each next step rotates the translation about the optical (Z) axis by ±max_yaw and adds
@@ -86,7 +78,7 @@ class PointScene:
     def readings(self, pose: Pose) -> dict[str, tuple[float, float]]:
         """Joint readings of each camera fixating its point from rig pose ``pose`` (rig -> world)."""
         inv = pose.inverse()
-        return {s: aim(self.rig, s, inv.apply(self.fixation[s])) for s in SIDES}
+        return {s: self.rig.aim_readings(s, inv.apply(self.fixation[s])) for s in SIDES}
 
     def flow_points(self, side: str, pose: Pose, pt: tuple[float, float]) -> np.ndarray:
         """World points whose image at ``pose`` lies in the window around the fixation pixel."""

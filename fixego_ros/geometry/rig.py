@@ -31,6 +31,13 @@ def pan_tilt_rotation(pan: float, tilt: float) -> np.ndarray:
     return rot_y(pan) @ rot_x(tilt)
 
 
+def pan_tilt_for_direction(d: np.ndarray) -> tuple[float, float]:
+    """Kinematic (pan, tilt) whose optical axis points along ``d`` (zero-pose frame): inverse of
+    ``pan_tilt_rotation(pan, tilt) @ [0, 0, 1]``."""
+    x, y, z = (float(v) for v in d)
+    return float(np.arctan2(x, z)), float(np.arctan2(-y, np.hypot(x, z)))
+
+
 def normalize_rays(v: np.ndarray) -> np.ndarray:
     """Unit vectors along the rows of ``v`` (shape (N, 3) or (3,))."""
     v = np.asarray(v, dtype=float)
@@ -150,6 +157,11 @@ class Rig:
         """Rotation of the camera's optical frame into the rig frame at the given joint readings."""
         pan, tilt = self.calibration(side).kinematic(pan_reading, tilt_reading)
         return self.zero_rotation(side) @ pan_tilt_rotation(pan, tilt)
+
+    def aim_readings(self, side: str, point_rig: np.ndarray) -> tuple[float, float]:
+        """Joint readings that put the rig-frame point on the optical axis of ``side``."""
+        d = self.zero_rotation(side).T @ (np.asarray(point_rig, dtype=float) - self.center(side))
+        return self.calibration(side).reading(*pan_tilt_for_direction(d))
 
     def pixels_to_rig_rays(self, side: str, uv: np.ndarray, pan_reading: float,
                            tilt_reading: float) -> np.ndarray:

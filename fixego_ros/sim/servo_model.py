@@ -48,11 +48,7 @@ class ServoParams:
 
 def required_readings(rig: Rig, side: str, rig_pose: Pose, point: np.ndarray) -> tuple[float, float]:
     """Joint readings (rad) that put world ``point`` on the optical axis of ``side`` (DESIGN.md §2)."""
-    p_rig = rig_pose.inverse().apply(np.asarray(point, dtype=float))
-    d0 = rig.zero_rotation(side).T @ (p_rig - rig.center(side))
-    pan = float(np.arctan2(d0[0], d0[2]))
-    tilt = float(np.arctan2(-d0[1], np.hypot(d0[0], d0[2])))
-    return rig.calibration(side).reading(pan, tilt)
+    return rig.aim_readings(side, rig_pose.inverse().apply(np.asarray(point, dtype=float)))
 
 
 @dataclass

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fixego_ros.geometry.rig import CameraModel, PanTiltCalibration, pan_tilt_rotation
+from fixego_ros.geometry.rig import CameraModel, PanTiltCalibration, pan_tilt_for_direction, pan_tilt_rotation
 from fixego_ros.visca import protocol as vp
 from fixego_ros.visca.driver import ViscaCamera
 from fixego_ros.visca.profiles import CameraProfile
@@ -93,10 +93,7 @@ def centring_angles(camera: CameraModel, pixel: tuple[float, float], pan: float,
     cal = calibration or PanTiltCalibration()
     kp, kt = cal.kinematic(pan, tilt)
     ray = camera.pixels_to_rays(np.asarray(pixel, dtype=float).reshape(1, 2))[0]
-    w = pan_tilt_rotation(kp, kt) @ ray
-    new_kp = math.atan2(w[0], w[2])
-    new_kt = math.atan2(-w[1], math.hypot(w[0], w[2]))
-    return cal.reading(new_kp, new_kt)
+    return cal.reading(*pan_tilt_for_direction(pan_tilt_rotation(kp, kt) @ ray))
 
 
 def servo_target(camera: CameraModel, profile: CameraProfile, pixel: tuple[float, float],
