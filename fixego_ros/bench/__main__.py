@@ -37,7 +37,8 @@ def main(argv: list[str] | None = None) -> int:
             continue
         for _ in range(args.repeat):
             for k, v in m.run().items():
-                runs.setdefault(f'{mod.rsplit(".", 1)[-1]}.{k}', []).append(float(v))
+                if isinstance(v, (int, float)) and not isinstance(v, bool):   # labels are not figures
+                    runs.setdefault(f'{mod.rsplit(".", 1)[-1]}.{k}', []).append(float(v))
     results = {k: {'median': float(np.median(v)), 'min': float(np.min(v)), 'max': float(np.max(v)), 'runs': len(v)}
                for k, v in runs.items()}
     out = Path(args.out)
