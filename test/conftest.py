@@ -30,6 +30,15 @@ def ros_context():
             rclpy.shutdown(context=ctx)
 
 
+def executor_for(context, *nodes):
+    """A SingleThreadedExecutor on ``context`` spinning ``nodes`` (the node under test and its peers)."""
+    from rclpy.executors import SingleThreadedExecutor
+    ex = SingleThreadedExecutor(context=context)
+    for n in nodes:
+        ex.add_node(n)
+    return ex
+
+
 def spin_until(executor, predicate, timeout_s: float = 5.0, step_s: float = 0.02) -> bool:
     """Spin ``executor`` until ``predicate()`` is true or ``timeout_s`` passes; returns the predicate."""
     import time

@@ -15,11 +15,10 @@ import pytest
 
 rclpy = pytest.importorskip('rclpy')
 
-from conftest import spin_until  # noqa: E402
+from conftest import executor_for, spin_until  # noqa: E402
 from geometry_msgs.msg import PointStamped  # noqa: E402
-from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
-from sensor_msgs.msg import JointState  # noqa: E402
+from sensor_msgs.msg import Image, JointState  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
 from fixego_ros.bench.servo import SyntheticView  # noqa: E402
@@ -49,14 +48,12 @@ def test_active_node_converges_and_publishes_consistent_joint_states(ros_context
         Parameter('side', value='right'), Parameter('port', value=port), Parameter('rig_file', value=rig_file),
         Parameter('search_radius_px', value=30.0), Parameter('border_margin_px', value=25.0)])
     peer = rclpy.create_node('peer', context=ros_context)
-    ex = SingleThreadedExecutor(context=ros_context)
-    ex.add_node(node)
-    ex.add_node(peer)
+    ex = executor_for(ros_context, node, peer)
     fixes: list[PointStamped] = []
     joints: list[JointState] = []
     peer.create_subscription(PointStamped, '/fixego/right/fixation', fixes.append, RELIABLE_QOS)
     peer.create_subscription(JointState, '/fixego/right/joint_states', joints.append, RELIABLE_QOS)
-    pub = peer.create_publisher(type(array_to_image(np.zeros((2, 2), np.uint8), sec_to_stamp(0), 'x')),
+    pub = peer.create_publisher(Image,
                                 '/fixego/right/image_raw', SENSOR_QOS)
     view = SyntheticView(CAM, seed=3)
     truth: dict[tuple[int, int], tuple[float, float, float, float]] = {}   # stamp -> pan, tilt, ox, oy
@@ -127,14 +124,12 @@ def test_passive_node_tracks_without_serial(ros_context, rig_file):
     node = CameraNode(context=ros_context, parameter_overrides=[
         Parameter('side', value='left'), Parameter('port', value=''), Parameter('rig_file', value=rig_file)])
     peer = rclpy.create_node('peer2', context=ros_context)
-    ex = SingleThreadedExecutor(context=ros_context)
-    ex.add_node(node)
-    ex.add_node(peer)
+    ex = executor_for(ros_context, node, peer)
     fixes: list[PointStamped] = []
     joints_seen: list[JointState] = []
     peer.create_subscription(PointStamped, '/fixego/left/fixation', fixes.append, RELIABLE_QOS)
     peer.create_subscription(JointState, '/fixego/left/joint_states', joints_seen.append, RELIABLE_QOS)
-    img_pub = peer.create_publisher(type(array_to_image(np.zeros((2, 2), np.uint8), sec_to_stamp(0), 'x')),
+    img_pub = peer.create_publisher(Image,
                                     '/fixego/left/image_raw', SENSOR_QOS)
     js_pub = peer.create_publisher(JointState, '/fixego/left/joint_states', RELIABLE_QOS)
     view = SyntheticView(CAM, seed=5)

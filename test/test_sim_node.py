@@ -11,8 +11,7 @@ import pytest
 rclpy = pytest.importorskip('rclpy')
 serial = pytest.importorskip('serial')
 
-from conftest import spin_until  # noqa: E402
-from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from conftest import executor_for, spin_until  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 
 
@@ -54,9 +53,7 @@ def test_images_follow_visca_commands(ros_context, tmp_path):
                  Parameter('pty_file', value=str(pty_file)), Parameter('exit_at_end', value=False)]
     node = SimRigNode(context=ros_context, parameter_overrides=overrides)
     probe = rclpy.create_node('probe', context=ros_context)
-    ex = SingleThreadedExecutor(context=ros_context)
-    ex.add_node(node)
-    ex.add_node(probe)
+    ex = executor_for(ros_context, node, probe)
     images: dict[str, list[Image]] = {'right': [], 'left': []}
     infos: list[CameraInfo] = []
     for side in images:
@@ -122,9 +119,7 @@ def test_node_finishes_at_trajectory_end(ros_context, tmp_path):
                  Parameter('pty_file', value=str(tmp_path / 'p.json'))]
     node = SimRigNode(context=ros_context, parameter_overrides=overrides)
     probe = rclpy.create_node('probe2', context=ros_context)
-    ex = SingleThreadedExecutor(context=ros_context)
-    ex.add_node(node)
-    ex.add_node(probe)
+    ex = executor_for(ros_context, node, probe)
     gts: list[PoseStamped] = []
     diags: list[DiagnosticArray] = []
     probe.create_subscription(PoseStamped, '/fixego/ground_truth/pose', gts.append, RELIABLE_QOS)

@@ -133,11 +133,6 @@ class Estimator:
         self._pose_cov = np.zeros((6, 6))
         self._last_step: Pose | None = None
         self._last_step_raw: Pose | None = None
-        self._last_stamp: float | None = None
-
-    @property
-    def frames_seen(self) -> int:
-        return self._index + 1
 
     def _pairs(self, obs: FrameObservation) -> RayPairs:
         return step_pairs(self.rig, self._window[-1].fixation, obs, self.config.fixation_weight)
@@ -187,7 +182,6 @@ class Estimator:
         fix = fixations_of(obs)
         if self._index == 0 or not self._window:
             self._window.append(_Slot(fix, Pose.identity()))
-            self._last_stamp = obs.stamp
             return FrameResult(self._index, obs.stamp, StepStatus.INIT, self._pose, self._pose_raw,
                                Pose.identity(), Pose.identity(), np.zeros((6, 6)), self._pose_cov.copy(),
                                'first frame')
@@ -226,7 +220,6 @@ class Estimator:
         if accepted:
             self._last_step, self._last_step_raw = step, step_raw
         self._window.append(_Slot(fix, step))
-        self._last_stamp = obs.stamp
         return FrameResult(self._index, obs.stamp, status, self._pose, self._pose_raw, step, step_raw,
                            cov, self._pose_cov.copy(), message, tf, ba)
 

@@ -122,6 +122,7 @@ class SimRigNode(Node):
         self.pub_image = {s: self.create_publisher(Image, f'/fixego/{s}/image_raw', SENSOR_QOS) for s in SIDES}
         self.pub_info = {s: self.create_publisher(CameraInfo, f'/fixego/{s}/camera_info', SENSOR_QOS)
                          for s in SIDES}
+        self._info = {s: camera_info_msg(self.rig, s, 0.0) for s in SIDES}   # constant but for the stamp
         self.pub_gt = self.create_publisher(PoseStamped, '/fixego/ground_truth/pose', RELIABLE_QOS)
         self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', RELIABLE_QOS)
 
@@ -174,9 +175,8 @@ class SimRigNode(Node):
             pan, tilt = self.emulators[side].pan_tilt_rad(now)
             img = self.renderer.render(side, pose, pan, tilt)
             self.pub_image[side].publish(array_to_image(img, stamp, f'{side}_optical_frame', self.p['encoding']))
-            info = camera_info_msg(self.rig, side, 0.0)
-            info.header.stamp = stamp
-            self.pub_info[side].publish(info)
+            self._info[side].header.stamp = stamp
+            self.pub_info[side].publish(self._info[side])
         self._render_ms.append((time.perf_counter() - t_render) * 1e3 / 2)
         if self._inv0 is None:
             self._inv0 = pose.inverse()

@@ -203,6 +203,19 @@ class ViscaCamera:
         self.last_error = f'timeout waiting for {what}'
         return vp.ViscaTimeoutError(f'{self.port}: no {what} within the timeout')
 
+    def _exchange(self, pkt: bytes, what: str, reply_bytes: int, accept: Callable[[Reply], bool]) -> Reply:
+        """Write ``pkt`` and return the first reply ``accept`` takes, within the timeout plus the
+        serial time of ``reply_bytes``; other packets are book-kept by :meth:`_classify`."""
+        self._write(pkt)
+        deadline = time.monotonic() + self.timeout_s + reply_bytes * self.byte_time
+        while True:
+            raw = self._read_packet(deadline)
+            if raw is None:
+                raise self._timeout(what)
+            r = self._classify(raw)
+            if r is not None and accept(r):
+                return r
+
     def command(self, pkt: bytes, name: str = 'command', wait: bool = True,
                 completion_timeout_s: float | None = None) -> int:
         """Send a command, wait for its ACK (and completion when ``wait``); returns the socket.
@@ -281,28 +294,13 @@ class ViscaCamera:
     def address_set(self) -> int:
         """AddressSet broadcast; returns how many cameras answered on the chain."""
         with self._lock:
-            self._write(vp.address_set())
-            deadline = time.monotonic() + self.timeout_s + 8 * self.byte_time
-            while True:
-                raw = self._read_packet(deadline)
-                if raw is None:
-                    raise self._timeout('AddressSet reply')
-                r = self._classify(raw)
-                if r is not None and r.kind == ReplyKind.ADDRESS:
-                    return r.data[0] - 1
+            r = self._exchange(vp.address_set(), 'AddressSet reply', 8, lambda r: r.kind == ReplyKind.ADDRESS)
+            return r.data[0] - 1
 
     def if_clear(self, broadcast: bool = False) -> None:
         with self._lock:
             if broadcast:
-                self._write(vp.if_clear(None))
-                deadline = time.monotonic() + self.timeout_s + 10 * self.byte_time
-                while True:
-                    raw = self._read_packet(deadline)
-                    if raw is None:
-                        raise self._timeout('IF_Clear reply')
-                    r = self._classify(raw)
-                    if r is not None and r.kind == ReplyKind.IF_CLEAR:
-                        break
+                self._exchange(vp.if_clear(None), 'IF_Clear reply', 10, lambda r: r.kind == ReplyKind.IF_CLEAR)
             else:
                 self.command(vp.if_clear(self.address), 'IF_Clear', wait=False)
             self._busy.clear()
@@ -311,18 +309,11 @@ class ViscaCamera:
     def cancel(self, socket: int) -> None:
         """Cancel the command on ``socket``; raises NoSocketError when nothing runs there."""
         with self._lock:
-            self._write(vp.cancel(self.address, socket))
-            deadline = time.monotonic() + self.timeout_s + 8 * self.byte_time
-            while True:
-                raw = self._read_packet(deadline)
-                if raw is None:
-                    raise self._timeout('Cancel reply')
-                r = self._classify(raw)
-                if r is not None and r.kind == ReplyKind.ERROR and r.socket == socket:
-                    self._async_errors.pop(socket, None)
-                    if r.error_code == vp.ERR_CANCELLED:
-                        return
-                    raise r.error()
+            r = self._exchange(vp.cancel(self.address, socket), 'Cancel reply', 8,
+                               lambda r: r.kind == ReplyKind.ERROR and r.socket == socket)
+            self._async_errors.pop(socket, None)
+            if r.error_code != vp.ERR_CANCELLED:
+                raise r.error()
 
     def power(self, on: bool) -> None:
         self.command(vp.power(self.address, on), 'CAM_Power', completion_timeout_s=10.0)
