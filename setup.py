@@ -44,6 +44,8 @@ setup(
             'fixego = fixego_ros.cli:main',
             'sim_rig_node = fixego_ros.nodes.sim_rig_node:main',
             'camera_node = fixego_ros.nodes.camera_node:main',
+            'flow_node = fixego_ros.nodes.flow_node:main',
+            'estimator_node = fixego_ros.nodes.estimator_node:main',
         ],
     },
 )

@@ -13,6 +13,8 @@ import sys
 
 # module path -> sub-command names it registers (names let us import only what is asked for)
 COMMANDS: dict[str, tuple[str, ...]] = {
+    'fixego_ros.demo.cli': ('demo',),
+    'fixego_ros.evaluation.cli': ('eval',),
     'fixego_ros.experiments.paper_sim': ('paper-sim',),
     'fixego_ros.sim.cli': ('sim',),
     'fixego_ros.visca.cli': ('ptz',),

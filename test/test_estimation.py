@@ -160,6 +160,7 @@ def test_estimator_window_never_spans_reselection_and_memory_is_bounded():
     est2 = Estimator(scene.rig, EstimatorConfig(window=5))
     for obs in noisy[:11]:
         est2.update(obs)
+    est2._promote()          # what update(noisy[11]) does first: frame 10 becomes the keyframe
     problem, full = est2._ba_problem(noisy[11])
     centers = np.array([t.center[0] for t in problem.terms])
     assert np.sum(centers == 0) == 1 and np.sum(centers != 0) == 4 and full

@@ -35,9 +35,15 @@ class CameraFrame:
 
 @dataclass
 class FrameObservation:
+    """One synchronised frame. ``prev_stamp`` is the stamp of the frame the flow starts from (None when
+    unknown, e.g. synthetic data: then the previous frame); the estimator uses it to place the frame and
+    to notice frames it never received. ``keyframe`` says whether later flow will start from this frame."""
+
     stamp: float
     right: CameraFrame | None
     left: CameraFrame | None
+    prev_stamp: float | None = None
+    keyframe: bool | None = None     # the front end will track later flow from this frame (None: unknown)
 
     def camera(self, side: str) -> CameraFrame | None:
         return self.right if side == 'right' else self.left
@@ -82,6 +88,10 @@ class EstimatorConfig:
     max_step_translation: float = 1.0  # m; larger steps are rejected as jumps
     max_step_rotation: float = 0.35    # rad (~20 deg)
     reject_translation_std: float = VAR_MAX  # m; steps less certain than this are rejected
+    # weak constant-velocity prior on each step's T (off = the papers' method): sigma = max(min, rel * |T_pred|)
+    velocity_prior: bool = False
+    prior_sigma_rel: float = 0.5
+    prior_sigma_min: float = 0.01     # m
     solver: SolverConfig = field(default_factory=SolverConfig)
 
     def __post_init__(self) -> None:
@@ -98,25 +108,52 @@ class FrameResult:
     status: StepStatus
     pose: Pose                     # refined: rig at this frame in the rig frame at frame 0
     pose_raw: Pose                 # two-frame only
-    step: Pose                     # refined step from the previous frame
-    step_raw: Pose
+    step: Pose                     # refined motion from the reference keyframe (the previous frame unless
+    step_raw: Pose                 # the front end keeps a keyframe over several frames)
     step_covariance: np.ndarray    # 6x6 over [rotation vector, T] of the step
     pose_covariance: np.ndarray    # 6x6 over [rotation vector, position] of ``pose`` (first order)
     message: str = ''
     twoframe: TwoFrameResult | None = None
     ba: BAResult | None = None
+    ref_stamp: float | None = None  # stamp of the keyframe ``step`` starts from
+    placed: bool = True             # False: the frame was ignored (out of order, unknown reference)
 
 
 @dataclass
 class _Slot:
-    """What the window keeps of a frame."""
+    """What the window keeps of a keyframe."""
 
     fixation: dict[str, tuple[np.ndarray, int, np.ndarray] | None]
-    step: Pose                      # refined step into this frame (identity for the first)
+    step: Pose                      # refined motion into this keyframe from the previous one (identity first)
+
+
+@dataclass
+class _Latest:
+    """The newest frame: it becomes a keyframe when the next observation's flow starts from it."""
+
+    stamp: float
+    fixation: dict[str, tuple[np.ndarray, int, np.ndarray] | None]
+    motion: Pose                    # refined motion keyframe -> this frame
+    motion_raw: Pose
+    pose: Pose
+    pose_raw: Pose
+    pose_cov: np.ndarray
 
 
 class Estimator:
-    """Stateful incremental estimator (one instance per trajectory; :meth:`reset` restarts)."""
+    """Stateful incremental estimator (one instance per trajectory; :meth:`reset` restarts).
+
+    Each observation's flow starts at a reference frame (``obs.prev_stamp``; the previous frame when
+    None). The estimator solves the motion from that reference (a *keyframe*) to the new frame, so a
+    front end may keep one reference over several frames and give the solver a usable baseline at a
+    high frame rate; the newest frame becomes a keyframe when the observation says so
+    (``obs.keyframe``), or else as soon as a later flow starts from it. The local BA refines only
+    frames that become keyframes, since only their motion carries on into the trajectory. With
+    ``prev_stamp`` always the previous frame, every frame is a keyframe (the papers' scheme). The
+    local BA runs over the last n keyframes and the new frame.
+    """
+
+    GAP_TOLERANCE_S = 1e-6
 
     def __init__(self, rig: Rig, config: EstimatorConfig | None = None) -> None:
         self.rig = rig
@@ -128,23 +165,30 @@ class Estimator:
         n = max(self.config.window, 2)
         self._window: deque[_Slot] = deque(maxlen=n)
         self._index = -1
-        self._pose = Pose.identity()
-        self._pose_raw = Pose.identity()
-        self._pose_cov = np.zeros((6, 6))
-        self._last_step: Pose | None = None
-        self._last_step_raw: Pose | None = None
+        self._key_stamp: float | None = None
+        self._key_pose = Pose.identity()
+        self._key_pose_raw = Pose.identity()
+        self._key_cov = np.zeros((6, 6))
+        self._latest: _Latest | None = None
+        self._velocity: tuple[np.ndarray, np.ndarray] | None = None  # [rvec, t] per second: refined, raw
 
-    def _pairs(self, obs: FrameObservation) -> RayPairs:
-        return step_pairs(self.rig, self._window[-1].fixation, obs, self.config.fixation_weight)
+    @property
+    def last_stamp(self) -> float | None:
+        """Stamp of the last frame taken (None after a reset)."""
+        return self._latest.stamp if self._latest is not None else self._key_stamp
+
+    @property
+    def keyframe_stamp(self) -> float | None:
+        return self._key_stamp
 
     def _ba_problem(self, obs: FrameObservation) -> tuple[BAProblem, bool]:
-        """Terms for each camera over its window (never across a re-selection); and whether any
-        camera has the full n-frame window (the papers wait for it before adjusting)."""
+        """Terms for each camera over its keyframe window (never across a re-selection); and whether
+        any camera has the full n-frame window (the papers wait for it before adjusting)."""
         n = self.config.window
         slots = list(self._window)
         terms: list[BATerm] = []
         full = False
-        # prefixes[k] = P_{j,t-1} for j = index of slots[k]
+        # prefixes[k] = motion from keyframe k to the newest keyframe
         prefixes = [compose_all([s.step for s in slots[k + 1:]]) for k in range(len(slots))]
         for side in SIDES:
             cam = obs.camera(side)
@@ -176,52 +220,131 @@ class Estimator:
             return False, 'translation covariance too large'
         return True, ''
 
+    def _reject(self, obs: FrameObservation, why: str) -> FrameResult:
+        """A frame that cannot be placed: reported, state unchanged."""
+        latest = self._latest
+        pose, pose_raw, cov = ((latest.pose, latest.pose_raw, latest.pose_cov) if latest is not None
+                               else (self._key_pose, self._key_pose_raw, self._key_cov))
+        return FrameResult(self._index, obs.stamp, StepStatus.REJECTED, pose, pose_raw, Pose.identity(),
+                           Pose.identity(), np.zeros((6, 6)), cov.copy(), why, placed=False)
+
     def update(self, obs: FrameObservation) -> FrameResult:
-        """Process one frame. Never raises on bad data; bad steps are flagged and predicted."""
+        """Process one frame. Never raises on bad data; bad steps are flagged and predicted.
+
+        A frame whose stamp is not after the last one, or whose flow starts at a frame the estimator
+        cannot place, is rejected without changing the state. When ``obs.prev_stamp`` is later than the
+        last frame seen (frames were missed), the gap is bridged by a constant-velocity prediction and
+        the fixation window restarts, since the missed frames' fixations are unknown."""
+        tol = self.GAP_TOLERANCE_S
+        last = self.last_stamp
+        if last is not None and not obs.stamp > last:
+            return self._reject(obs, f'stamp {obs.stamp:.6f} not after the last frame {last:.6f}: ignored')
+        gap = ''
+        if last is not None:
+            ref = obs.prev_stamp if obs.prev_stamp is not None else last
+            if self._latest is not None and abs(ref - self._latest.stamp) <= tol:
+                self._promote()
+            elif abs(ref - self._key_stamp) <= tol:
+                pass                                     # flow from the current keyframe again
+            elif last + tol < ref < obs.stamp:
+                if self._latest is not None:
+                    self._promote()
+                gap = self._bridge(ref)
+            else:
+                return self._reject(obs, f'flow starts at {ref:.6f}, which is neither the keyframe '
+                                         f'({self._key_stamp:.6f}) nor a frame after it: ignored')
         self._index += 1
         fix = fixations_of(obs)
-        if self._index == 0 or not self._window:
+        if self._key_stamp is None:
+            self._key_stamp = obs.stamp
             self._window.append(_Slot(fix, Pose.identity()))
-            return FrameResult(self._index, obs.stamp, StepStatus.INIT, self._pose, self._pose_raw,
-                               Pose.identity(), Pose.identity(), np.zeros((6, 6)), self._pose_cov.copy(),
+            return FrameResult(self._index, obs.stamp, StepStatus.INIT, self._key_pose, self._key_pose_raw,
+                               Pose.identity(), Pose.identity(), np.zeros((6, 6)), self._key_cov.copy(),
                                'first frame')
-        pairs = self._pairs(obs)
-        tf = self.solver.solve(pairs, initial=self._last_step_raw)
+        dt = obs.stamp - self._key_stamp
+        pairs = step_pairs(self.rig, self._window[-1].fixation, obs, self.config.fixation_weight)
+        prediction = self._predict(dt)
+        start = self._latest.motion_raw if self._latest is not None else (prediction[1] if prediction else None)
+        cfg = self.config
+        if cfg.velocity_prior and prediction is not None:
+            t_pred = prediction[1].t
+            sigma = max(cfg.prior_sigma_min, cfg.prior_sigma_rel * float(np.linalg.norm(t_pred)))
+            tf = self.solver.solve(pairs, initial=start, prior_t=t_pred, prior_sigma_t=sigma)
+        else:
+            tf = self.solver.solve(pairs, initial=start)
         accepted, why = self._accept(tf)
         ba: BAResult | None = None
         if accepted:
-            step_raw = tf.pose
-            step = tf.pose
+            motion = motion_raw = tf.pose
             cov = tf.covariance
             status = tf.status
             message = tf.message
-            if self.config.window >= 3:
+            if self.config.window >= 3 and obs.keyframe is not False:   # BA where the chain continues
                 problem, full = self._ba_problem(obs)
                 if full and len(problem):
                     ba = refine_latest(problem, tf.pose, self.config.mode, pairs, self.config.solver.sigma)
                     refined = ba.pose
-                    ok_ba = (np.linalg.norm(refined.t) <= self.config.max_step_translation
-                             and rotation_angle(refined.R) <= self.config.max_step_rotation)
-                    if ok_ba:
-                        step = refined
+                    if (np.linalg.norm(refined.t) <= self.config.max_step_translation
+                            and rotation_angle(refined.R) <= self.config.max_step_rotation):
+                        motion = refined
                     else:
                         message += '; BA result rejected as a jump'
+            self._velocity = (np.concatenate([motion.rvec(), motion.t]) / dt,
+                              np.concatenate([motion_raw.rvec(), motion_raw.t]) / dt)
+        elif prediction is not None:
+            motion, motion_raw = prediction
+            cov = np.diag([1e-4] * 3 + [max(1e-2, float(np.sum(motion.t**2)))] * 3)
+            status, message = StepStatus.PREDICTED, why + '; constant-velocity prediction'
         else:
-            step = self._last_step or Pose.identity()
-            step_raw = self._last_step_raw or Pose.identity()
-            cov = np.diag([1e-2] * 3 + [VAR_MAX] * 3) if self._last_step is None else \
-                np.diag([1e-4] * 3 + [max(1e-2, float(np.sum(step.t**2)))] * 3)
-            status = StepStatus.PREDICTED if self._last_step is not None else StepStatus(
-                tf.status if not tf.status.usable else StepStatus.REJECTED)
-            message = why + ('; constant-velocity prediction' if self._last_step is not None else '; held')
-        self._pose_cov = self._propagate(self._pose, self._pose_cov, step, cov)
-        self._pose = (self._pose @ step).normalized()
-        self._pose_raw = (self._pose_raw @ step_raw).normalized()
-        if accepted:
-            self._last_step, self._last_step_raw = step, step_raw
-        self._window.append(_Slot(fix, step))
-        return FrameResult(self._index, obs.stamp, status, self._pose, self._pose_raw, step, step_raw,
-                           cov, self._pose_cov.copy(), message, tf, ba)
+            motion = motion_raw = Pose.identity()
+            cov = np.diag([1e-2] * 3 + [VAR_MAX] * 3)
+            status = StepStatus(tf.status if not tf.status.usable else StepStatus.REJECTED)
+            message = why + '; held'
+        pose_cov = self._propagate(self._key_pose, self._key_cov, motion, cov)
+        pose = (self._key_pose @ motion).normalized()
+        pose_raw = (self._key_pose_raw @ motion_raw).normalized()
+        self._latest = _Latest(obs.stamp, fix, motion, motion_raw, pose, pose_raw, pose_cov)
+        key_stamp = self._key_stamp
+        if obs.keyframe:
+            self._promote()
+        if gap:
+            message = f'{gap}; {message}' if message else gap
+        return FrameResult(self._index, obs.stamp, status, pose, pose_raw, motion, motion_raw, cov,
+                           pose_cov.copy(), message, tf, ba, key_stamp)
+
+    def _promote(self) -> None:
+        """The newest frame becomes the keyframe later flow starts from."""
+        f = self._latest
+        assert f is not None
+        self._window.append(_Slot(f.fixation, f.motion))
+        self._key_stamp, self._key_pose, self._key_pose_raw, self._key_cov = f.stamp, f.pose, f.pose_raw, f.pose_cov
+        self._latest = None
+
+    def _predict(self, dt: float) -> tuple[Pose, Pose] | None:
+        """Constant-velocity motion over ``dt`` (refined, raw), or None before the first solved step."""
+        if self._velocity is None:
+            return None
+        v, v_raw = self._velocity
+        return (Pose.from_rvec(v[:3] * dt, v[3:] * dt), Pose.from_rvec(v_raw[:3] * dt, v_raw[3:] * dt))
+
+    def _bridge(self, ref: float) -> str:
+        """Advance the keyframe over frames that never arrived (keyframe -> ``ref``) at constant velocity."""
+        assert self._key_stamp is not None
+        dt = ref - self._key_stamp
+        prediction = self._predict(dt)
+        if prediction is not None:
+            step, step_raw = prediction
+            cov = np.diag([1e-4] * 3 + [max(1e-2, float(np.sum(step.t**2)))] * 3)
+        else:
+            step = step_raw = Pose.identity()
+            cov = np.diag([1e-2] * 3 + [VAR_MAX] * 3)
+        self._key_cov = self._propagate(self._key_pose, self._key_cov, step, cov)
+        self._key_pose = (self._key_pose @ step).normalized()
+        self._key_pose_raw = (self._key_pose_raw @ step_raw).normalized()
+        self._key_stamp = ref
+        # the missed frames' fixations are unknown: no fixation pair or BA term may span the gap
+        self._window.append(_Slot({side: None for side in SIDES}, step))
+        return f'{dt:.3f} s of missing frames bridged by a constant-velocity prediction'
 
     @staticmethod
     def _propagate(pose: Pose, pose_cov: np.ndarray, step: Pose, step_cov: np.ndarray) -> np.ndarray:

@@ -123,8 +123,16 @@ class TwoFrameSolver:
 
     def __init__(self, config: SolverConfig | None = None) -> None:
         self.config = config or SolverConfig()
+        self._prior: tuple[np.ndarray, float] | None = None
 
-    def solve(self, pairs: RayPairs, initial: Pose | None = None) -> TwoFrameResult:
+    def solve(self, pairs: RayPairs, initial: Pose | None = None, prior_t: np.ndarray | None = None,
+              prior_sigma_t: float = 0.0) -> TwoFrameResult:
+        """Solve one step. With ``prior_t`` and ``prior_sigma_t`` > 0 a weak Gaussian prior on T (e.g. a
+        constant-velocity prediction) keeps directions the rays do not observe (the scale under pure
+        translation) where the prediction puts them instead of letting the optimiser wander; the
+        covariance returned is the rays' alone, so those directions still show as unobserved."""
+        self._prior = (None if prior_t is None or not prior_sigma_t > 0 or not np.all(np.isfinite(prior_t))
+                       else (np.asarray(prior_t, dtype=float), float(prior_sigma_t)))
         cfg = self.config
         m = len(pairs)
         if m < 6:
@@ -139,7 +147,9 @@ class TwoFrameSolver:
                                   'no parallax: rotation only')
         warm = initial is not None and initial.is_finite()
         best = self._best(pairs, [initial] if warm else self._cold_starts(pairs, R_rot))
-        if warm and (best is None or best.cheirality < 0.5):
+        # a poor warm start gets the cold starts too, unless a motion prior anchors it (real time: the cold
+        # starts cost ~10 solves; a prior-anchored bad step is flagged below and predicted by the caller)
+        if warm and (best is None or (best.cheirality < 0.5 and self._prior is None)):
             best = self._best(pairs, self._cold_starts(pairs, R_rot) + ([best.pose] if best else []))
         if best is None:
             return TwoFrameResult(initial or Pose.identity(), StepStatus.FAILED, n_constraints=m,
@@ -168,11 +178,23 @@ class TwoFrameSolver:
         R0 = start.R
         scale = cfg.sigma
 
-        def fun(x: np.ndarray) -> np.ndarray:
-            return sampson_residuals(exp_so3(x[:3]) @ R0, x[3:], pairs) / scale
+        prior = self._prior
+        if prior is None:
+            def fun(x: np.ndarray) -> np.ndarray:
+                return sampson_residuals(exp_so3(x[:3]) @ R0, x[3:], pairs) / scale
 
-        def jac(x: np.ndarray) -> np.ndarray:
-            return numeric_jacobian(R0, x, pairs)[1] / scale
+            def jac(x: np.ndarray) -> np.ndarray:
+                return numeric_jacobian(R0, x, pairs)[1] / scale
+        else:
+            t_prior, s_prior = prior
+            J_prior = np.hstack([np.zeros((3, 3)), np.eye(3) / s_prior])
+
+            def fun(x: np.ndarray) -> np.ndarray:
+                r = sampson_residuals(exp_so3(x[:3]) @ R0, x[3:], pairs) / scale
+                return np.concatenate([r, (x[3:] - t_prior) / s_prior])
+
+            def jac(x: np.ndarray) -> np.ndarray:
+                return np.vstack([numeric_jacobian(R0, x, pairs)[1] / scale, J_prior])
 
         x0 = np.concatenate([np.zeros(3), start.t])
         # fixed variable scaling (not 'jac': that inflates steps along the weakly observed scale)

@@ -11,9 +11,12 @@ from collections.abc import Iterable
 import numpy as np
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import Pose as PoseMsg
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, qos_profile_sensor_data
-from sensor_msgs.msg import Image
+from sensor_msgs.msg import Image, PointCloud2, PointField
+
+from fixego_ros.geometry.rotation import Pose, from_quat_xyzw, quat_xyzw
 
 SENSOR_QOS: QoSProfile = qos_profile_sensor_data
 RELIABLE_QOS = QoSProfile(depth=50)
@@ -29,6 +32,17 @@ class ImageError(ValueError):
     """An Image message we cannot use (unknown encoding, inconsistent size)."""
 
 
+class CloudError(ValueError):
+    """A PointCloud2 whose layout does not match the table we expect."""
+
+
+# numpy scalar type -> PointField datatype (sensor_msgs_py is not available as a wheel)
+_POINT_FIELD_TYPES = {np.dtype('<i1'): PointField.INT8, np.dtype('<u1'): PointField.UINT8,
+                      np.dtype('<i2'): PointField.INT16, np.dtype('<u2'): PointField.UINT16,
+                      np.dtype('<i4'): PointField.INT32, np.dtype('<u4'): PointField.UINT32,
+                      np.dtype('<f4'): PointField.FLOAT32, np.dtype('<f8'): PointField.FLOAT64}
+
+
 def stamp_to_sec(stamp: Time) -> float:
     return float(stamp.sec) + 1e-9 * float(stamp.nanosec)
 
@@ -38,6 +52,24 @@ def sec_to_stamp(t: float) -> Time:
         raise ValueError(f'stamp must be finite and >= 0, got {t}')
     ns = round(t * 1e9)
     return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+
+
+def pose_to_msg(pose: Pose, out: PoseMsg | None = None) -> PoseMsg:
+    """geometry_msgs/Pose of a :class:`Pose` (filled into ``out`` when given)."""
+    out = out if out is not None else PoseMsg()
+    out.position.x, out.position.y, out.position.z = (float(x) for x in pose.t)
+    o = out.orientation
+    o.x, o.y, o.z, o.w = (float(x) for x in quat_xyzw(pose.R))
+    return out
+
+
+def msg_to_pose(msg: PoseMsg) -> Pose:
+    """:class:`Pose` of a geometry_msgs/Pose; ValueError for a non-finite or zero quaternion."""
+    p, o = msg.position, msg.orientation
+    t = np.array([p.x, p.y, p.z], dtype=float)
+    if not np.all(np.isfinite(t)):
+        raise ValueError(f'non-finite position {t.tolist()}')
+    return Pose(from_quat_xyzw(np.array([o.x, o.y, o.z, o.w], dtype=float)), t)
 
 
 def image_to_gray(msg: Image) -> np.ndarray:
@@ -121,3 +153,38 @@ def publish_diagnostics(node: Node, publisher, statuses: list[DiagnosticStatus])
     arr.header.stamp = node.get_clock().now().to_msg()
     arr.status = statuses
     publisher.publish(arr)
+
+
+def table_to_cloud(rows: np.ndarray, stamp: Time, frame_id: str) -> PointCloud2:
+    """PointCloud2 carrying a packed little-endian structured array, one point per row."""
+    msg = PointCloud2()
+    msg.header.stamp = stamp
+    msg.header.frame_id = frame_id
+    msg.height, msg.width = 1, len(rows)
+    msg.fields = [PointField(name=name, offset=int(off), datatype=_POINT_FIELD_TYPES[dt], count=1)
+                  for name, (dt, off) in rows.dtype.fields.items()]
+    msg.is_bigendian = False
+    msg.point_step = int(rows.dtype.itemsize)
+    msg.row_step = msg.point_step * msg.width
+    msg.data = np.ascontiguousarray(rows).tobytes()
+    msg.is_dense = True
+    return msg
+
+
+def cloud_to_table(msg: PointCloud2, dtype: np.dtype) -> np.ndarray:
+    """The structured array of a PointCloud2 written by :func:`table_to_cloud`; :class:`CloudError`
+    names what does not match (fields, types, offsets, sizes)."""
+    want = {name: (_POINT_FIELD_TYPES[dt], int(off)) for name, (dt, off) in dtype.fields.items()}
+    have = {f.name: (int(f.datatype), int(f.offset)) for f in msg.fields}
+    if want != have:
+        bad = sorted(n for n in set(want) | set(have) if want.get(n) != have.get(n))
+        raise CloudError(f'point fields do not match the expected layout: {bad}')
+    if msg.is_bigendian:
+        raise CloudError('big-endian point clouds are not supported')
+    if int(msg.point_step) != dtype.itemsize:
+        raise CloudError(f'point_step {msg.point_step}, expected {dtype.itemsize}')
+    n = int(msg.width) * int(msg.height)
+    if len(msg.data) != n * dtype.itemsize:
+        raise CloudError(f'{len(msg.data)} data bytes for {n} points of {dtype.itemsize} bytes')
+    data = msg.data if isinstance(msg.data, (bytes, bytearray, memoryview)) else bytes(msg.data)
+    return np.frombuffer(data, dtype=dtype, count=n).copy()

@@ -26,6 +26,7 @@ from rcl_interfaces.msg import ParameterDescriptor, ParameterType
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image
+from std_srvs.srv import Trigger
 
 from fixego_ros.geometry.rig import default_rig_path, load_rig
 from fixego_ros.geometry.rotation import Pose, rig_pose_to_base_link
@@ -74,6 +75,8 @@ class SimRigNode(Node):
             'texel': (0.002, _desc('texture resolution in m', D)),
             'loop': (False, _desc('restart the trajectory at its end', B)),
             'exit_at_end': (True, _desc('shut the node down when the trajectory ends (not looping)', B)),
+            'wait_for_start': (False, _desc('hold the rig at the start pose (still rendering) until ~/start is '
+                                            'called, so the other nodes can come up and fixate first', B)),
             'pty_file': ('/tmp/fixego_sim_ptys.json', _desc('JSON file receiving the two pty paths', S)),
             'profile': ('evi_d30', _desc('VISCA camera profile of the emulators', S)),
             'baud': (9600, _desc('emulated serial baud rate', I)),
@@ -132,6 +135,8 @@ class SimRigNode(Node):
         self._render_ms: list[float] = []
         self._t0 = time.monotonic()
         self._loop_offset = 0.0
+        self.started = not p['wait_for_start']
+        self.create_service(Trigger, '~/start', self._srv_start)
         self.timer = self.create_timer(1.0 / p['fps'], self._tick)
         self.diag_timer = self.create_timer(1.0, self._diagnostics)
 
@@ -146,8 +151,20 @@ class SimRigNode(Node):
         os.replace(tmp, path)
 
     def sim_time(self, now: float) -> float:
-        """Trajectory time at monotonic time ``now``."""
+        """Trajectory time at monotonic time ``now`` (0 until started)."""
+        if not self.started:
+            return 0.0
         return (now - self._t0) * self.p['time_scale'] - self._loop_offset
+
+    def _srv_start(self, request, response):
+        if self.started:
+            response.success, response.message = False, 'already started'
+            return response
+        self._t0 = time.monotonic()
+        self.started = True
+        self.get_logger().info(f'trajectory {self.p["trajectory"]!r} started')
+        response.success, response.message = True, 'started'
+        return response
 
     def _tick(self) -> None:
         try:

@@ -24,7 +24,7 @@ import numpy as np
 import yaml
 
 from fixego_ros.geometry.rig import Rig
-from fixego_ros.geometry.rotation import Pose, quat_xyzw
+from fixego_ros.geometry.rotation import Pose
 from fixego_ros.sim.run import Frame, SimSettings, Simulation
 
 NS = '/fixego'
@@ -62,14 +62,11 @@ def camera_info_msg(rig: Rig, side: str, t: float):
 def pose_msg(pose: Pose, t: float, frame_id: str = 'odom'):
     from geometry_msgs.msg import PoseStamped
 
-    from fixego_ros.nodes.common import sec_to_stamp
+    from fixego_ros.nodes.common import pose_to_msg, sec_to_stamp
     msg = PoseStamped()
     msg.header.stamp = sec_to_stamp(t)
     msg.header.frame_id = frame_id
-    msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = (float(x) for x in pose.t)
-    q = quat_xyzw(pose.R)
-    o = msg.pose.orientation
-    o.x, o.y, o.z, o.w = (float(x) for x in q)
+    pose_to_msg(pose, msg.pose)
     return msg
 
 

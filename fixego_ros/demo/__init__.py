@@ -1,0 +1,1 @@
+"""`fixego demo`: the live pipeline on the simulated rig, as separate processes, and its report."""

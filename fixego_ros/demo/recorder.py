@@ -1,0 +1,85 @@
+"""The demo's own node: records what the pipeline publishes (and when), and starts the run.
+
+It keeps the refined poses with their arrival latency (receipt time minus the image stamp they carry:
+the simulated rig stamps images with the wall clock, so this is image -> pose through every process),
+the ground truth, the last raw path (subscribed without deserialising each one), and the fixation and
+diagnostics traffic the console progress line shows.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PointStamped, PoseStamped
+from nav_msgs.msg import Path
+from rclpy.node import Node
+from rclpy.serialization import deserialize_message
+from std_srvs.srv import Trigger
+
+from fixego_ros.geometry.rig import SIDES
+from fixego_ros.geometry.rotation import Pose
+from fixego_ros.nodes.common import RELIABLE_QOS, msg_to_pose, stamp_to_sec
+
+
+class Recorder(Node):
+    def __init__(self, **kwargs) -> None:
+        super().__init__('fixego_demo', **kwargs)
+        self.poses: list[tuple[float, Pose]] = []
+        self.latency_s: list[float] = []
+        self.truth: list[tuple[float, Pose]] = []
+        self.fixations: Counter[str] = Counter()
+        self.statuses: dict[str, dict[str, str]] = {}
+        self._path_raw: bytes | None = None
+        self.create_subscription(PoseStamped, '/fixego/pose', self._on_pose, RELIABLE_QOS)
+        self.create_subscription(PoseStamped, '/fixego/ground_truth/pose', self._on_truth, RELIABLE_QOS)
+        self.create_subscription(Path, '/fixego/path_raw', self._on_path_raw, RELIABLE_QOS, raw=True)
+        self.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, RELIABLE_QOS)
+        for side in SIDES:
+            self.create_subscription(PointStamped, f'/fixego/{side}/fixation',
+                                     lambda m, s=side: self.fixations.update([s]), RELIABLE_QOS)
+        self.reset_client = self.create_client(Trigger, '/estimator_node/reset')
+        self.start_client = self.create_client(Trigger, '/sim_rig_node/start')
+
+    def _now(self) -> float:
+        return self.get_clock().now().nanoseconds * 1e-9
+
+    def _on_pose(self, msg: PoseStamped) -> None:
+        t = stamp_to_sec(msg.header.stamp)
+        self.latency_s.append(self._now() - t)
+        self.poses.append((t, msg_to_pose(msg.pose)))
+
+    def _on_truth(self, msg: PoseStamped) -> None:
+        self.truth.append((stamp_to_sec(msg.header.stamp), msg_to_pose(msg.pose)))
+
+    def _on_path_raw(self, data: bytes) -> None:
+        self._path_raw = data
+
+    def _on_diag(self, msg: DiagnosticArray) -> None:
+        for st in msg.status:
+            self.statuses[st.name] = {'message': st.message, **{kv.key: kv.value for kv in st.values}}
+
+    def raw_poses(self) -> list[tuple[float, Pose]]:
+        """The two-frame-only trajectory: the last /fixego/path_raw received."""
+        if self._path_raw is None:
+            return []
+        path = deserialize_message(self._path_raw, Path)
+        return [(stamp_to_sec(p.header.stamp), msg_to_pose(p.pose)) for p in path.poses]
+
+    def call(self, client, executor, timeout_s: float) -> tuple[bool, str]:
+        """Call a Trigger service with bounded waits (for the server, then for the answer)."""
+        if not client.wait_for_service(timeout_sec=timeout_s):
+            return False, f'service {client.srv_name} not available after {timeout_s:.0f} s'
+        future = client.call_async(Trigger.Request())
+        executor.spin_until_future_complete(future, timeout_sec=timeout_s)
+        if not future.done() or future.result() is None:
+            return False, f'service {client.srv_name} did not answer within {timeout_s:.0f} s'
+        res = future.result()
+        return bool(res.success), str(res.message)
+
+    def clear(self) -> None:
+        """Forget everything recorded so far (the run starts now)."""
+        self.poses.clear()
+        self.latency_s.clear()
+        self.truth.clear()
+        self._path_raw = None

@@ -1,0 +1,273 @@
+"""estimator_node: flow observations in, trajectory out (DESIGN.md §3).
+
+Subscribes ``/fixego/flow/observation`` (sensor_msgs/PointCloud2, the row table of
+:mod:`fixego_ros.pipeline.observation`) and feeds the core :class:`~fixego_ros.estimation.estimator.Estimator`:
+a two-frame solve per step, then the local bundle adjustment over the last n frames. Publishes
+``/fixego/pose`` (refined), ``/fixego/path``, ``/fixego/path_raw`` (two-frame only), ``/fixego/odom`` (with
+covariance; weakly observed axes get large variances), ``/diagnostics``, and TF ``odom -> base_link``
+when tf2_ros is importable. ``~/reset`` (std_srvs/Trigger) restarts the trajectory.
+
+Bad input never stops the node: a malformed observation is rejected whole (logged once, counted on
+/diagnostics); a step the solver cannot make is replaced by a constant-velocity prediction and flagged;
+nothing non-finite is ever published.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import Counter, deque
+
+import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseStamped
+from nav_msgs.msg import Odometry, Path
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from sensor_msgs.msg import PointCloud2
+from std_srvs.srv import Trigger
+
+from fixego_ros.estimation.estimator import Estimator, EstimatorConfig, FrameResult
+from fixego_ros.estimation.status import StepStatus
+from fixego_ros.estimation.twoframe import SolverConfig
+from fixego_ros.geometry.rig import default_rig_path, load_rig
+from fixego_ros.geometry.rotation import RIG_TO_BASE, Pose, rig_pose_to_base_link
+from fixego_ros.nodes.common import (
+    ERROR,
+    OK,
+    RELIABLE_QOS,
+    WARN,
+    CloudError,
+    OnceLogger,
+    cloud_to_table,
+    diagnostic_status,
+    pose_to_msg,
+    publish_diagnostics,
+    stamp_to_sec,
+)
+from fixego_ros.pipeline.observation import ROW_DTYPE, ObservationError, rows_to_observation
+
+PARAMS: dict[str, tuple[object, str]] = {
+    'rig_file': ('', 'rig calibration YAML (DESIGN.md §4); empty = the package config/rig.yaml'),
+    'observation_topic': ('/fixego/flow/observation', 'flow observations (PointCloud2 rows, see README)'),
+    'window': (3, 'n: frames in the local bundle adjustment (3..10; 0 disables it)'),
+    'mode': ('paper', "local BA: 'paper' (BA cost alone, Powell, as in the papers) or 'joint' (+ two-frame terms)"),
+    'fixation_weight': (1.0, 'weight of the fixation constraints relative to one flow point'),
+    'pixel_sigma': (1.0, 'expected flow/fixation noise in pixels (sets the covariance scale)'),
+    'loss': ('huber', 'robust loss of the two-frame solve: linear | huber | soft_l1 | cauchy | arctan'),
+    'velocity_prior': (True, 'weak constant-velocity prior on each step (keeps unobserved scale from wandering; '
+                             'the covariance stays the rays\' own). false = the papers\' method'),
+    'prior_sigma_rel': (0.5, 'prior std as a fraction of the predicted step length'),
+    'prior_sigma_min': (0.01, 'prior std at least this (m)'),
+    'max_nfev': (30, 'bound on function evaluations of one two-frame solve'),
+    'max_step_translation': (0.5, 'm; a larger step is rejected as a jump and predicted instead'),
+    'max_step_rotation_deg': (20.0, 'deg; a larger step rotation is rejected as a jump'),
+    'reject_translation_std': (1e6, 'm; a step whose translation std exceeds this is rejected (1e6: never)'),
+    'odom_frame': ('odom', 'frame of the published trajectory'),
+    'base_frame': ('base_link', 'frame of the rig body (x forward, y left, z up)'),
+    'path_max_length': (20000, 'poses kept in /fixego/path and /fixego/path_raw (oldest dropped)'),
+    'publish_tf': (True, 'broadcast odom -> base_link when tf2_ros is importable'),
+    'diagnostics_period_s': (1.0, 'diagnostics publishing period'),
+}
+
+
+def odom_covariance(pose_cov_rig: np.ndarray) -> list[float]:
+    """Row-major 6x6 Odometry pose covariance (x, y, z, rot x, rot y, rot z in ``odom``) of the
+    estimator's covariance over [rotation, position] in the rig frame at frame 0."""
+    B = np.zeros((6, 6))
+    B[:3, 3:] = RIG_TO_BASE           # position rows come from the rig position block
+    B[3:, :3] = RIG_TO_BASE           # rotation rows from the rig rotation block
+    cov = B @ pose_cov_rig @ B.T
+    cov = 0.5 * (cov + cov.T)
+    return [float(x) for x in cov.ravel()]
+
+
+class EstimatorNode(Node):
+    def __init__(self, **kwargs) -> None:
+        super().__init__('estimator_node', **kwargs)
+        for name, (default, text) in PARAMS.items():
+            self.declare_parameter(name, default, ParameterDescriptor(description=text))
+        g = lambda n: self.get_parameter(n).value  # noqa: E731
+        self.rig = load_rig(g('rig_file') or default_rig_path())
+        f = self.rig.camera('right').fx
+        self.config = EstimatorConfig(
+            window=int(g('window')), mode=str(g('mode')), fixation_weight=float(g('fixation_weight')),
+            max_step_translation=float(g('max_step_translation')),
+            max_step_rotation=float(np.radians(float(g('max_step_rotation_deg')))),
+            reject_translation_std=float(g('reject_translation_std')), velocity_prior=bool(g('velocity_prior')),
+            prior_sigma_rel=float(g('prior_sigma_rel')), prior_sigma_min=float(g('prior_sigma_min')),
+            solver=SolverConfig(sigma=float(g('pixel_sigma')) / f, loss=str(g('loss')), max_nfev=int(g('max_nfev'))))
+        self.estimator = Estimator(self.rig, self.config)
+        self.odom_frame, self.base_frame = str(g('odom_frame')), str(g('base_frame'))
+        self.once = OnceLogger(self)
+        n_path = int(g('path_max_length'))
+        self.path: deque[PoseStamped] = deque(maxlen=n_path)
+        self.path_raw: deque[PoseStamped] = deque(maxlen=n_path)
+        self.pub_pose = self.create_publisher(PoseStamped, '/fixego/pose', RELIABLE_QOS)
+        self.pub_path = self.create_publisher(Path, '/fixego/path', RELIABLE_QOS)
+        self.pub_path_raw = self.create_publisher(Path, '/fixego/path_raw', RELIABLE_QOS)
+        self.pub_odom = self.create_publisher(Odometry, '/fixego/odom', RELIABLE_QOS)
+        self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', RELIABLE_QOS)
+        self.tf = self._make_tf_broadcaster() if bool(g('publish_tf')) else None
+        self.create_subscription(PointCloud2, str(g('observation_topic')), self._on_observation, RELIABLE_QOS)
+        self.create_service(Trigger, '~/reset', self._srv_reset)
+        self.create_timer(float(g('diagnostics_period_s')), self._publish_diagnostics)
+        self.status_counts: Counter[str] = Counter()
+        self.stats = {'observations': 0, 'malformed': 0, 'out_of_order': 0, 'published': 0, 'resets': 0}
+        self.solve_ms: deque[float] = deque(maxlen=300)
+        self.last: FrameResult | None = None
+        self.last_error = ''
+        self.get_logger().info(f'estimator: local BA n={self.config.window} mode={self.config.mode}, '
+                               f'TF {"on" if self.tf else "off"}')
+
+    def _make_tf_broadcaster(self):
+        try:
+            from tf2_ros import TransformBroadcaster
+        except ImportError:
+            self.get_logger().info('tf2_ros not importable: no TF odom -> base_link (topics carry the pose)')
+            return None
+        return TransformBroadcaster(self)
+
+    # -------------------------------------------------------------------------------------- input
+    def _on_observation(self, msg: PointCloud2) -> None:
+        self.stats['observations'] += 1
+        stamp = stamp_to_sec(msg.header.stamp)
+        try:
+            obs = rows_to_observation(stamp, cloud_to_table(msg, ROW_DTYPE))
+        except (CloudError, ObservationError) as e:
+            self.stats['malformed'] += 1
+            self.last_error = f'malformed observation: {e}'
+            self.once.warn('malformed', f'{self.last_error} (rejected; further ones are only counted)')
+            return
+        self.once.clear('malformed', 'observations well-formed again')
+        t = time.perf_counter()
+        res = self.estimator.update(obs)
+        self.solve_ms.append((time.perf_counter() - t) * 1e3)
+        if not res.placed:
+            self.stats['out_of_order'] += 1
+            self.once.warn('order', f'observation ignored: {res.message}')
+            return
+        self.once.clear('order')
+        self.status_counts[res.status.value] += 1
+        if not res.status.usable and res.status is not StepStatus.INIT:
+            self.once.warn('step', f'step not solved ({res.status.value}): {res.message}')
+        else:
+            self.once.clear('step', 'steps solved again')
+        self.last = res
+        self._publish(msg.header.stamp, res)
+
+    # -------------------------------------------------------------------------------------- output
+    def _publish(self, stamp, res: FrameResult) -> None:
+        pose = rig_pose_to_base_link(res.pose)
+        pose_raw = rig_pose_to_base_link(res.pose_raw)
+        if not (pose.is_finite() and pose_raw.is_finite() and np.all(np.isfinite(res.pose_covariance))):
+            self.once.error('nan', 'estimator produced a non-finite pose: not published (please report)')
+            return
+        ps = self._stamped(stamp, pose)
+        self.pub_pose.publish(ps)
+        self.path.append(ps)
+        self.path_raw.append(self._stamped(stamp, pose_raw))
+        for pub, poses in ((self.pub_path, self.path), (self.pub_path_raw, self.path_raw)):
+            path = Path()
+            path.header.stamp = stamp
+            path.header.frame_id = self.odom_frame
+            path.poses = list(poses)
+            pub.publish(path)
+        self.pub_odom.publish(self._odometry(stamp, pose, res))
+        if self.tf is not None:
+            self._send_tf(stamp, pose)
+        self.stats['published'] += 1
+
+    def _stamped(self, stamp, pose: Pose) -> PoseStamped:
+        ps = PoseStamped()
+        ps.header.stamp = stamp
+        ps.header.frame_id = self.odom_frame
+        pose_to_msg(pose, ps.pose)
+        return ps
+
+    def _odometry(self, stamp, pose: Pose, res: FrameResult) -> Odometry:
+        od = Odometry()
+        od.header.stamp = stamp
+        od.header.frame_id = self.odom_frame
+        od.child_frame_id = self.base_frame
+        pose_to_msg(pose, od.pose.pose)
+        od.pose.covariance = odom_covariance(res.pose_covariance)
+        dt = res.stamp - res.ref_stamp if res.ref_stamp is not None else 0.0
+        if dt > 0 and res.status is not StepStatus.INIT:
+            step = rig_pose_to_base_link(res.step)          # base_link at t in base_link at the keyframe
+            v, w = step.R.T @ step.t / dt, step.rvec() / dt   # twist in the child frame (base_link at t)
+            od.twist.twist.linear.x, od.twist.twist.linear.y, od.twist.twist.linear.z = (float(x) for x in v)
+            od.twist.twist.angular.x, od.twist.twist.angular.y, od.twist.twist.angular.z = (float(x) for x in w)
+            tw = odom_covariance(res.step_covariance)
+            od.twist.covariance = [float(min(x / (dt * dt), 1e12)) for x in tw]
+        else:
+            od.twist.covariance = [0.0] * 36
+            for i in range(6):
+                od.twist.covariance[7 * i] = 1e6   # unknown velocity
+        return od
+
+    def _send_tf(self, stamp, pose: Pose) -> None:
+        from geometry_msgs.msg import TransformStamped
+        tf = TransformStamped()
+        tf.header.stamp = stamp
+        tf.header.frame_id = self.odom_frame
+        tf.child_frame_id = self.base_frame
+        p = pose_to_msg(pose)
+        tf.transform.translation.x, tf.transform.translation.y, tf.transform.translation.z = (
+            p.position.x, p.position.y, p.position.z)
+        tf.transform.rotation = p.orientation
+        self.tf.sendTransform(tf)
+
+    # -------------------------------------------------------------------------------------- services
+    def _srv_reset(self, request, response):
+        self.estimator.reset()
+        self.path.clear()
+        self.path_raw.clear()
+        self.last = None
+        self.stats['resets'] += 1
+        self.get_logger().info('trajectory reset: odom restarts at the next frame')
+        response.success = True
+        response.message = 'trajectory reset'
+        return response
+
+    # -------------------------------------------------------------------------------------- diagnostics
+    def _publish_diagnostics(self) -> None:
+        values: dict[str, object] = dict(self.stats)
+        values.update({f'steps_{k}': v for k, v in sorted(self.status_counts.items())})
+        ms = np.array(self.solve_ms) if self.solve_ms else np.zeros(1)
+        values.update({'solve_ms_p50': f'{np.median(ms):.2f}', 'solve_ms_p95': f'{np.percentile(ms, 95):.2f}',
+                       'window': self.config.window, 'mode': self.config.mode})
+        level, message = OK, 'estimating'
+        if self.last is None:
+            level, message = WARN, 'no observation yet'
+        else:
+            std = np.sqrt(np.clip(np.diag(self.last.step_covariance)[3:], 0, None))
+            values.update({'frame': self.last.index, 'last_status': self.last.status.value,
+                           'last_message': self.last.message, 'step_translation_std_m': f'{np.max(std):.4g}'})
+            if not self.last.status.usable and self.last.status is not StepStatus.INIT:
+                level, message = WARN, f'last step {self.last.status.value}: {self.last.message}'
+            elif self.last.status is StepStatus.WEAK:
+                level, message = WARN, 'scale weakly observed (large translation covariance)'
+        if self.once.active('malformed'):
+            level, message = ERROR, self.last_error
+        publish_diagnostics(self, self.pub_diag, [diagnostic_status(
+            'fixego estimator_node', 'estimator', level, message, values)])
+
+
+def main(args: list[str] | None = None) -> None:
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = EstimatorNode()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == '__main__':
+    main()

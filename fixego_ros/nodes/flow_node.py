@@ -1,0 +1,199 @@
+"""flow_node: synchronised stereo frames in, one flow observation per frame out.
+
+Subscribes each camera's ``image_raw`` (sensor-data QoS), ``joint_states`` and ``fixation`` (from
+``camera_node``), matches them by stamp (:class:`~fixego_ros.pipeline.sync.StereoSync`, bounded waits),
+tracks pyramidal Lucas-Kanade flow in a window around each fixation point and turns every point into
+rig-frame rays with the pan/tilt of each of the two frames (:class:`~fixego_ros.pipeline.frontend.StereoFrontEnd`).
+Publishes ``/fixego/flow/observation`` (sensor_msgs/PointCloud2 rows, :mod:`fixego_ros.pipeline.observation`)
+and ``/diagnostics``. A frame with one camera only gives a one-camera observation; dropped frames show
+up as a gap between the observation's ``t0`` and the previous frame, which the estimator bridges.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+
+import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PointStamped
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from sensor_msgs.msg import Image, JointState, PointCloud2
+
+from fixego_ros.geometry.rig import SIDES, default_rig_path, load_rig
+from fixego_ros.nodes.common import (
+    OK,
+    RELIABLE_QOS,
+    SENSOR_QOS,
+    WARN,
+    ImageError,
+    OnceLogger,
+    diagnostic_status,
+    image_to_gray,
+    publish_diagnostics,
+    stamp_to_sec,
+    table_to_cloud,
+)
+from fixego_ros.pipeline.frontend import CameraSample, KeyframePolicy, StereoFrontEnd
+from fixego_ros.pipeline.observation import observation_to_rows
+from fixego_ros.pipeline.sync import StereoSync, SyncParams
+from fixego_ros.tracking.flow import FlowParams
+
+PARAMS: dict[str, tuple[object, str]] = {
+    'rig_file': ('', 'rig calibration YAML (DESIGN.md §4); empty = the package config/rig.yaml'),
+    'preset': ('window', "flow points: 'paper' (3 in the central 30x30 px), 'window' (all good corners in "
+                         "the window), 'full' (whole image)"),
+    'window_px': (100, 'side of the flow window centred on the fixation point (px)'),
+    'paper_region_px': (30, "paper preset: side of the central region the points are drawn from (px)"),
+    'paper_points': (3, 'paper preset: points per camera'),
+    'max_corners': (150, 'window/full presets: most corners tracked per camera'),
+    'min_eig': (1e-3, 'Lucas-Kanade minimum-eigenvalue threshold (rejects untextured points)'),
+    'fb_max_px': (0.5, 'forward-backward consistency bound (px)'),
+    'lk_win': (21, 'Lucas-Kanade window (px)'),
+    'lk_levels': (3, 'pyramid levels'),
+    'keyframe_max_frames': (10, 'frames tracked from one keyframe at most (1 = consecutive frames, the papers)'),
+    'keyframe_min_parallax_px': (0.0, 'new keyframe once the rotation-compensated parallax reaches this (0 = off)'),
+    'keyframe_min_tracked_fraction': (0.5, "new keyframe when fewer of the keyframe's points still track"),
+    'slop_s': (0.01, 'images of the two cameras closer than this form one frame (s)'),
+    'max_wait_s': (0.25, 'bound on waiting for a partner image, joint state or fixation (s)'),
+    'joint_extrapolation_s': (0.0, 'how far past the newest joint state an image may be (s); 0 = wait for one'),
+    'observation_topic': ('/fixego/flow/observation', 'where observations are published'),
+    'diagnostics_period_s': (1.0, 'diagnostics publishing period'),
+}
+
+
+class FlowNode(Node):
+    def __init__(self, **kwargs) -> None:
+        super().__init__('flow_node', **kwargs)
+        for name, (default, text) in PARAMS.items():
+            self.declare_parameter(name, default, ParameterDescriptor(description=text))
+        g = lambda n: self.get_parameter(n).value  # noqa: E731
+        self.rig = load_rig(g('rig_file') or default_rig_path())
+        self.flow_params = FlowParams(
+            preset=str(g('preset')), window_px=int(g('window_px')), paper_region_px=int(g('paper_region_px')),
+            paper_points=int(g('paper_points')), max_corners=int(g('max_corners')), min_eig=float(g('min_eig')),
+            fb_max_px=float(g('fb_max_px')), lk_win=int(g('lk_win')), lk_levels=int(g('lk_levels')))
+        self.frontend = StereoFrontEnd(self.rig, self.flow_params, KeyframePolicy(
+            max_frames=int(g('keyframe_max_frames')), min_parallax_px=float(g('keyframe_min_parallax_px')),
+            min_tracked_fraction=float(g('keyframe_min_tracked_fraction'))))
+        self.sync = StereoSync(SyncParams(slop_s=float(g('slop_s')), max_wait_s=float(g('max_wait_s')),
+                                          joint_extrapolation_s=float(g('joint_extrapolation_s'))))
+        self.once = OnceLogger(self)
+        self.pub_obs = self.create_publisher(PointCloud2, str(g('observation_topic')), RELIABLE_QOS)
+        self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', RELIABLE_QOS)
+        for side in SIDES:
+            ns = f'/fixego/{side}'
+            self.create_subscription(Image, f'{ns}/image_raw', lambda m, s=side: self._on_image(s, m), SENSOR_QOS)
+            self.create_subscription(JointState, f'{ns}/joint_states', lambda m, s=side: self._on_joints(s, m),
+                                     RELIABLE_QOS)
+            self.create_subscription(PointStamped, f'{ns}/fixation', lambda m, s=side: self._on_fixation(s, m),
+                                     RELIABLE_QOS)
+        self.create_timer(0.02, self._drain)
+        self.create_timer(float(g('diagnostics_period_s')), self._publish_diagnostics)
+        self.stats = {'images': 0, 'bad_images': 0, 'observations': 0, 'keyframes': 0, 'points_right': 0,
+                      'points_left': 0}
+        self.process_ms: deque[float] = deque(maxlen=300)
+        self.last_problem = ''
+        self.get_logger().info(f'flow: preset {self.flow_params.preset}, window {self.flow_params.window_px} px')
+
+    def _now(self) -> float:
+        return self.get_clock().now().nanoseconds * 1e-9
+
+    # -------------------------------------------------------------------------------------- input
+    def _on_image(self, side: str, msg: Image) -> None:
+        self.stats['images'] += 1
+        cam = self.rig.camera(side)
+        try:
+            gray = image_to_gray(msg)
+            if gray.shape != (cam.height, cam.width):
+                raise ImageError(f'{gray.shape[1]}x{gray.shape[0]} image, but the rig file says '
+                                 f'{cam.width}x{cam.height}')
+        except ImageError as e:
+            self.stats['bad_images'] += 1
+            self.last_problem = f'{side} image ignored: {e}'
+            self.once.warn(f'image_{side}', self.last_problem)
+            return
+        self.once.clear(f'image_{side}', f'{side} images usable again')
+        self.sync.add_image(side, stamp_to_sec(msg.header.stamp), (gray, msg.header.stamp), self._now())
+        self._drain()
+
+    def _on_joints(self, side: str, msg: JointState) -> None:
+        names = (f'{side}_pan', f'{side}_tilt')
+        try:
+            i, j = msg.name.index(names[0]), msg.name.index(names[1])
+            pan, tilt = float(msg.position[i]), float(msg.position[j])
+        except (ValueError, IndexError):
+            self.once.warn(f'joints_{side}', f'{side} joint_states without {names}: ignored')
+            return
+        if not self.sync.add_joints(side, stamp_to_sec(msg.header.stamp), pan, tilt):
+            self.once.warn(f'joints_bad_{side}', f'{side} joint state non-finite or out of order: ignored')
+        self._drain()
+
+    def _on_fixation(self, side: str, msg: PointStamped) -> None:
+        p = msg.point
+        fid = round(p.z) if np.isfinite(p.z) else -1
+        if not self.sync.add_fixation(side, stamp_to_sec(msg.header.stamp), (p.x, p.y), fid):
+            self.once.warn(f'fixation_bad_{side}', f'{side} fixation non-finite or late: ignored')
+        self._drain()
+
+    # -------------------------------------------------------------------------------------- processing
+    def _drain(self) -> None:
+        for frame in self.sync.pop_ready(self._now()):
+            t = time.perf_counter()
+            samples: dict[str, CameraSample | None] = {
+                side: None if c is None else CameraSample(c.image[0], c.pan, c.tilt, c.fixation_px, c.fixation_id)
+                for side, c in frame.cameras.items()}
+            base = frame.cameras['right'] or frame.cameras['left']     # the frame's stamp is the base camera's
+            stamp_msg = base.image[1]
+            obs = self.frontend.process(frame.stamp, samples)
+            rows = observation_to_rows(obs)
+            if len(rows) == 0:
+                continue
+            self.pub_obs.publish(table_to_cloud(rows, stamp_msg, 'rig'))
+            self.process_ms.append((time.perf_counter() - t) * 1e3)
+            self.stats['observations'] += 1
+            self.stats['keyframes'] += int(bool(obs.keyframe))
+            for side in SIDES:
+                cam = obs.camera(side)
+                self.stats[f'points_{side}'] = len(cam.flow_prev) if cam is not None else 0
+
+    # -------------------------------------------------------------------------------------- diagnostics
+    def _publish_diagnostics(self) -> None:
+        s = self.sync.stats
+        values: dict[str, object] = dict(self.stats)
+        values.update({'frames': s.frames, 'stereo_frames': s.stereo_frames,
+                       'single_camera_frames': s.single_camera_frames, 'late_images': s.late_images,
+                       'overflow_images': s.overflow_images, 'no_joints': s.no_joints, 'no_fixation': s.no_fixation,
+                       'rejected_inputs': s.rejected, 'preset': self.flow_params.preset})
+        ms = np.array(self.process_ms) if self.process_ms else np.zeros(1)
+        values.update({'process_ms_p50': f'{np.median(ms):.2f}', 'process_ms_p95': f'{np.percentile(ms, 95):.2f}'})
+        level, message = OK, 'tracking flow'
+        if self.stats['observations'] == 0:
+            level, message = WARN, 'no synchronised frame yet (images, joint states, fixations?)'
+        elif any(self.once.active(f'image_{side}') for side in SIDES):
+            level, message = WARN, self.last_problem
+        elif s.single_camera_frames > 0 and s.stereo_frames == 0:
+            level, message = WARN, 'only one camera delivers frames'
+        publish_diagnostics(self, self.pub_diag, [diagnostic_status('fixego flow_node', 'flow', level, message,
+                                                                    values)])
+
+
+def main(args: list[str] | None = None) -> None:
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = FlowNode()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == '__main__':
+    main()

@@ -1,0 +1,1 @@
+"""ROS-free pipeline from camera samples to estimator observations (front end, synchronisation, wire format)."""

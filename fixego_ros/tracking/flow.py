@@ -1,0 +1,275 @@
+"""Sparse optical flow around a fixation point (ROS-free): corners in a window, pyramidal LK, checks.
+
+The coplanarity constraints of DESIGN.md §5 need, per camera, pixels at t-1 and the same scene points
+at t. Corners (minimum-eigenvalue, ``cv2.goodFeaturesToTrack``) are detected in the previous image
+inside a square window centred on the previous fixation pixel, tracked forward with pyramidal
+Lucas-Kanade, and kept only if
+
+- LK converged and the structure tensor's minimum eigenvalue reaches ``min_eig`` (OpenCV's
+  ``minEigThreshold`` with ``OPTFLOW_LK_GET_MIN_EIGENVALS``: flat patches give unreliable flow),
+- the point lands inside the image minus ``border_px``,
+- tracking it back from t lands within ``fb_max_px`` of where it started (forward-backward check:
+  catches most occlusions, repeated texture and points that drifted onto another structure),
+- the patches around the two ends correlate (normalised cross-correlation >= ``ncc_min``). The
+  forward-backward check alone is not enough: where the content at t is unrelated to t-1 (occlusion,
+  specular change) LK settles in a local minimum of the new texture, and tracking back from there
+  settles in the mirror minimum, so ~10 % of such tracks pass it with errors of several pixels.
+
+Presets: ``window`` (default) takes as many good corners as the ``window_px`` square offers, which the
+Cramér-Rao analysis of DESIGN.md §5 shows the translation needs; ``paper`` takes the papers'
+``paper_points`` strongest corners in the central ``paper_region_px`` square; ``full`` takes corners over
+the whole image. For ``window``/``paper`` detection and LK run on crops around the window (not the whole
+image), which is what keeps a camera's flow around a millisecond.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, fields
+
+import cv2
+import numpy as np
+
+PRESETS = ('paper', 'window', 'full')
+_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)  # as the fixation tracker
+_CORNER_BLOCK = 3   # goodFeaturesToTrack's default structure-tensor block
+_PAD = _CORNER_BLOCK // 2 + 2  # context kept around a detection box so its corners see real pixels
+
+
+@dataclass(frozen=True)
+class FlowParams:
+    """How flow points are chosen and which tracks are trusted (defaults: the papers' real set-up)."""
+
+    preset: str = 'window'          # 'paper' | 'window' | 'full'
+    window_px: int = 100            # side of the flow window centred on the fixation pixel
+    paper_region_px: int = 30       # 'paper': central square of the window the points come from
+    paper_points: int = 3           # 'paper': how many points
+    max_corners: int = 150          # 'window' / 'full': at most this many points
+    corner_quality: float = 0.01    # goodFeaturesToTrack qualityLevel (relative to the best corner)
+    min_distance_px: float = 6.0    # minimum distance between detected corners
+    lk_win: int = 21                # LK window side (px)
+    lk_levels: int = 3              # LK pyramid levels above the base image
+    min_eig: float = 1e-3           # LK minEigThreshold: reject flat patches
+    fb_max_px: float = 0.5          # forward-backward consistency bound
+    ncc_min: float = 0.8            # patch correlation bound between the two ends (<= -1 disables)
+    ncc_half: int = 5               # correlation patch is (2h+1)^2 px
+    border_px: int = 8              # points must stay this far inside the image
+
+    def __post_init__(self) -> None:
+        if self.preset not in PRESETS:
+            raise ValueError(f'FlowParams.preset must be one of {PRESETS}, got {self.preset!r}')
+        ints = {'window_px': 4, 'paper_region_px': 1, 'paper_points': 1, 'max_corners': 1, 'lk_win': 3,
+                'lk_levels': 0, 'border_px': 0, 'ncc_half': 1}
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if f.name in ints:
+                if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < ints[f.name]:
+                    raise ValueError(f'FlowParams.{f.name} must be an integer >= {ints[f.name]}, got {value!r}')
+            elif f.name != 'preset' and (isinstance(value, bool) or not isinstance(value, (int, float))
+                                         or not math.isfinite(value)):
+                raise ValueError(f'FlowParams.{f.name} must be a finite number, got {value!r}')
+        if self.max_corners > 20000:   # cv2.remap maps (correlation patches) are limited to 32767 rows
+            raise ValueError(f'FlowParams.max_corners must be <= 20000, got {self.max_corners}')
+        if self.lk_levels > 8:
+            raise ValueError(f'FlowParams.lk_levels must be <= 8, got {self.lk_levels}')
+        if self.paper_region_px > self.window_px:
+            raise ValueError(f'FlowParams.paper_region_px ({self.paper_region_px}) must be <= window_px '
+                             f'({self.window_px}): the paper region lies inside the flow window')
+        if not 0.0 < self.corner_quality < 1.0:
+            raise ValueError(f'FlowParams.corner_quality must be in (0, 1), got {self.corner_quality}')
+        if self.min_distance_px < 0.0:
+            raise ValueError(f'FlowParams.min_distance_px must be >= 0, got {self.min_distance_px}')
+        if self.min_eig < 0.0:
+            raise ValueError(f'FlowParams.min_eig must be >= 0, got {self.min_eig}')
+        if self.fb_max_px <= 0.0:
+            raise ValueError(f'FlowParams.fb_max_px must be > 0, got {self.fb_max_px}')
+        if self.ncc_min > 1.0:
+            raise ValueError(f'FlowParams.ncc_min must be <= 1, got {self.ncc_min}')
+
+    @property
+    def lk_margin_px(self) -> int:
+        """Context around the window that LK's coarsest level can reach (crop margin)."""
+        return self.lk_win * 2**self.lk_levels // 2 + self.lk_win
+
+
+@dataclass(frozen=True)
+class FlowCounts:
+    """Where the detected corners went: ``detected = lost + min_eig + outside + fb + ncc + kept``."""
+
+    detected: int = 0
+    lost: int = 0        # LK did not converge (forward or backward)
+    min_eig: int = 0     # patch too flat (forward at t-1 or backward at t)
+    outside: int = 0     # landed outside the image minus the border
+    fb: int = 0          # forward-backward error above the bound
+    ncc: int = 0         # patches at t-1 and t do not correlate
+    kept: int = 0
+
+    def as_dict(self) -> dict[str, int]:
+        return {f.name: int(getattr(self, f.name)) for f in fields(self)}
+
+
+Box = tuple[int, int, int, int]  # x0, y0, x1, y1 (half-open pixel ranges)
+
+
+@dataclass(frozen=True)
+class FlowTracks:
+    """Tracked points: ``prev_px[i]`` at t-1 is ``curr_px[i]`` at t; ``reason`` is '' unless nothing was tried."""
+
+    prev_px: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))   # (N, 2) float64
+    curr_px: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))   # (N, 2) float64
+    counts: FlowCounts = field(default_factory=FlowCounts)
+    reason: str = ''                 # why no points were tracked ('' when tracking ran)
+    window: Box | None = None        # detection box in the previous image
+    center_px: tuple[float, float] | None = None  # window centre actually used
+
+    def __len__(self) -> int:
+        return len(self.prev_px)
+
+
+def _image_problem(img: object, name: str) -> str:
+    if img is None:
+        return f'{name} image missing'
+    if not isinstance(img, np.ndarray) or img.ndim != 2:
+        return f'{name} image is not a 2-D grey image'
+    if img.size == 0:
+        return f'{name} image is empty'
+    if img.dtype != np.uint8:
+        return f'{name} image is {img.dtype}, not uint8'
+    return ''
+
+
+def _square(cx: float, cy: float, side: int, limits: Box) -> Box:
+    """Square of ``side`` px centred on (cx, cy), clipped to ``limits``."""
+    x0 = math.floor(cx - side / 2.0 + 0.5)
+    y0 = math.floor(cy - side / 2.0 + 0.5)
+    lx0, ly0, lx1, ly1 = limits
+    return max(x0, lx0), max(y0, ly0), min(x0 + side, lx1), min(y0 + side, ly1)
+
+
+def _grow(box: Box, margin: int, w: int, h: int) -> Box:
+    x0, y0, x1, y1 = box
+    return max(x0 - margin, 0), max(y0 - margin, 0), min(x1 + margin, w), min(y1 + margin, h)
+
+
+def detect_corners(gray: np.ndarray, box: Box, max_corners: int, params: FlowParams) -> np.ndarray:
+    """Strongest min-eigenvalue corners (N, 2) inside ``box``, strongest first, at least
+    ``min_distance_px`` apart. Only a crop of the box (plus a few px of context) is processed."""
+    h, w = gray.shape
+    cx0, cy0, cx1, cy1 = _grow(box, _PAD, w, h)
+    roi = gray[cy0:cy1, cx0:cx1]
+    mask = np.zeros(roi.shape, np.uint8)
+    x0, y0, x1, y1 = box
+    mask[y0 - cy0:y1 - cy0, x0 - cx0:x1 - cx0] = 255
+    c = cv2.goodFeaturesToTrack(roi, int(max_corners), float(params.corner_quality), float(params.min_distance_px),
+                                mask=mask, blockSize=_CORNER_BLOCK)
+    if c is None:
+        return np.zeros((0, 2))
+    return c.reshape(-1, 2).astype(np.float64) + (cx0, cy0)
+
+
+def track_flow(prev_gray: np.ndarray, curr_gray: np.ndarray, center_px: tuple[float, float] | None = None,
+               params: FlowParams | None = None) -> FlowTracks:
+    """Track corners around ``center_px`` (in ``prev_gray``; None = image centre) into ``curr_gray``.
+
+    Never raises on bad input and never returns NaN: unusable images give zero points and a ``reason``.
+    """
+    p = params or FlowParams()
+    why = _image_problem(prev_gray, 'previous') or _image_problem(curr_gray, 'current')
+    if not why and prev_gray.shape != curr_gray.shape:
+        why = f'image size changed: {prev_gray.shape[1]}x{prev_gray.shape[0]} -> ' \
+              f'{curr_gray.shape[1]}x{curr_gray.shape[0]}'
+    if why:
+        return FlowTracks(reason=why)
+    h, w = prev_gray.shape
+    b = p.border_px
+    valid: Box = (b, b, w - b, h - b)
+    if valid[2] - valid[0] < 2 or valid[3] - valid[1] < 2:
+        return FlowTracks(reason=f'image {w}x{h} too small for a {b} px border')
+    cx, cy = (w - 1) / 2.0, (h - 1) / 2.0
+    if p.preset == 'full':
+        box, crop = valid, (0, 0, w, h)
+        pts = detect_corners(prev_gray, box, p.max_corners, p)
+    else:
+        if center_px is not None:
+            try:
+                cx, cy = float(center_px[0]), float(center_px[1])
+            except (TypeError, ValueError, IndexError):
+                cx = cy = math.nan
+            if not (math.isfinite(cx) and math.isfinite(cy)):
+                return FlowTracks(reason=f'window centre is not a finite pixel: {center_px!r}')
+        box = _square(cx, cy, p.window_px, valid)
+        region = _square(cx, cy, p.paper_region_px, box) if p.preset == 'paper' else box
+        if region[2] - region[0] < 1 or region[3] - region[1] < 1:
+            return FlowTracks(reason=f'flow window around ({cx:.1f}, {cy:.1f}) is outside the image',
+                              window=box, center_px=(cx, cy))
+        crop = _grow(box, p.lk_margin_px, w, h)
+        pts = detect_corners(prev_gray, region, p.paper_points if p.preset == 'paper' else p.max_corners, p)
+    if len(pts) == 0:
+        return FlowTracks(reason='no corners in the flow window', window=box, center_px=(cx, cy))
+    tracks = _track(prev_gray, curr_gray, pts, crop, valid, p)
+    return FlowTracks(*tracks, window=box, center_px=(cx, cy))
+
+
+def _track(prev: np.ndarray, curr: np.ndarray, pts: np.ndarray, crop: Box, valid: Box,
+           p: FlowParams) -> tuple[np.ndarray, np.ndarray, FlowCounts]:
+    """Forward LK, border check, backward LK with the forward-backward bound, then patch correlation;
+    LK runs on the same crop of both images (pyramids of the crop only)."""
+    x0, y0, x1, y1 = crop
+    A, B = prev[y0:y1, x0:x1], curr[y0:y1, x0:x1]
+    off = np.array([x0, y0], dtype=np.float64)
+    lk = {'winSize': (p.lk_win, p.lk_win), 'maxLevel': p.lk_levels, 'criteria': _CRITERIA,
+          'flags': cv2.OPTFLOW_LK_GET_MIN_EIGENVALS, 'minEigThreshold': float(p.min_eig)}
+    p0 = (pts - off).astype(np.float32).reshape(-1, 1, 2)
+    p1, st, err = cv2.calcOpticalFlowPyrLK(A, B, p0, None, **lk)
+    st, err = st.ravel().astype(bool), err.ravel()
+    q1 = p1.reshape(-1, 2).astype(np.float64) + off
+    finite = np.all(np.isfinite(q1), axis=1)
+    # with GET_MIN_EIGENVALS, err holds the min eigenvalue at t-1, so a failed status splits into the two
+    weak = ~st & (err < p.min_eig)
+    lost = (~st & ~weak) | (st & ~finite)
+    ok = st & finite
+    inside = ok & (q1[:, 0] >= valid[0]) & (q1[:, 1] >= valid[1]) \
+        & (q1[:, 0] <= valid[2] - 1) & (q1[:, 1] <= valid[3] - 1)
+    outside = ok & ~inside
+    n_lost, n_weak = int(lost.sum()), int(weak.sum())
+    n_fb, n_ncc, kept = 0, 0, np.zeros(len(pts), bool)
+    idx = np.flatnonzero(inside)
+    if len(idx):
+        back, st2, err2 = cv2.calcOpticalFlowPyrLK(B, A, p1[idx], None, **lk)
+        st2, err2 = st2.ravel().astype(bool), err2.ravel()
+        fb = np.linalg.norm(back.reshape(-1, 2).astype(np.float64) - p0[idx].reshape(-1, 2), axis=1)
+        weak2 = ~st2 & (err2 < p.min_eig)
+        good = st2 & (fb <= p.fb_max_px)        # NaN fails the comparison
+        n_weak += int(weak2.sum())
+        n_lost += int((~st2 & ~weak2).sum())
+        n_fb = int((st2 & ~good).sum())
+        idx = idx[good]
+        if len(idx) and p.ncc_min > -1.0:
+            similar = patch_ncc(A, p0[idx], B, p1[idx], p.ncc_half) >= p.ncc_min
+            n_ncc = int((~similar).sum())
+            idx = idx[similar]
+        kept[idx] = True
+    counts = FlowCounts(len(pts), n_lost, n_weak, int(outside.sum()), n_fb, n_ncc, int(kept.sum()))
+    return pts[kept].astype(np.float64), q1[kept], counts
+
+
+def _patches(img: np.ndarray, pts: np.ndarray, half: int) -> np.ndarray:
+    """(N, (2h+1)^2) bilinear samples of ``img`` around sub-pixel points, all in one cv2.remap."""
+    off = np.arange(-half, half + 1, dtype=np.float32)
+    gx, gy = np.tile(off, len(off)), np.repeat(off, len(off))
+    xy = pts.reshape(-1, 2).astype(np.float32)
+    return cv2.remap(img, xy[:, :1] + gx, xy[:, 1:] + gy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+
+def patch_ncc(img_a: np.ndarray, pts_a: np.ndarray, img_b: np.ndarray, pts_b: np.ndarray, half: int) -> np.ndarray:
+    """Normalised cross-correlation (N,) of the (2h+1)^2 patches at ``pts_a`` in ``img_a`` and ``pts_b`` in
+    ``img_b``; 0 where either patch is flat. Gain and offset invariant, so exposure changes do not count."""
+    a = _patches(img_a, pts_a, half).astype(np.float64)
+    b = _patches(img_b, pts_b, half).astype(np.float64)
+    n = a.shape[1]
+    sa, sb = a.sum(axis=1), b.sum(axis=1)
+    va = np.einsum('ij,ij->i', a, a) - sa * sa / n
+    vb = np.einsum('ij,ij->i', b, b) - sb * sb / n
+    cab = np.einsum('ij,ij->i', a, b) - sa * sb / n
+    den = np.sqrt(np.maximum(va, 0.0) * np.maximum(vb, 0.0))
+    return np.where(den > 1e-6, cab / np.maximum(den, 1e-6), 0.0)

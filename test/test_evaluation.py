@@ -1,0 +1,191 @@
+"""Evaluation: TUM files, the papers' and evo's error measures on trajectories with known answers, the CLI."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from fixego_ros.cli import main
+from fixego_ros.evaluation.metrics import EvaluationError, evaluate
+from fixego_ros.evaluation.tum import TumError, TumWriter, format_tum_line, read_tum, write_tum
+from fixego_ros.geometry.rotation import Pose, exp_so3, rot_z
+
+finite = st.floats(min_value=-100.0, max_value=100.0, allow_nan=False)
+
+
+def helix(n: int = 60, dt: float = 0.1, t0: float = 1000.0) -> tuple[np.ndarray, list[Pose]]:
+    """A curved, non-planar path (alignment is well posed), heading along the tangent, starting at identity."""
+    stamps = t0 + dt * np.arange(n)
+    poses = []
+    for i in range(n):
+        a = 0.05 * i
+        poses.append(Pose(rot_z(a), np.array([np.sin(a) * 2.0, 2.0 - np.cos(a) * 2.0, 0.01 * i])))
+    return stamps, poses
+
+
+# --- TUM files ---------------------------------------------------------------------------------------
+
+@settings(max_examples=25, deadline=None)
+@given(st.lists(st.tuples(st.lists(finite, min_size=3, max_size=3),
+                          st.lists(st.floats(-3.0, 3.0, allow_nan=False), min_size=3, max_size=3)),
+                min_size=1, max_size=6),
+       st.floats(min_value=0.0, max_value=2e9, allow_nan=False))
+def test_tum_round_trip(tmp_path_factory, items, t0):
+    stamps = t0 + 0.05 * np.arange(len(items))
+    poses = [Pose(exp_so3(np.array(r)), np.array(t)) for t, r in items]
+    path = tmp_path_factory.mktemp('tum') / 'x.tum'
+    write_tum(path, stamps, poses)
+    s2, p2 = read_tum(path)
+    np.testing.assert_allclose(s2, stamps, rtol=0, atol=1e-9 + 1e-15 * t0)
+    for a, b in zip(poses, p2, strict=True):
+        np.testing.assert_allclose(b.t, a.t, atol=1e-9)
+        np.testing.assert_allclose(b.R, a.R, atol=1e-9)
+
+
+def test_tum_deterministic_and_incremental_writer_matches(tmp_path):
+    stamps, poses = helix(10)
+    a, b = tmp_path / 'a.tum', tmp_path / 'b.tum'
+    write_tum(a, stamps, poses)
+    with TumWriter(b) as w:
+        for s, p in zip(stamps, poses, strict=True):
+            w.append(s, p)
+            w.flush()
+        assert w.count == 10
+    assert w.closed
+    assert a.read_bytes() == b.read_bytes()
+    write_tum(b, stamps, poses)
+    assert a.read_bytes() == b.read_bytes()
+    assert format_tum_line(1.5, Pose.identity()) == \
+        '1.500000000 0.000000000 0.000000000 0.000000000 0.000000000000 0.000000000000 0.000000000000 1.000000000000'
+    with pytest.raises(TumError):
+        format_tum_line(0.0, Pose(np.eye(3), np.array([np.nan, 0, 0])))
+
+
+@pytest.mark.parametrize(('body', 'needle'), [
+    ('1 0 0 0 0 0 0 1\n2 0 0 0 0 0 1\n', ':3: expected 8 columns'),
+    ('1 0 0 0 0 0 0 1\n2 0 0 x 0 0 0 1\n', ':3: not a number'),
+    ('1 0 0 0 0 0 0 1\n2 0 nan 0 0 0 0 1\n', ':3: non-finite'),
+    ('1 0 0 0 0 0 0 1\n2 0 0 0 0 0 0 0\n', ':3: not a valid quaternion'),
+    ('1 0 0 0 0 0 0 1\n1 0 0 0 0 0 0 1\n', ':3: stamp'),
+])
+def test_tum_malformed_names_file_and_line(tmp_path, body, needle):
+    path = tmp_path / 'bad.tum'
+    path.write_text('# comment\n' + body.replace('\n', '\n\n', 1))  # blank line after line 2 -> bad line is 4
+    with pytest.raises(TumError) as e:
+        read_tum(path)
+    assert str(path) in str(e.value)
+    assert needle.replace(':3:', ':4:') in str(e.value)
+
+
+def test_tum_missing_file(tmp_path):
+    with pytest.raises(TumError, match='no such file'):
+        read_tum(tmp_path / 'nope.tum')
+
+
+# --- metrics -----------------------------------------------------------------------------------------
+
+def test_constant_offset():
+    stamps, gt = helix()
+    off = np.array([0.02, 0.0, 0.0])
+    est = [Pose(p.R, p.t + off) for p in gt]
+    s = evaluate(stamps, est, stamps, gt).summary
+    assert s['position_error_m']['mean'] == pytest.approx(0.02, abs=1e-12)
+    assert s['position_error_m']['std'] == pytest.approx(0.0, abs=1e-12)
+    assert s['position_error_m']['terminal'] == pytest.approx(0.02, abs=1e-12)
+    assert s['ape_translation_m']['none']['rmse'] == pytest.approx(0.02, abs=1e-12)
+    assert s['ape_translation_m']['se3']['rmse'] == pytest.approx(0.0, abs=1e-9)
+    assert s['path_length_m']['ratio'] == pytest.approx(1.0)
+    assert s['rpe']['translation_m']['max'] == pytest.approx(0.0, abs=1e-9)
+    assert s['start_offset_m'] == pytest.approx(0.02)
+    # anchored at the first associated pose, a constant offset vanishes
+    assert evaluate(stamps, est, stamps, gt, anchor_first=True).summary['position_error_m']['max'] < 1e-9
+    json.dumps(s, allow_nan=False)
+
+
+def test_scaled_estimate():
+    stamps, gt = helix()
+    est = [Pose(p.R, 1.1 * p.t) for p in gt]
+    s = evaluate(stamps, est, stamps, gt, rpe_delta_m=0.5).summary
+    assert s['path_length_m']['ratio'] == pytest.approx(1.1)
+    # evo scales the estimate onto the reference: s = 1 / 1.1
+    assert s['ape_translation_m']['sim3']['scale'] == pytest.approx(1 / 1.1, rel=1e-9)
+    assert s['ape_translation_m']['sim3']['rmse'] == pytest.approx(0.0, abs=1e-9)
+    assert s['ape_translation_m']['se3']['rmse'] > 0.01
+    assert s['rpe']['rotation_deg']['max'] == pytest.approx(0.0, abs=1e-6)
+    assert s['rpe']['translation_m_per_delta_m']['pairs'] > 0
+
+
+def test_linear_drift_terminal_is_last():
+    stamps, gt = helix(40)
+    est = [Pose(p.R, p.t + np.array([0.0, 0.0, 0.001 * i])) for i, p in enumerate(gt)]
+    ev = evaluate(stamps, est, stamps, gt)
+    np.testing.assert_allclose(ev.position_error, 0.001 * np.arange(40), atol=1e-12)
+    pe = ev.summary['position_error_m']
+    assert pe['terminal'] == pytest.approx(0.039) and pe['max'] == pytest.approx(0.039)
+    assert pe['mean'] == pytest.approx(0.0195)
+    assert ev.rpe_translation.shape == (39,)
+    np.testing.assert_allclose(ev.rpe_translation, 0.001, atol=1e-9)
+
+
+def test_association_drops_unmatched():
+    stamps, gt = helix(50)
+    keep = [i for i in range(50) if i % 5 != 0]
+    est_stamps = np.concatenate([stamps[keep] + 0.004, [stamps[-1] + 1.0, stamps[-1] + 2.0]])
+    est = [gt[i] for i in keep] + [gt[-1], gt[-1]]
+    ev = evaluate(est_stamps, est, stamps, gt, max_dt=0.01)
+    assert ev.summary['poses'] == {'estimate': 42, 'ground_truth': 50, 'associated': 40}
+    assert ev.position_error.max() < 1e-12
+    np.testing.assert_allclose(ev.stamps, stamps[keep] + 0.004)
+    # a tighter window pairs nothing
+    with pytest.raises(EvaluationError):
+        evaluate(est_stamps, est, stamps, gt, max_dt=0.001)
+
+
+def test_too_short_and_degenerate():
+    stamps, gt = helix(5)
+    with pytest.raises(EvaluationError, match='need >= 2'):
+        evaluate(stamps[:1], gt[:1], stamps, gt)
+    # two poses: a line, so alignment is reported impossible rather than raising
+    s = evaluate(stamps[:2], gt[:2], stamps, gt).summary
+    assert s['poses']['associated'] == 2
+    assert 'error' in s['ape_translation_m']['se3']
+    json.dumps(s, allow_nan=False)
+
+
+# --- CLI ---------------------------------------------------------------------------------------------
+
+def test_cli_writes_json_and_png(tmp_path, capsys):
+    stamps, gt = helix(30)
+    write_tum(tmp_path / 'gt.tum', stamps, gt)
+    write_tum(tmp_path / 'est.tum', stamps, [Pose(p.R, p.t + [0.01, 0, 0]) for p in gt])
+    write_tum(tmp_path / 'est.raw.tum', stamps, [Pose(p.R, p.t * 1.05) for p in gt])
+    rc = main(['eval', str(tmp_path / 'est.tum'), str(tmp_path / 'gt.tum'), '--raw', str(tmp_path / 'est.raw.tum')])
+    assert rc == 0
+    report = json.loads((tmp_path / 'eval.json').read_text())
+    assert report['estimate']['position_error_m']['mean'] == pytest.approx(0.01)
+    assert report['raw']['path_length_m']['ratio'] == pytest.approx(1.05)
+    assert (tmp_path / 'eval.png').read_bytes()[:8] == b'\x89PNG\r\n\x1a\n'
+    assert 'terminal 1.00 cm' in capsys.readouterr().out
+
+    out = tmp_path / 'o'
+    assert main(['eval', str(tmp_path / 'est.tum'), str(tmp_path / 'gt.tum'), '--out', str(out)]) == 0
+    assert json.loads((out / 'eval.json').read_text())['raw'] is None
+    assert (out / 'eval.png').exists()
+
+
+def test_cli_errors_exit_2(tmp_path, capsys):
+    stamps, gt = helix(5)
+    write_tum(tmp_path / 'gt.tum', stamps, gt)
+    assert main(['eval', str(tmp_path / 'missing.tum'), str(tmp_path / 'gt.tum')]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith('fixego eval:') and 'missing.tum' in err and 'Traceback' not in err
+    (tmp_path / 'bad.tum').write_text('1 2 3\n')
+    assert main(['eval', str(tmp_path / 'bad.tum'), str(tmp_path / 'gt.tum')]) == 2
+    assert 'bad.tum:1' in capsys.readouterr().err
+    write_tum(tmp_path / 'late.tum', stamps + 100.0, gt)
+    assert main(['eval', str(tmp_path / 'late.tum'), str(tmp_path / 'gt.tum')]) == 2
+    assert not (tmp_path / 'eval.json').exists()
