@@ -24,10 +24,10 @@ lint: install
 test: install lint
 	$(VENV)/bin/python -m pytest -q test
 
-# Until the live pipeline lands (issue: KLT flow node, estimator node, live pipeline) the demo runs the
-# papers' numerical experiments on a reduced number of trials and writes report.json + PNGs to demo_out/.
+# The live pipeline on the simulated rig (DESIGN.md §6): every node a separate process over DDS; runs the
+# papers' stadium loop, stops by itself and writes demo_out/ (TUM files, ATE/RPE, plot, latency, logs).
 demo: install
-	$(VENV)/bin/fixego paper-sim --out demo_out --trials 50 --trials-seq 10
+	$(VENV)/bin/fixego demo --out demo_out
 
 paper-sim: install
 	$(VENV)/bin/fixego paper-sim --out docs/paper_sim

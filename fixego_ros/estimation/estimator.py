@@ -87,6 +87,7 @@ class EstimatorConfig:
     fixation_weight: float = 1.0     # weight of the fixation constraints relative to flow points
     max_step_translation: float = 1.0  # m; larger steps are rejected as jumps
     max_step_rotation: float = 0.35    # rad (~20 deg)
+    max_speed: float = float('inf')    # m/s; a step implying a faster rig is rejected as a jump
     reject_translation_std: float = VAR_MAX  # m; steps less certain than this are rejected
     # weak constant-velocity prior on each step's T (off = the papers' method): sigma = max(min, rel * |T_pred|)
     velocity_prior: bool = False
@@ -206,7 +207,7 @@ class Estimator:
             full = full or count >= n - 1
         return BAProblem(terms), full
 
-    def _accept(self, res: TwoFrameResult) -> tuple[bool, str]:
+    def _accept(self, res: TwoFrameResult, dt: float) -> tuple[bool, str]:
         cfg = self.config
         if not res.status.usable:
             return False, f'two-frame {res.status.value}: {res.message}'
@@ -214,6 +215,8 @@ class Estimator:
             return False, 'non-finite solution'
         if np.linalg.norm(res.pose.t) > cfg.max_step_translation:
             return False, f'jump: |T| = {np.linalg.norm(res.pose.t):.3f} m > {cfg.max_step_translation}'
+        if dt > 0 and np.linalg.norm(res.pose.t) > cfg.max_speed * dt:
+            return False, f'jump: {np.linalg.norm(res.pose.t) / dt:.2f} m/s > {cfg.max_speed} m/s'
         if rotation_angle(res.pose.R) > cfg.max_step_rotation:
             return False, f'jump: rotation {np.degrees(rotation_angle(res.pose.R)):.1f} deg'
         if float(np.max(res.translation_std)) > cfg.reject_translation_std:
@@ -272,7 +275,7 @@ class Estimator:
             tf = self.solver.solve(pairs, initial=start, prior_t=t_pred, prior_sigma_t=sigma)
         else:
             tf = self.solver.solve(pairs, initial=start)
-        accepted, why = self._accept(tf)
+        accepted, why = self._accept(tf, dt)
         ba: BAResult | None = None
         if accepted:
             motion = motion_raw = tf.pose
@@ -284,7 +287,7 @@ class Estimator:
                 if full and len(problem):
                     ba = refine_latest(problem, tf.pose, self.config.mode, pairs, self.config.solver.sigma)
                     refined = ba.pose
-                    if (np.linalg.norm(refined.t) <= self.config.max_step_translation
+                    if (np.linalg.norm(refined.t) <= min(self.config.max_step_translation, self.config.max_speed * dt)
                             and rotation_angle(refined.R) <= self.config.max_step_rotation):
                         motion = refined
                     else:

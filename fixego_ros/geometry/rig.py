@@ -101,8 +101,8 @@ class CameraModel:
         return np.column_stack([self.fx * xy[:, 0] + self.cx, self.fy * xy[:, 1] + self.cy])
 
     def to_dict(self) -> dict[str, Any]:
-        return {'width': self.width, 'height': self.height, 'fx': self.fx, 'fy': self.fy,
-                'cx': self.cx, 'cy': self.cy, 'dist': [float(d) for d in self.dist]}
+        return {'width': int(self.width), 'height': int(self.height), 'fx': float(self.fx), 'fy': float(self.fy),
+                'cx': float(self.cx), 'cy': float(self.cy), 'dist': [float(d) for d in self.dist]}
 
 
 @dataclass(frozen=True)
@@ -123,8 +123,8 @@ class PanTiltCalibration:
         return ((pan - self.pan_offset) / self.pan_sign, (tilt - self.tilt_offset) / self.tilt_sign)
 
     def to_dict(self) -> dict[str, float]:
-        return {'pan_sign': self.pan_sign, 'tilt_sign': self.tilt_sign,
-                'pan_offset': self.pan_offset, 'tilt_offset': self.tilt_offset}
+        return {'pan_sign': float(self.pan_sign), 'tilt_sign': float(self.tilt_sign),
+                'pan_offset': float(self.pan_offset), 'tilt_offset': float(self.tilt_offset)}
 
 
 @dataclass(frozen=True)

@@ -56,12 +56,17 @@ PARAMS: dict[str, tuple[object, str]] = {
     'fixation_weight': (1.0, 'weight of the fixation constraints relative to one flow point'),
     'pixel_sigma': (1.0, 'expected flow/fixation noise in pixels (sets the covariance scale)'),
     'loss': ('huber', 'robust loss of the two-frame solve: linear | huber | soft_l1 | cauchy | arctan'),
-    'velocity_prior': (True, 'weak constant-velocity prior on each step (keeps unobserved scale from wandering; '
+    'velocity_prior': (False, 'weak constant-velocity prior on each step (keeps unobserved scale from wandering; '
                              'the covariance stays the rays\' own). false = the papers\' method'),
     'prior_sigma_rel': (0.5, 'prior std as a fraction of the predicted step length'),
     'prior_sigma_min': (0.01, 'prior std at least this (m)'),
     'max_nfev': (30, 'bound on function evaluations of one two-frame solve'),
     'max_step_translation': (0.5, 'm; a larger step is rejected as a jump and predicted instead'),
+    'max_speed': (1.5, 'm/s; a step implying a faster rig is rejected as a jump and predicted instead'),
+    'max_lag_s': (0.1, 'when an observation is this far behind the clock and not a keyframe, skip it (keyframes '
+                       'are always solved: the trajectory continues through them)'),
+    'max_keyframe_lag_s': (0.5, 'even keyframes are skipped this far behind (the estimator then bridges the gap '
+                                'at constant velocity): bounds the latency when the machine is overloaded'),
     'max_step_rotation_deg': (20.0, 'deg; a larger step rotation is rejected as a jump'),
     'reject_translation_std': (1e6, 'm; a step whose translation std exceeds this is rejected (1e6: never)'),
     'odom_frame': ('odom', 'frame of the published trajectory'),
@@ -93,13 +98,15 @@ class EstimatorNode(Node):
         f = self.rig.camera('right').fx
         self.config = EstimatorConfig(
             window=int(g('window')), mode=str(g('mode')), fixation_weight=float(g('fixation_weight')),
-            max_step_translation=float(g('max_step_translation')),
+            max_step_translation=float(g('max_step_translation')), max_speed=float(g('max_speed')),
             max_step_rotation=float(np.radians(float(g('max_step_rotation_deg')))),
             reject_translation_std=float(g('reject_translation_std')), velocity_prior=bool(g('velocity_prior')),
             prior_sigma_rel=float(g('prior_sigma_rel')), prior_sigma_min=float(g('prior_sigma_min')),
             solver=SolverConfig(sigma=float(g('pixel_sigma')) / f, loss=str(g('loss')), max_nfev=int(g('max_nfev'))))
         self.estimator = Estimator(self.rig, self.config)
         self.odom_frame, self.base_frame = str(g('odom_frame')), str(g('base_frame'))
+        self.max_lag_s = float(g('max_lag_s'))
+        self.max_keyframe_lag_s = float(g('max_keyframe_lag_s'))
         self.once = OnceLogger(self)
         n_path = int(g('path_max_length'))
         self.path: deque[PoseStamped] = deque(maxlen=n_path)
@@ -114,7 +121,8 @@ class EstimatorNode(Node):
         self.create_service(Trigger, '~/reset', self._srv_reset)
         self.create_timer(float(g('diagnostics_period_s')), self._publish_diagnostics)
         self.status_counts: Counter[str] = Counter()
-        self.stats = {'observations': 0, 'malformed': 0, 'out_of_order': 0, 'published': 0, 'resets': 0}
+        self.stats = {'observations': 0, 'malformed': 0, 'out_of_order': 0, 'skipped_behind': 0, 'published': 0,
+                      'resets': 0}
         self.solve_ms: deque[float] = deque(maxlen=300)
         self.last: FrameResult | None = None
         self.last_error = ''
@@ -141,6 +149,12 @@ class EstimatorNode(Node):
             self.once.warn('malformed', f'{self.last_error} (rejected; further ones are only counted)')
             return
         self.once.clear('malformed', 'observations well-formed again')
+        lag = self.get_clock().now().nanoseconds * 1e-9 - stamp
+        if (obs.keyframe is False and lag > self.max_lag_s) or lag > self.max_keyframe_lag_s:
+            self.stats['skipped_behind'] += 1
+            self.get_logger().warning(f'{lag * 1e3:.0f} ms behind the clock: skipping non-keyframe observations '
+                                      '(count on /diagnostics)', throttle_duration_sec=10.0)
+            return
         t = time.perf_counter()
         res = self.estimator.update(obs)
         self.solve_ms.append((time.perf_counter() - t) * 1e3)
@@ -151,9 +165,8 @@ class EstimatorNode(Node):
         self.once.clear('order')
         self.status_counts[res.status.value] += 1
         if not res.status.usable and res.status is not StepStatus.INIT:
-            self.once.warn('step', f'step not solved ({res.status.value}): {res.message}')
-        else:
-            self.once.clear('step', 'steps solved again')
+            self.get_logger().warning(f'step not solved ({res.status.value}): {res.message} (further ones are '
+                                      'counted on /diagnostics)', throttle_duration_sec=10.0)
         self.last = res
         self._publish(msg.header.stamp, res)
 

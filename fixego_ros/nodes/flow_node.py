@@ -49,7 +49,7 @@ PARAMS: dict[str, tuple[object, str]] = {
     'window_px': (100, 'side of the flow window centred on the fixation point (px)'),
     'paper_region_px': (30, "paper preset: side of the central region the points are drawn from (px)"),
     'paper_points': (3, 'paper preset: points per camera'),
-    'max_corners': (150, 'window/full presets: most corners tracked per camera'),
+    'max_corners': (80, 'window/full presets: most corners tracked per camera (the solve time grows with it)'),
     'min_eig': (1e-3, 'Lucas-Kanade minimum-eigenvalue threshold (rejects untextured points)'),
     'fb_max_px': (0.5, 'forward-backward consistency bound (px)'),
     'lk_win': (21, 'Lucas-Kanade window (px)'),
