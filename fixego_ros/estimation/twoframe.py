@@ -30,7 +30,7 @@ class SolverConfig:
     max_nfev: int = 60
     tol: float = 1e-7                  # relative ftol/xtol of the least-squares solve
     prior_step: float = 0.05           # |T| (m) of the canonical starts when nothing better is known
-    min_parallax: float = 1e-7         # rad; below this everywhere the rig is taken as stationary
+    min_parallax: float = 1e-7         # rad; median rotation-compensated parallax below this = stationary
     max_translation_std: float = 0.5   # m; beyond this the step is WEAK (scale unobserved)
 
 
@@ -141,7 +141,7 @@ class TwoFrameSolver:
         # zero flow: a pure rotation explains every pair exactly -> stationary (T unobservable, 0)
         R_rot = kabsch_rotation(pairs.a, pairs.b)
         parallax = np.linalg.norm(np.cross(pairs.a, pairs.b @ R_rot.T), axis=1)
-        if float(np.max(parallax)) < cfg.min_parallax:
+        if float(np.median(parallax)) < cfg.min_parallax:
             return TwoFrameResult(Pose(R_rot, np.zeros(3)), StepStatus.STATIONARY, np.zeros(m),
                                   np.diag([cfg.sigma**2] * 3 + [VAR_MAX] * 3), 0.0, m,
                                   'no parallax: rotation only')

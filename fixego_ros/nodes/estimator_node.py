@@ -54,6 +54,8 @@ PARAMS: dict[str, tuple[object, str]] = {
     'window': (3, 'n: frames in the local bundle adjustment (3..10; 0 disables it)'),
     'mode': ('paper', "local BA: 'paper' (BA cost alone, Powell, as in the papers) or 'joint' (+ two-frame terms)"),
     'fixation_weight': (1.0, 'weight of the fixation constraints relative to one flow point'),
+    'stationary_parallax_px': (0.3, 'median rotation-compensated parallax (px) below which the rig is taken as '
+                                     'standing still (T = 0): with no parallax the scale is pure noise'),
     'pixel_sigma': (1.0, 'expected flow/fixation noise in pixels (sets the covariance scale)'),
     'loss': ('huber', 'robust loss of the two-frame solve: linear | huber | soft_l1 | cauchy | arctan'),
     'velocity_prior': (False, 'weak constant-velocity prior on each step (keeps unobserved scale from wandering; '
@@ -102,7 +104,8 @@ class EstimatorNode(Node):
             max_step_rotation=float(np.radians(float(g('max_step_rotation_deg')))),
             reject_translation_std=float(g('reject_translation_std')), velocity_prior=bool(g('velocity_prior')),
             prior_sigma_rel=float(g('prior_sigma_rel')), prior_sigma_min=float(g('prior_sigma_min')),
-            solver=SolverConfig(sigma=float(g('pixel_sigma')) / f, loss=str(g('loss')), max_nfev=int(g('max_nfev'))))
+            solver=SolverConfig(sigma=float(g('pixel_sigma')) / f, loss=str(g('loss')), max_nfev=int(g('max_nfev')),
+                                min_parallax=float(g('stationary_parallax_px')) / f))
         self.estimator = Estimator(self.rig, self.config)
         self.odom_frame, self.base_frame = str(g('odom_frame')), str(g('base_frame'))
         self.max_lag_s = float(g('max_lag_s'))
