@@ -91,7 +91,7 @@ def _run(args: argparse.Namespace, out: Path, rig_path: Path, launcher) -> int:
     from rclpy.executors import SingleThreadedExecutor
 
     from fixego_ros.demo.launcher import NodeSpec, wait_for
-    from fixego_ros.demo.recorder import Recorder
+    from fixego_ros.nodes.demo_recorder import Recorder
 
     pty_file = out / 'ptys.json'
     pty_file.unlink(missing_ok=True)
