@@ -178,10 +178,6 @@ class Estimator:
         """Stamp of the last frame taken (None after a reset)."""
         return self._latest.stamp if self._latest is not None else self._key_stamp
 
-    @property
-    def keyframe_stamp(self) -> float | None:
-        return self._key_stamp
-
     def _ba_problem(self, obs: FrameObservation) -> tuple[BAProblem, bool]:
         """Terms for each camera over its keyframe window (never across a re-selection); and whether
         any camera has the full n-frame window (the papers wait for it before adjusting)."""

@@ -123,7 +123,6 @@ class TwoFrameSolver:
 
     def __init__(self, config: SolverConfig | None = None) -> None:
         self.config = config or SolverConfig()
-        self._prior: tuple[np.ndarray, float] | None = None
 
     def solve(self, pairs: RayPairs, initial: Pose | None = None, prior_t: np.ndarray | None = None,
               prior_sigma_t: float = 0.0) -> TwoFrameResult:
@@ -131,8 +130,8 @@ class TwoFrameSolver:
         constant-velocity prediction) keeps directions the rays do not observe (the scale under pure
         translation) where the prediction puts them instead of letting the optimiser wander; the
         covariance returned is the rays' alone, so those directions still show as unobserved."""
-        self._prior = (None if prior_t is None or not prior_sigma_t > 0 or not np.all(np.isfinite(prior_t))
-                       else (np.asarray(prior_t, dtype=float), float(prior_sigma_t)))
+        prior = (None if prior_t is None or not prior_sigma_t > 0 or not np.all(np.isfinite(prior_t))
+                 else (np.asarray(prior_t, dtype=float), float(prior_sigma_t)))
         cfg = self.config
         m = len(pairs)
         if m < 6:
@@ -146,11 +145,11 @@ class TwoFrameSolver:
                                   np.diag([cfg.sigma**2] * 3 + [VAR_MAX] * 3), 0.0, m,
                                   'no parallax: rotation only')
         warm = initial is not None and initial.is_finite()
-        best = self._best(pairs, [initial] if warm else self._cold_starts(pairs, R_rot))
+        best = self._best(pairs, [initial] if warm else self._cold_starts(pairs, R_rot), prior)
         # a poor warm start gets the cold starts too, unless a motion prior anchors it (real time: the cold
         # starts cost ~10 solves; a prior-anchored bad step is flagged below and predicted by the caller)
-        if warm and (best is None or (best.cheirality < 0.5 and self._prior is None)):
-            best = self._best(pairs, self._cold_starts(pairs, R_rot) + ([best.pose] if best else []))
+        if warm and (best is None or (best.cheirality < 0.5 and prior is None)):
+            best = self._best(pairs, self._cold_starts(pairs, R_rot) + ([best.pose] if best else []), prior)
         if best is None:
             return TwoFrameResult(initial or Pose.identity(), StepStatus.FAILED, n_constraints=m,
                                   message='optimiser produced no finite solution')
@@ -162,23 +161,24 @@ class TwoFrameSolver:
     def _cold_starts(self, pairs: RayPairs, R_rot: np.ndarray) -> list[Pose]:
         return essential_start(pairs) + [Pose(R_rot, p.t) for p in canonical_starts(self.config.prior_step)]
 
-    def _best(self, pairs: RayPairs, starts: list[Pose]) -> TwoFrameResult | None:
+    def _best(self, pairs: RayPairs, starts: list[Pose],
+              prior: tuple[np.ndarray, float] | None = None) -> TwoFrameResult | None:
         """Refine every start; prefer solutions in front of the cameras, then the lowest cost."""
         best: TwoFrameResult | None = None
         for start in starts:
-            res = self._refine(pairs, start)
+            res = self._refine(pairs, start, prior)
             if res is None:
                 continue
             if best is None or (res.cheirality < 0.5, res.cost) < (best.cheirality < 0.5, best.cost):
                 best = res
         return best
 
-    def _refine(self, pairs: RayPairs, start: Pose) -> TwoFrameResult | None:
+    def _refine(self, pairs: RayPairs, start: Pose,
+                prior: tuple[np.ndarray, float] | None = None) -> TwoFrameResult | None:
         cfg = self.config
         R0 = start.R
         scale = cfg.sigma
 
-        prior = self._prior
         if prior is None:
             def fun(x: np.ndarray) -> np.ndarray:
                 return sampson_residuals(exp_so3(x[:3]) @ R0, x[3:], pairs) / scale

@@ -12,11 +12,8 @@ from __future__ import annotations
 import math
 from collections import deque
 
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PointStamped
-from rcl_interfaces.msg import ParameterDescriptor
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from sensor_msgs.msg import Image, JointState
 from std_srvs.srv import Trigger
@@ -31,10 +28,12 @@ from fixego_ros.nodes.common import (
     ImageError,
     OnceLogger,
     array_to_image,
+    declare_parameters,
     diagnostic_status,
     image_to_gray,
     publish_diagnostics,
     sec_to_stamp,
+    spin_node,
     stamp_to_sec,
 )
 from fixego_ros.tracking.fixation import FixationParams, FixationTracker, LimitCheck
@@ -75,9 +74,7 @@ PARAMS: dict[str, tuple[object, str]] = {
 class CameraNode(Node):
     def __init__(self, **kwargs) -> None:
         super().__init__('camera_node', **kwargs)
-        for name, (default, text) in PARAMS.items():
-            self.declare_parameter(name, default, ParameterDescriptor(description=text))
-        g = lambda n: self.get_parameter(n).value  # noqa: E731
+        g = declare_parameters(self, PARAMS)
         self.side = str(g('side'))
         if self.side not in ('right', 'left'):
             raise ValueError(f"side must be 'right' or 'left', got {self.side!r}")
@@ -301,17 +298,7 @@ class CameraNode(Node):
 
 
 def main(args: list[str] | None = None) -> None:
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = CameraNode()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    spin_node(CameraNode, args)
 
 
 if __name__ == '__main__':

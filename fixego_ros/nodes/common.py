@@ -6,12 +6,15 @@ One place for each: nodes must use these rather than re-implement them.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 
 import numpy as np
+import rclpy
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Pose as PoseMsg
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, qos_profile_sensor_data
 from sensor_msgs.msg import Image, PointCloud2, PointField
@@ -41,6 +44,28 @@ _POINT_FIELD_TYPES = {np.dtype('<i1'): PointField.INT8, np.dtype('<u1'): PointFi
                       np.dtype('<i2'): PointField.INT16, np.dtype('<u2'): PointField.UINT16,
                       np.dtype('<i4'): PointField.INT32, np.dtype('<u4'): PointField.UINT32,
                       np.dtype('<f4'): PointField.FLOAT32, np.dtype('<f8'): PointField.FLOAT64}
+
+
+def declare_parameters(node: Node, params: dict[str, tuple[object, str]]) -> Callable[[str], object]:
+    """Declare ``name -> (default, description)`` on ``node``; returns a getter of the current values."""
+    for name, (default, text) in params.items():
+        node.declare_parameter(name, default, ParameterDescriptor(description=text))
+    return lambda name: node.get_parameter(name).value
+
+
+def spin_node(factory: Callable[[], Node], args: list[str] | None = None) -> None:
+    """``main`` of a node: init, spin until Ctrl-C or shutdown, destroy the node, shut down."""
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = factory()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
 
 
 def stamp_to_sec(stamp: Time) -> float:

@@ -18,12 +18,9 @@ import time
 from collections import Counter, deque
 
 import numpy as np
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Odometry, Path
-from rcl_interfaces.msg import ParameterDescriptor
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
@@ -41,9 +38,11 @@ from fixego_ros.nodes.common import (
     CloudError,
     OnceLogger,
     cloud_to_table,
+    declare_parameters,
     diagnostic_status,
     pose_to_msg,
     publish_diagnostics,
+    spin_node,
     stamp_to_sec,
 )
 from fixego_ros.pipeline.observation import ROW_DTYPE, ObservationError, rows_to_observation
@@ -93,9 +92,7 @@ def odom_covariance(pose_cov_rig: np.ndarray) -> list[float]:
 class EstimatorNode(Node):
     def __init__(self, **kwargs) -> None:
         super().__init__('estimator_node', **kwargs)
-        for name, (default, text) in PARAMS.items():
-            self.declare_parameter(name, default, ParameterDescriptor(description=text))
-        g = lambda n: self.get_parameter(n).value  # noqa: E731
+        g = declare_parameters(self, PARAMS)
         self.rig = load_rig(g('rig_file') or default_rig_path())
         f = self.rig.camera('right').fx
         self.config = EstimatorConfig(
@@ -272,17 +269,7 @@ class EstimatorNode(Node):
 
 
 def main(args: list[str] | None = None) -> None:
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = EstimatorNode()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    spin_node(EstimatorNode, args)
 
 
 if __name__ == '__main__':

@@ -15,11 +15,8 @@ import time
 from collections import deque
 
 import numpy as np
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PointStamped
-from rcl_interfaces.msg import ParameterDescriptor
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from sensor_msgs.msg import Image, JointState, PointCloud2
 
@@ -31,9 +28,11 @@ from fixego_ros.nodes.common import (
     WARN,
     ImageError,
     OnceLogger,
+    declare_parameters,
     diagnostic_status,
     image_to_gray,
     publish_diagnostics,
+    spin_node,
     stamp_to_sec,
     table_to_cloud,
 )
@@ -68,9 +67,7 @@ PARAMS: dict[str, tuple[object, str]] = {
 class FlowNode(Node):
     def __init__(self, **kwargs) -> None:
         super().__init__('flow_node', **kwargs)
-        for name, (default, text) in PARAMS.items():
-            self.declare_parameter(name, default, ParameterDescriptor(description=text))
-        g = lambda n: self.get_parameter(n).value  # noqa: E731
+        g = declare_parameters(self, PARAMS)
         self.rig = load_rig(g('rig_file') or default_rig_path())
         self.flow_params = FlowParams(
             preset=str(g('preset')), window_px=int(g('window_px')), paper_region_px=int(g('paper_region_px')),
@@ -168,6 +165,7 @@ class FlowNode(Node):
                        'single_camera_frames': s.single_camera_frames, 'late_images': s.late_images,
                        'overflow_images': s.overflow_images, 'no_joints': s.no_joints, 'no_fixation': s.no_fixation,
                        'rejected_inputs': s.rejected, 'preset': self.flow_params.preset})
+        values.update(self.frontend.stats)     # each camera's last status, reason and point counts
         ms = np.array(self.process_ms) if self.process_ms else np.zeros(1)
         values.update({'process_ms_p50': f'{np.median(ms):.2f}', 'process_ms_p95': f'{np.percentile(ms, 95):.2f}'})
         level, message = OK, 'tracking flow'
@@ -182,17 +180,7 @@ class FlowNode(Node):
 
 
 def main(args: list[str] | None = None) -> None:
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = FlowNode()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    spin_node(FlowNode, args)
 
 
 if __name__ == '__main__':

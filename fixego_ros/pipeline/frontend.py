@@ -154,10 +154,6 @@ class StereoFrontEnd:
                 self.totals[f'{side}.{k}'] += v
         return obs
 
-    @property
-    def keyframe_stamp(self) -> float | None:
-        return self._prev_stamp
-
     def _new_keyframe(self, obs: FrameObservation, current: dict[str, CameraSample | None]) -> bool:
         """Whether the frame just processed becomes the keyframe (see :class:`KeyframePolicy`)."""
         pol = self.keyframes
