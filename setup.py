@@ -46,6 +46,8 @@ setup(
             'camera_node = fixego_ros.nodes.camera_node:main',
             'flow_node = fixego_ros.nodes.flow_node:main',
             'estimator_node = fixego_ros.nodes.estimator_node:main',
+            'bag_player = fixego_ros.nodes.bag_player:main',
+            'bag_recorder = fixego_ros.nodes.bag_recorder:main',
         ],
     },
 )

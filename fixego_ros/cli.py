@@ -16,6 +16,9 @@ COMMANDS: dict[str, tuple[str, ...]] = {
     'fixego_ros.demo.cli': ('demo',),
     'fixego_ros.evaluation.cli': ('eval',),
     'fixego_ros.experiments.paper_sim': ('paper-sim',),
+    'fixego_ros.replay.cli': ('replay',),
+    'fixego_ros.bags.record_cli': ('record',),
+    'fixego_ros.bags.play_cli': ('play',),
     'fixego_ros.sim.cli': ('sim',),
     'fixego_ros.visca.cli': ('ptz',),
 }

@@ -36,7 +36,9 @@ from fixego_ros.nodes.common import (
     spin_node,
     stamp_to_sec,
 )
-from fixego_ros.tracking.fixation import FixationParams, FixationTracker, LimitCheck
+from fixego_ros.pipeline.messages import pan_tilt
+from fixego_ros.pipeline.params import FIXATION_PARAMS, fixation_params
+from fixego_ros.tracking.fixation import FixationTracker, LimitCheck
 from fixego_ros.tracking.servo import FixationServo, JointHistory, ServoLoop, ServoParams
 from fixego_ros.visca.driver import ViscaCamera
 from fixego_ros.visca.profiles import get_profile
@@ -57,12 +59,7 @@ PARAMS: dict[str, tuple[object, str]] = {
     'servo_move_time_s': (0.08, 'speed codes chosen so a correction takes about this long'),
     'servo_max_command_rate_hz': (15.0, 'AbsolutePosition commands per second at most (serial bandwidth)'),
     'servo_feedforward': (True, 'lead a drifting fixation point by its estimated angular rate'),
-    'search_radius_px': (60.0, 'fixation selection window radius around the centre'),
-    'min_corner_score': (2e-4, 'minimum corner (min-eigenvalue) score of a fixation point'),
-    'template_half_px': (10, 'half size of the NCC validity template'),
-    'ncc_min': (0.7, 'template correlation below which the track counts as lost'),
-    'fb_max_px': (1.0, 'forward-backward LK error above which the track counts as lost'),
-    'border_margin_px': (40.0, 're-select when the fixation comes this close to the image border'),
+    **FIXATION_PARAMS,
     'limit_margin_deg': (5.0, 're-select when pan/tilt comes this close to a limit'),
     'limit_reselect_offset_px': (120.0, 'after a limit re-selection, pick the new point this far off centre '
                                         'on the side that moves the head back into its range'),
@@ -84,10 +81,7 @@ class CameraNode(Node):
         self.profile = get_profile(str(g('profile')))
         self.frame_id = f'{self.side}_optical_frame'
         self.once = OnceLogger(self)
-        self.tracker = FixationTracker(self.camera, FixationParams(
-            search_radius_px=float(g('search_radius_px')), min_corner_score=float(g('min_corner_score')),
-            template_half=int(g('template_half_px')), ncc_min=float(g('ncc_min')),
-            fb_max_px=float(g('fb_max_px')), border_margin_px=float(g('border_margin_px'))))
+        self.tracker = FixationTracker(self.camera, fixation_params(g))
         pr = self.profile
         self.limits = LimitCheck((pr.pan_rad(pr.pan_min), pr.pan_rad(pr.pan_max)),
                                  (pr.tilt_rad(pr.tilt_min), pr.tilt_rad(pr.tilt_max)),
@@ -150,10 +144,14 @@ class CameraNode(Node):
     # ---------------------------------------------------------------------------------------- input
     def _on_joint_state(self, msg: JointState) -> None:
         try:
-            i, j = msg.name.index(self.joint_names[0]), msg.name.index(self.joint_names[1])
-            self.history.add(stamp_to_sec(msg.header.stamp), float(msg.position[i]), float(msg.position[j]))
-        except (ValueError, IndexError):
-            self.once.warn('joint_names', f'joint_states without {self.joint_names}: ignored')
+            pan, tilt = pan_tilt(msg, self.side)
+        except ValueError as e:
+            self.once.warn('joint_names', f'{e}: ignored')
+            return
+        if not (math.isfinite(pan) and math.isfinite(tilt)):
+            self.once.warn('joint_nan', 'non-finite pan/tilt in joint_states: ignored')
+            return
+        self.history.add(stamp_to_sec(msg.header.stamp), pan, tilt)
 
     def _poll_video(self) -> None:
         if self.video is None:

@@ -19,20 +19,20 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile, qos_profile_sensor_data
 from sensor_msgs.msg import Image, PointCloud2, PointField
 
-from fixego_ros.geometry.rotation import Pose, from_quat_xyzw, quat_xyzw
+from fixego_ros.geometry.rotation import Pose, quat_xyzw
+from fixego_ros.pipeline.messages import (  # noqa: F401 - re-exported: nodes import them from here
+    ENCODINGS,
+    ImageError,
+    image_to_gray,
+    msg_to_pose,
+    stamp_to_sec,
+)
 
 SENSOR_QOS: QoSProfile = qos_profile_sensor_data
 RELIABLE_QOS = QoSProfile(depth=50)
 
-# sensor_msgs/Image encodings we accept -> (channels, dtype)
-ENCODINGS = {'mono8': (1, np.uint8), 'rgb8': (3, np.uint8), 'bgr8': (3, np.uint8)}
-
 OK, WARN, ERROR, STALE = (DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR,
                           DiagnosticStatus.STALE)
-
-
-class ImageError(ValueError):
-    """An Image message we cannot use (unknown encoding, inconsistent size)."""
 
 
 class CloudError(ValueError):
@@ -68,10 +68,6 @@ def spin_node(factory: Callable[[], Node], args: list[str] | None = None) -> Non
         rclpy.try_shutdown()
 
 
-def stamp_to_sec(stamp: Time) -> float:
-    return float(stamp.sec) + 1e-9 * float(stamp.nanosec)
-
-
 def sec_to_stamp(t: float) -> Time:
     if not math.isfinite(t) or t < 0:
         raise ValueError(f'stamp must be finite and >= 0, got {t}')
@@ -86,33 +82,6 @@ def pose_to_msg(pose: Pose, out: PoseMsg | None = None) -> PoseMsg:
     o = out.orientation
     o.x, o.y, o.z, o.w = (float(x) for x in quat_xyzw(pose.R))
     return out
-
-
-def msg_to_pose(msg: PoseMsg) -> Pose:
-    """:class:`Pose` of a geometry_msgs/Pose; ValueError for a non-finite or zero quaternion."""
-    p, o = msg.position, msg.orientation
-    t = np.array([p.x, p.y, p.z], dtype=float)
-    if not np.all(np.isfinite(t)):
-        raise ValueError(f'non-finite position {t.tolist()}')
-    return Pose(from_quat_xyzw(np.array([o.x, o.y, o.z, o.w], dtype=float)), t)
-
-
-def image_to_gray(msg: Image) -> np.ndarray:
-    """Grey uint8 array of an Image message; raises :class:`ImageError` with the reason."""
-    if msg.encoding not in ENCODINGS:
-        raise ImageError(f'unsupported encoding {msg.encoding!r} (use one of {sorted(ENCODINGS)})')
-    ch, _ = ENCODINGS[msg.encoding]
-    h, w, step = int(msg.height), int(msg.width), int(msg.step)
-    if h <= 0 or w <= 0 or step < w * ch or len(msg.data) < step * h:
-        raise ImageError(f'inconsistent image: {w}x{h}, step {step}, {len(msg.data)} bytes, {msg.encoding}')
-    buf = np.frombuffer(bytes(msg.data) if not isinstance(msg.data, (bytes, bytearray, memoryview))
-                        else msg.data, dtype=np.uint8, count=step * h)
-    img = buf.reshape(h, step)[:, : w * ch].reshape(h, w, ch)
-    if ch == 1:
-        return img[:, :, 0]
-    import cv2
-    code = cv2.COLOR_RGB2GRAY if msg.encoding == 'rgb8' else cv2.COLOR_BGR2GRAY
-    return cv2.cvtColor(np.ascontiguousarray(img), code)
 
 
 def array_to_image(img: np.ndarray, stamp: Time, frame_id: str, encoding: str | None = None) -> Image:

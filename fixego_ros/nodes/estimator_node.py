@@ -25,9 +25,8 @@ from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
 
-from fixego_ros.estimation.estimator import Estimator, EstimatorConfig, FrameResult
+from fixego_ros.estimation.estimator import Estimator, FrameResult
 from fixego_ros.estimation.status import StepStatus
-from fixego_ros.estimation.twoframe import SolverConfig
 from fixego_ros.geometry.rig import default_rig_path, load_rig
 from fixego_ros.geometry.rotation import RIG_TO_BASE, Pose, rig_pose_to_base_link
 from fixego_ros.nodes.common import (
@@ -46,30 +45,16 @@ from fixego_ros.nodes.common import (
     stamp_to_sec,
 )
 from fixego_ros.pipeline.observation import ROW_DTYPE, ObservationError, rows_to_observation
+from fixego_ros.pipeline.params import ESTIMATOR_PARAMS, estimator_config
 
 PARAMS: dict[str, tuple[object, str]] = {
     'rig_file': ('', 'rig calibration YAML (DESIGN.md §4); empty = the package config/rig.yaml'),
     'observation_topic': ('/fixego/flow/observation', 'flow observations (PointCloud2 rows, see README)'),
-    'window': (3, 'n: frames in the local bundle adjustment (3..10; 0 disables it)'),
-    'mode': ('paper', "local BA: 'paper' (BA cost alone, Powell, as in the papers) or 'joint' (+ two-frame terms)"),
-    'fixation_weight': (1.0, 'weight of the fixation constraints relative to one flow point'),
-    'stationary_parallax_px': (0.3, 'median rotation-compensated parallax (px) below which the rig is taken as '
-                                     'standing still (T = 0): with no parallax the scale is pure noise'),
-    'pixel_sigma': (1.0, 'expected flow/fixation noise in pixels (sets the covariance scale)'),
-    'loss': ('huber', 'robust loss of the two-frame solve: linear | huber | soft_l1 | cauchy | arctan'),
-    'velocity_prior': (False, 'weak constant-velocity prior on each step (keeps unobserved scale from wandering; '
-                             'the covariance stays the rays\' own). false = the papers\' method'),
-    'prior_sigma_rel': (0.5, 'prior std as a fraction of the predicted step length'),
-    'prior_sigma_min': (0.01, 'prior std at least this (m)'),
-    'max_nfev': (30, 'bound on function evaluations of one two-frame solve'),
-    'max_step_translation': (0.5, 'm; a larger step is rejected as a jump and predicted instead'),
-    'max_speed': (1.5, 'm/s; a step implying a faster rig is rejected as a jump and predicted instead'),
+    **ESTIMATOR_PARAMS,
     'max_lag_s': (0.1, 'when an observation is this far behind the clock and not a keyframe, skip it (keyframes '
                        'are always solved: the trajectory continues through them)'),
     'max_keyframe_lag_s': (0.5, 'even keyframes are skipped this far behind (the estimator then bridges the gap '
                                 'at constant velocity): bounds the latency when the machine is overloaded'),
-    'max_step_rotation_deg': (20.0, 'deg; a larger step rotation is rejected as a jump'),
-    'reject_translation_std': (1e6, 'm; a step whose translation std exceeds this is rejected (1e6: never)'),
     'odom_frame': ('odom', 'frame of the published trajectory'),
     'base_frame': ('base_link', 'frame of the rig body (x forward, y left, z up)'),
     'path_max_length': (20000, 'poses kept in /fixego/path and /fixego/path_raw (oldest dropped)'),
@@ -94,15 +79,7 @@ class EstimatorNode(Node):
         super().__init__('estimator_node', **kwargs)
         g = declare_parameters(self, PARAMS)
         self.rig = load_rig(g('rig_file') or default_rig_path())
-        f = self.rig.camera('right').fx
-        self.config = EstimatorConfig(
-            window=int(g('window')), mode=str(g('mode')), fixation_weight=float(g('fixation_weight')),
-            max_step_translation=float(g('max_step_translation')), max_speed=float(g('max_speed')),
-            max_step_rotation=float(np.radians(float(g('max_step_rotation_deg')))),
-            reject_translation_std=float(g('reject_translation_std')), velocity_prior=bool(g('velocity_prior')),
-            prior_sigma_rel=float(g('prior_sigma_rel')), prior_sigma_min=float(g('prior_sigma_min')),
-            solver=SolverConfig(sigma=float(g('pixel_sigma')) / f, loss=str(g('loss')), max_nfev=int(g('max_nfev')),
-                                min_parallax=float(g('stationary_parallax_px')) / f))
+        self.config = estimator_config(g, self.rig)
         self.estimator = Estimator(self.rig, self.config)
         self.odom_frame, self.base_frame = str(g('odom_frame')), str(g('base_frame'))
         self.max_lag_s = float(g('max_lag_s'))

@@ -30,35 +30,20 @@ from fixego_ros.nodes.common import (
     OnceLogger,
     declare_parameters,
     diagnostic_status,
-    image_to_gray,
     publish_diagnostics,
     spin_node,
     stamp_to_sec,
     table_to_cloud,
 )
-from fixego_ros.pipeline.frontend import CameraSample, KeyframePolicy, StereoFrontEnd
+from fixego_ros.pipeline.frontend import CameraSample, StereoFrontEnd
+from fixego_ros.pipeline.messages import gray_for_camera, pan_tilt
 from fixego_ros.pipeline.observation import observation_to_rows
-from fixego_ros.pipeline.sync import StereoSync, SyncParams
-from fixego_ros.tracking.flow import FlowParams
+from fixego_ros.pipeline.params import FLOW_PARAMS, flow_params, keyframe_policy, sync_params
+from fixego_ros.pipeline.sync import StereoSync
 
 PARAMS: dict[str, tuple[object, str]] = {
     'rig_file': ('', 'rig calibration YAML (DESIGN.md §4); empty = the package config/rig.yaml'),
-    'preset': ('window', "flow points: 'paper' (3 in the central 30x30 px), 'window' (all good corners in "
-                         "the window), 'full' (whole image)"),
-    'window_px': (100, 'side of the flow window centred on the fixation point (px)'),
-    'paper_region_px': (30, "paper preset: side of the central region the points are drawn from (px)"),
-    'paper_points': (3, 'paper preset: points per camera'),
-    'max_corners': (80, 'window/full presets: most corners tracked per camera (the solve time grows with it)'),
-    'min_eig': (1e-3, 'Lucas-Kanade minimum-eigenvalue threshold (rejects untextured points)'),
-    'fb_max_px': (0.5, 'forward-backward consistency bound (px)'),
-    'lk_win': (21, 'Lucas-Kanade window (px)'),
-    'lk_levels': (3, 'pyramid levels'),
-    'keyframe_max_frames': (10, 'frames tracked from one keyframe at most (1 = consecutive frames, the papers)'),
-    'keyframe_min_parallax_px': (0.0, 'new keyframe once the rotation-compensated parallax reaches this (0 = off)'),
-    'keyframe_min_tracked_fraction': (0.5, "new keyframe when fewer of the keyframe's points still track"),
-    'slop_s': (0.01, 'images of the two cameras closer than this form one frame (s)'),
-    'max_wait_s': (0.25, 'bound on waiting for a partner image, joint state or fixation (s)'),
-    'joint_extrapolation_s': (0.0, 'how far past the newest joint state an image may be (s); 0 = wait for one'),
+    **FLOW_PARAMS,
     'observation_topic': ('/fixego/flow/observation', 'where observations are published'),
     'diagnostics_period_s': (1.0, 'diagnostics publishing period'),
 }
@@ -69,15 +54,9 @@ class FlowNode(Node):
         super().__init__('flow_node', **kwargs)
         g = declare_parameters(self, PARAMS)
         self.rig = load_rig(g('rig_file') or default_rig_path())
-        self.flow_params = FlowParams(
-            preset=str(g('preset')), window_px=int(g('window_px')), paper_region_px=int(g('paper_region_px')),
-            paper_points=int(g('paper_points')), max_corners=int(g('max_corners')), min_eig=float(g('min_eig')),
-            fb_max_px=float(g('fb_max_px')), lk_win=int(g('lk_win')), lk_levels=int(g('lk_levels')))
-        self.frontend = StereoFrontEnd(self.rig, self.flow_params, KeyframePolicy(
-            max_frames=int(g('keyframe_max_frames')), min_parallax_px=float(g('keyframe_min_parallax_px')),
-            min_tracked_fraction=float(g('keyframe_min_tracked_fraction'))))
-        self.sync = StereoSync(SyncParams(slop_s=float(g('slop_s')), max_wait_s=float(g('max_wait_s')),
-                                          joint_extrapolation_s=float(g('joint_extrapolation_s'))))
+        self.flow_params = flow_params(g)
+        self.frontend = StereoFrontEnd(self.rig, self.flow_params, keyframe_policy(g))
+        self.sync = StereoSync(sync_params(g))
         self.once = OnceLogger(self)
         self.pub_obs = self.create_publisher(PointCloud2, str(g('observation_topic')), RELIABLE_QOS)
         self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', RELIABLE_QOS)
@@ -102,12 +81,8 @@ class FlowNode(Node):
     # -------------------------------------------------------------------------------------- input
     def _on_image(self, side: str, msg: Image) -> None:
         self.stats['images'] += 1
-        cam = self.rig.camera(side)
         try:
-            gray = image_to_gray(msg)
-            if gray.shape != (cam.height, cam.width):
-                raise ImageError(f'{gray.shape[1]}x{gray.shape[0]} image, but the rig file says '
-                                 f'{cam.width}x{cam.height}')
+            gray = gray_for_camera(msg, self.rig.camera(side))
         except ImageError as e:
             self.stats['bad_images'] += 1
             self.last_problem = f'{side} image ignored: {e}'
@@ -118,12 +93,10 @@ class FlowNode(Node):
         self._drain()
 
     def _on_joints(self, side: str, msg: JointState) -> None:
-        names = (f'{side}_pan', f'{side}_tilt')
         try:
-            i, j = msg.name.index(names[0]), msg.name.index(names[1])
-            pan, tilt = float(msg.position[i]), float(msg.position[j])
-        except (ValueError, IndexError):
-            self.once.warn(f'joints_{side}', f'{side} joint_states without {names}: ignored')
+            pan, tilt = pan_tilt(msg, side)
+        except ValueError as e:
+            self.once.warn(f'joints_{side}', f'{e}: ignored')
             return
         if not self.sync.add_joints(side, stamp_to_sec(msg.header.stamp), pan, tilt):
             self.once.warn(f'joints_bad_{side}', f'{side} joint state non-finite or out of order: ignored')

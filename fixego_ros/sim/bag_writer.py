@@ -15,7 +15,6 @@ increases by one at each re-selection).
 
 from __future__ import annotations
 
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,6 +24,7 @@ import yaml
 
 from fixego_ros.geometry.rig import Rig
 from fixego_ros.geometry.rotation import Pose
+from fixego_ros.progress import Progress
 from fixego_ros.sim.run import Frame, SimSettings, Simulation
 
 NS = '/fixego'
@@ -128,30 +128,6 @@ def canonical_cdr(msg, msgtype: str, typestore) -> bytes:
     return out
 
 
-class Progress:
-    """Plain-text progress bar on stderr (at most ~4 updates per second)."""
-
-    def __init__(self, total: int, label: str, enabled: bool = True, stream=None) -> None:
-        self.total, self.label, self.enabled = max(total, 1), label, enabled
-        self.stream = stream or sys.stderr
-        self.start = time.monotonic()
-        self._last = -1.0
-
-    def update(self, done: int) -> None:
-        now = time.monotonic()
-        if not self.enabled or (now - self._last < 0.25 and done < self.total):
-            return
-        self._last = now
-        frac = done / self.total
-        rate = done / max(now - self.start, 1e-9)
-        eta = (self.total - done) / rate if rate > 0 else 0.0
-        bar = '#' * int(30 * frac) + '.' * (30 - int(30 * frac))
-        self.stream.write(f'\r{self.label} [{bar}] {done}/{self.total} frames  {rate:5.1f} fps  ETA {eta:5.1f} s')
-        if done >= self.total:
-            self.stream.write('\n')
-        self.stream.flush()
-
-
 @dataclass
 class BagSummary:
     path: Path
@@ -167,7 +143,7 @@ def write_bag(out_dir: str | Path, rig: Rig, settings: SimSettings | None = None
               sim: Simulation | None = None) -> BagSummary:
     """Simulate ``settings`` on ``rig`` and write the bag directory ``out_dir`` (must not exist)."""
     settings = settings or (sim.s if sim is not None else SimSettings())
-    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
     from rosbags.typesys import Stores, get_typestore
 
     out_dir = Path(out_dir)
@@ -178,7 +154,9 @@ def write_bag(out_dir: str | Path, rig: Rig, settings: SimSettings | None = None
     wall0 = time.monotonic()
     bar = Progress(len(sim), f'fixego sim {settings.trajectory}', progress)
     n_msgs = 0
-    with Writer(out_dir, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+    writer = Writer(out_dir, version=9, storage_plugin=StoragePlugin.MCAP)
+    writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)   # zstd MCAP chunks, as rosbag2's
+    with writer:
         writer.set_custom_data('fixego_sim', ' '.join(f'{k}={v}' for k, v in settings.to_dict().items()))
         conns = {topic: writer.add_connection(topic, msgtype, typestore=typestore,
                                               offered_qos_profiles=[_qos(topic.endswith('image_raw'))])

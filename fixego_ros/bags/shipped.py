@@ -1,0 +1,121 @@
+"""The bags shipped in ``bags/`` and how to regenerate them exactly: ``python -m fixego_ros.bags.shipped``.
+
+Each is written by ``fixego sim`` (seeded, so the bytes are the same on every run with the same
+library versions) and gets ``rig.yaml``, ``sim.yaml`` and ``ground_truth.tum`` next to the MCAP file.
+Images are raw ``sensor_msgs/Image`` (DESIGN.md §3) and barely compress (the room's texture and
+the sensor noise are high-entropy), so to stay within the 30 MB budget the bags are smaller than a
+real rig's stream (640x480 at 30 Hz is ~18 MB per second):
+
+* ``paper``: the papers' stadium loop (5.0 m, 25.5 s) at 320x240 and 5.1 Hz, about one frame per
+  step of the papers' 130-step run;
+* ``walk``: the first 4 s of the wearable ``walk`` sequence (head bob, sway, wobble) at 320x240, 10 Hz.
+
+Use ``--check`` to regenerate into a temporary folder and compare every message with the shipped bag.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+from fixego_ros.sim.run import SimSettings
+
+BAGS_DIR = Path(__file__).resolve().parents[2] / 'bags'
+
+
+@dataclass(frozen=True)
+class ShippedBag:
+    name: str
+    settings: SimSettings
+    width: int
+    height: int
+    about: str
+
+
+SHIPPED: tuple[ShippedBag, ...] = (
+    ShippedBag('paper', SimSettings(trajectory='paper', seed=0, fps=5.1), 320, 240,
+               "the papers' stadium loop, 5.0 m in 25.5 s, ~1 frame per step of their 130-step run"),
+    ShippedBag('walk', SimSettings(trajectory='walk', seed=0, fps=10.0, duration=4.0), 320, 240,
+               'the first 4 s of a wearable rig on a walking person (head bob, sway, wobble)'),
+)
+
+
+def by_name(name: str) -> ShippedBag:
+    for b in SHIPPED:
+        if b.name == name:
+            return b
+    raise KeyError(f'no shipped bag {name!r} (have {", ".join(b.name for b in SHIPPED)})')
+
+
+def generate(spec: ShippedBag, out_dir: Path, progress: bool = False):
+    """Write ``spec`` to ``out_dir`` (must not exist) with its ground truth as TUM; returns the summary."""
+    from fixego_ros.evaluation.tum import write_tum
+    from fixego_ros.geometry.rig import default_rig_path, load_rig
+    from fixego_ros.geometry.rotation import rig_pose_to_base_link
+    from fixego_ros.sim.bag_writer import write_bag
+    from fixego_ros.sim.run import Simulation, resize_rig
+
+    rig = resize_rig(load_rig(default_rig_path()), spec.width, spec.height)
+    sim = Simulation(rig, spec.settings)
+    summary = write_bag(out_dir, rig, spec.settings, progress=progress, sim=sim)
+    stamps = [spec.settings.epoch + t for t in sim.stamps]
+    inv0 = sim.poses[0].inverse()
+    write_tum(out_dir / 'ground_truth.tum', stamps, [rig_pose_to_base_link(inv0 @ p) for p in sim.poses])
+    return summary
+
+
+def compare(a: Path, b: Path) -> list[str]:
+    """Differences between two bags, message by message (empty = identical content)."""
+    from itertools import zip_longest
+
+    from fixego_ros.bags.reader import Bag
+    problems = []
+    ba, bb = Bag(a), Bag(b)
+    for i, (x, y) in enumerate(zip_longest(ba.messages(), bb.messages())):
+        if x is None or y is None:
+            problems.append(f'message {i}: only in {a if y is None else b}')
+            break
+        if (x.topic, x.log_time_ns, bytes(x.data)) != (y.topic, y.log_time_ns, bytes(y.data)):
+            problems.append(f'message {i} ({x.topic} at {x.log_time_ns} ns) differs')
+            if len(problems) > 5:
+                break
+    for extra in ('rig.yaml', 'sim.yaml', 'ground_truth.tum'):
+        if (a / extra).read_bytes() != (b / extra).read_bytes():
+            problems.append(f'{extra} differs')
+    return problems
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog='python -m fixego_ros.bags.shipped', description=__doc__.split('\n')[0])
+    ap.add_argument('--out', type=Path, default=BAGS_DIR, help=f'folder of the bags (default {BAGS_DIR})')
+    ap.add_argument('--only', nargs='*', help='names of the bags to (re)generate (default: all)')
+    ap.add_argument('--check', action='store_true', help='regenerate into a temporary folder and compare')
+    ap.add_argument('--force', action='store_true', help='replace existing bags')
+    args = ap.parse_args(argv)
+    specs = [by_name(n) for n in args.only] if args.only else list(SHIPPED)
+    status = 0
+    for spec in specs:
+        target = args.out / spec.name
+        if args.check:
+            with tempfile.TemporaryDirectory() as tmp:
+                generate(spec, Path(tmp) / spec.name)
+                problems = compare(target, Path(tmp) / spec.name)
+            print(f'{spec.name}: ' + ('identical' if not problems else '; '.join(problems)))
+            status |= bool(problems)
+            continue
+        if target.exists():
+            if not args.force:
+                print(f'{target} exists (use --force to replace it)', file=sys.stderr)
+                return 2
+            import shutil
+            shutil.rmtree(target)
+        s = generate(spec, target, progress=True)
+        print(f'{spec.name}: {s.frames} frames, {s.duration_s:.1f} s, {s.bytes / 1e6:.1f} MB -> {target}')
+    return status
+
+
+if __name__ == '__main__':
+    sys.exit(main())

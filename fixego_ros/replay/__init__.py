@@ -1,0 +1,1 @@
+"""Offline replay of image-level bags: tracking + flow + estimation in one process, no DDS."""

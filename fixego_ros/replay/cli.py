@@ -1,0 +1,201 @@
+"""``fixego replay BAG_DIR --out EST.tum``: offline tracking + flow + estimation over an image-level bag.
+
+Writes ``EST.tum`` (refined) and ``EST.raw.tum`` (two-frame only): TUM lines ``stamp tx ty tz qx qy qz
+qw``, the pose of ``base_link`` in ``odom`` (DESIGN.md §6). Prints what was skipped and why, the speed
+against real time, and the ATE when the bag holds ``ground_truth/pose``. Exit codes: 0 done (possibly
+with documented degradations, printed), 2 the bag or the options cannot be used.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+
+PROG = 'fixego replay'
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        'replay', help='estimate the trajectory of an image-level bag offline (no DDS), write TUM files',
+        description='Run passive fixation tracking, flow and estimation over a rosbag2/MCAP bag with the '
+                    'topics of DESIGN.md §3 (remappable) and write EST.tum and EST.raw.tum. Deterministic: the '
+                    'same bag and options give the same bytes.')
+    add_arguments(p)
+    p.set_defaults(func=run)
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument('bag', type=Path, metavar='BAG_DIR', help='rosbag2 directory (or a single .mcap file)')
+    p.add_argument('--out', required=True, type=Path, metavar='EST.tum', help='refined trajectory to write; the '
+                   'two-frame one goes next to it as EST.raw.tum')
+    p.add_argument('--rig', type=Path, metavar='RIG.yaml', help='rig calibration (default: BAG_DIR/rig.yaml)')
+    p.add_argument('--params-file', type=Path, action='append', default=[], metavar='YAML',
+                   help='ROS 2 parameter file(s) with camera_node/flow_node/estimator_node blocks (e.g. '
+                        'config/*.yaml); later files and the options below override')
+    p.add_argument('--preset', choices=('paper', 'window', 'full'), help='flow points (flow_node preset)')
+    p.add_argument('--window', type=int, help='local BA window n (3..10; 0 = two-frame only)')
+    p.add_argument('--mode', choices=('paper', 'joint'), help='local BA mode')
+    p.add_argument('--keyframe-max-frames', type=int, metavar='K', help='frames tracked from one keyframe at most')
+    p.add_argument('-p', '--param', action='append', default=[], metavar='NAME:=VALUE',
+                   help='any camera_node/flow_node/estimator_node parameter, YAML value (repeatable)')
+    p.add_argument('--namespace', default='/fixego', help='topic namespace of the inputs (default /fixego)')
+    p.add_argument('--remap', action='append', default=[], metavar='FROM:=TO',
+                   help='read contract topic FROM (e.g. /fixego/right/image_raw) from bag topic TO (repeatable)')
+    p.add_argument('--eval-out', type=Path, metavar='DIR',
+                   help='with ground truth: also write DIR/ground_truth.tum, DIR/eval.json and DIR/eval.png')
+    p.add_argument('--workers', type=int, choices=(1, 2), default=2 if (os.cpu_count() or 1) > 1 else 1,
+                   help='2 = run the estimator in a second process (same output; default on multi-core machines)')
+    p.add_argument('--no-progress', action='store_true', help='no progress bar on stderr')
+    p.add_argument('--quiet', action='store_true', help='print only errors and the result lines')
+
+
+def _pairs(items: list[str], what: str) -> list[tuple[str, str]]:
+    out = []
+    for item in items:
+        a, sep, b = item.partition(':=')
+        if not sep or not a or not b:
+            raise ValueError(f'{what} {item!r}: expected NAME:=VALUE')
+        out.append((a.strip(), b.strip()))
+    return out
+
+
+def settings_from_args(args: argparse.Namespace, rig):
+    """ReplaySettings from the node tables, the parameter files and the options (later wins)."""
+    import yaml
+
+    from fixego_ros.pipeline.params import (
+        ESTIMATOR_PARAMS,
+        FIXATION_PARAMS,
+        FLOW_PARAMS,
+        ParamsError,
+        load_params_file,
+        params_getter,
+    )
+    from fixego_ros.replay.run import ReplaySettings
+
+    nodes = {'camera_node': FIXATION_PARAMS, 'flow_node': FLOW_PARAMS, 'estimator_node': ESTIMATOR_PARAMS}
+    values: dict[str, dict[str, object]] = {n: {} for n in nodes}
+    for f in args.params_file:
+        for n in nodes:
+            values[n].update(load_params_file(f, n))
+    options = {'flow_node': {'preset': args.preset, 'keyframe_max_frames': args.keyframe_max_frames},
+               'estimator_node': {'window': args.window, 'mode': args.mode}}
+    for n, kv in options.items():
+        values[n].update({k: v for k, v in kv.items() if v is not None})
+    for name, text in _pairs(args.param, '--param'):
+        owners = [n for n, table in nodes.items() if name in table]
+        if not owners:
+            raise ParamsError(f'unknown parameter {name!r} (see config/camera_node.yaml, flow_node.yaml, '
+                              f'estimator_node.yaml)')
+        for n in owners:     # fb_max_px exists for the fixation tracker and the flow: -p sets both
+            values[n][name] = yaml.safe_load(text)
+    getters = {n: params_getter(table, values[n]) for n, table in nodes.items()}
+    return ReplaySettings.from_getters(rig, getters['camera_node'], getters['flow_node'], getters['estimator_node'])
+
+
+def run(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from fixego_ros.bags.reader import Bag, BagError
+    from fixego_ros.evaluation.tum import write_tum
+    from fixego_ros.geometry.rig import SIDES, RigError, load_rig
+    from fixego_ros.pipeline.params import ParamsError
+    from fixego_ros.progress import Progress
+    from fixego_ros.replay.run import ReplayError, ReplayTopics, replay
+
+    def fail(msg: str) -> int:
+        print(f'{PROG}: {msg}', file=sys.stderr)
+        return 2
+
+    def say(msg: str) -> None:
+        if not args.quiet:
+            print(msg)
+
+    try:
+        bag = Bag(args.bag)
+    except BagError as e:
+        return fail(str(e))
+    rig_path = args.rig or bag.dir / 'rig.yaml'
+    if not rig_path.exists():
+        return fail(f'no rig file: {rig_path} does not exist (pass --rig RIG.yaml; DESIGN.md §4)')
+    try:
+        rig = load_rig(rig_path)
+        settings = settings_from_args(args, rig)
+        topics = ReplayTopics(args.namespace, tuple(_pairs(args.remap, '--remap')))
+    except (RigError, ParamsError, ValueError) as e:
+        return fail(str(e))
+    counts = [bag.topics[t].count for t in (topics.name(f'{s}/image_raw') for s in SIDES) if t in bag.topics]
+    bar = Progress(sum(c or 0 for c in counts), PROG, enabled=not (args.no_progress or args.quiet), unit='images')
+    try:
+        res = replay(bag, rig, settings, topics, progress=bar.update, workers=args.workers)
+    except (ReplayError, BagError) as e:
+        bar.finish()
+        return fail(str(e))
+    bar.finish()
+    out: Path = args.out
+    raw_out = out.with_name(out.name[:-4] + '.raw.tum' if out.name.endswith('.tum') else out.name + '.raw.tum')
+    try:
+        write_tum(out, res.stamps, res.poses)
+        write_tum(raw_out, res.stamps, res.poses_raw)
+    except OSError as e:
+        return fail(f'cannot write {out}: {e}')
+
+    for line in res.notes:
+        print(f'{PROG}: note: {line}', file=sys.stderr)
+    c = res.counts
+    say(f'replayed {bag.path}: {c["images"]} images, {c["frames"]} frames ({c["stereo_frames"]} stereo), '
+        f'{len(res.stamps)} poses over {res.bag_duration_s:.2f} s in {res.wall_s:.2f} s '
+        f'({res.realtime_factor:.1f}x real time); steps: '
+        + ', '.join(f'{k} {v}' for k, v in sorted(res.steps.items())))
+    stages = ', '.join(f'{k} {np.median(v):.2f}' for k, v in res.stage_ms.items() if v)
+    say(f'median ms per call: {stages}; fixation re-selections right {c["reselections:right"]}, '
+        f'left {c["reselections:left"]}')
+    say(f'wrote {out} and {raw_out}')
+    if res.gt_stamps:
+        return _evaluate(args, res, say, fail)
+    say('no ground truth in the bag: no ATE')
+    return 0
+
+
+def _evaluate(args: argparse.Namespace, res, say, fail) -> int:
+    import numpy as np
+
+    from fixego_ros.evaluation.cli import summary_lines
+    from fixego_ros.evaluation.metrics import EvaluationError, evaluate
+    from fixego_ros.evaluation.tum import write_tum
+
+    try:
+        evs = {name: evaluate(res.stamps, poses, res.gt_stamps, res.gt_poses, anchor_first=True, name=name)
+               for name, poses in (('refined', res.poses), ('raw', res.poses_raw))}
+    except EvaluationError as e:
+        print(f'{PROG}: note: no ATE: {e}', file=sys.stderr)
+        return 0
+    for name, ev in evs.items():
+        for line in summary_lines(name, ev.summary):
+            print(line)
+    if args.eval_out is not None:
+        from fixego_ros.evaluation.plot import plot_evaluation
+        d: Path = args.eval_out
+        try:
+            write_tum(d / 'ground_truth.tum', res.gt_stamps, res.gt_poses)
+            (d / 'eval.json').write_text(json.dumps({k: ev.summary for k, ev in evs.items()}, indent=2,
+                                                    allow_nan=False) + '\n')
+            plot_evaluation(d / 'eval.png', evs, gt_stamps=np.asarray(res.gt_stamps),
+                            gt_xyz=np.array([p.t for p in res.gt_poses]), title=args.bag.name)
+        except OSError as e:
+            return fail(f'cannot write to {d}: {e}')
+        say(f'wrote {d / "ground_truth.tum"}, {d / "eval.json"} and {d / "eval.png"}')
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog=PROG)
+    add_arguments(p)
+    return run(p.parse_args(argv))
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,357 @@
+"""The offline pipeline behind ``fixego replay`` (ROS-free, single-threaded, deterministic).
+
+Reads an image-level bag (DESIGN.md §3) in recording order and runs what the live nodes run, in one
+process: a passive :class:`~fixego_ros.tracking.fixation.FixationTracker` per camera (the recorded
+heads moved on their own; we only find the point each keeps near the centre), the stamp synchroniser
+with the bag's clock, the stereo flow front end and the estimator, with the parameters of the nodes
+(:mod:`fixego_ros.pipeline.params`). Same bag and settings give the same output, byte for byte.
+
+With ``workers=2`` the estimator runs in a second process fed through a queue (front end and
+estimator overlap on two cores); the estimator sees the same observations in the same order, so
+the output is identical to ``workers=1``.
+
+Bad data degrades and is reported, never silently: undecodable messages, images of the wrong
+encoding or size, non-finite joint states and stamps that go backwards are skipped and counted
+(:attr:`ReplayResult.counts`); a cut recording is replayed up to the cut (:attr:`ReplayResult.notes`).
+What makes a replay impossible raises :class:`ReplayError` with a one-line reason.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from fixego_ros.bags.reader import Bag, DecodeError
+from fixego_ros.estimation.estimator import Estimator, EstimatorConfig
+from fixego_ros.geometry.rig import SIDES, Rig
+from fixego_ros.geometry.rotation import Pose, rig_pose_to_base_link
+from fixego_ros.pipeline.frontend import CameraSample, KeyframePolicy, StereoFrontEnd
+from fixego_ros.pipeline.messages import ImageError, gray_for_camera, msg_to_pose, pan_tilt, stamp_to_sec
+from fixego_ros.pipeline.params import (
+    ESTIMATOR_PARAMS,
+    FIXATION_PARAMS,
+    FLOW_PARAMS,
+    Getter,
+    estimator_config,
+    fixation_params,
+    flow_params,
+    keyframe_policy,
+    params_getter,
+    sync_params,
+)
+from fixego_ros.pipeline.sync import StereoSync, SyncedFrame, SyncParams
+from fixego_ros.tracking.fixation import FixationParams, FixationTracker
+from fixego_ros.tracking.flow import FlowParams
+
+IMAGE_TYPES = ('sensor_msgs/msg/Image', 'sensor_msgs/msg/CompressedImage')
+JOINTS_TYPE = 'sensor_msgs/msg/JointState'
+POSE_TYPE = 'geometry_msgs/msg/PoseStamped'
+
+
+class ReplayError(Exception):
+    """The bag cannot be replayed (missing topics, wrong types); the message says what to do."""
+
+
+@dataclass(frozen=True)
+class ReplayTopics:
+    """Where the inputs are in the bag: the contract's names under ``namespace`` unless remapped."""
+
+    namespace: str = '/fixego'
+    remap: tuple[tuple[str, str], ...] = ()     # (contract topic, bag topic)
+
+    def name(self, suffix: str) -> str:
+        default = f'{self.namespace.rstrip("/")}/{suffix}'
+        return dict(self.remap).get(default, default)
+
+    def routes(self) -> dict[str, tuple[str, str]]:
+        """bag topic -> (kind, side)."""
+        out = {self.name(f'{side}/image_raw'): ('image', side) for side in SIDES}
+        out.update({self.name(f'{side}/joint_states'): ('joints', side) for side in SIDES})
+        out[self.name('ground_truth/pose')] = ('ground_truth', '')
+        return out
+
+
+@dataclass(frozen=True)
+class ReplaySettings:
+    fixation: FixationParams
+    flow: FlowParams
+    keyframes: KeyframePolicy
+    sync: SyncParams
+    estimator: EstimatorConfig
+
+    @classmethod
+    def from_getters(cls, rig: Rig, camera: Getter | None = None, flow: Getter | None = None,
+                     estimator: Getter | None = None) -> ReplaySettings:
+        """The nodes' parameters (defaults of :mod:`~fixego_ros.pipeline.params` unless a getter is given)."""
+        camera = camera or params_getter(FIXATION_PARAMS)
+        flow = flow or params_getter(FLOW_PARAMS)
+        estimator = estimator or params_getter(ESTIMATOR_PARAMS)
+        return cls(fixation_params(camera), flow_params(flow), keyframe_policy(flow), sync_params(flow),
+                   estimator_config(estimator, rig))
+
+
+@dataclass
+class ReplayResult:
+    stamps: list[float] = field(default_factory=list)       # frames that got a pose
+    poses: list[Pose] = field(default_factory=list)         # refined, base_link in odom
+    poses_raw: list[Pose] = field(default_factory=list)     # two-frame only
+    gt_stamps: list[float] = field(default_factory=list)
+    gt_poses: list[Pose] = field(default_factory=list)
+    counts: Counter = field(default_factory=Counter)         # what was read, skipped and why
+    steps: Counter = field(default_factory=Counter)          # estimator step statuses
+    notes: list[str] = field(default_factory=list)           # degradations, in the order they happened
+    stage_ms: dict[str, list[float]] = field(default_factory=dict)
+    wall_s: float = 0.0
+    bag_duration_s: float = 0.0
+
+    @property
+    def realtime_factor(self) -> float:
+        return self.bag_duration_s / self.wall_s if self.wall_s > 0 else math.inf
+
+    def note(self, key: str, text: str) -> None:
+        """Record a degradation once per ``key`` (the counts say how often it happened)."""
+        if key not in self.counts:
+            self.notes.append(text)
+        self.counts[key] += 1
+
+
+@dataclass
+class _Estimate:
+    """What the pipeline keeps of one estimator update (small: it crosses a process boundary)."""
+
+    stamp: float
+    placed: bool
+    status: str
+    message: str
+    pose: Pose
+    pose_raw: Pose
+    ms: float
+
+
+def _update(estimator: Estimator, stamp: float, obs) -> _Estimate:
+    t0 = time.perf_counter()
+    r = estimator.update(obs)
+    return _Estimate(stamp, r.placed, r.status.value, r.message, rig_pose_to_base_link(r.pose),
+                     rig_pose_to_base_link(r.pose_raw), (time.perf_counter() - t0) * 1e3)
+
+
+def _estimator_worker(rig: Rig, config: EstimatorConfig, inbox, outbox) -> None:
+    """Second process: estimate observations from ``inbox`` in order until None, results to ``outbox``."""
+    estimator = Estimator(rig, config)
+    batch: list[_Estimate] = []
+    while (item := inbox.get()) is not None:
+        batch.append(_update(estimator, *item))
+        if len(batch) >= 16:
+            outbox.put(batch)
+            batch = []
+    outbox.put(batch)
+    outbox.put(None)
+
+
+class _InProcess:
+    def __init__(self, rig: Rig, config: EstimatorConfig) -> None:
+        self.estimator = Estimator(rig, config)
+        self.done: list[_Estimate] = []
+
+    def submit(self, stamp: float, obs) -> None:
+        self.done.append(_update(self.estimator, stamp, obs))
+
+    def finish(self) -> list[_Estimate]:
+        return self.done
+
+    def abort(self) -> None:
+        pass
+
+
+class _Subprocess:
+    """The estimator in its own process. Every wait is bounded: a worker that dies or stalls raises."""
+
+    def __init__(self, rig: Rig, config: EstimatorConfig, timeout_s: float = 120.0) -> None:
+        import multiprocessing as mp
+        ctx = mp.get_context('spawn')      # no fork: the parent holds OpenCV's thread pool
+        self.inbox, self.outbox = ctx.Queue(), ctx.Queue()
+        self.proc = ctx.Process(target=_estimator_worker, args=(rig, config, self.inbox, self.outbox), daemon=True,
+                                name='fixego-replay-estimator')
+        self.proc.start()
+        self.timeout_s = timeout_s
+        self.done: list[_Estimate] = []
+
+    def submit(self, stamp: float, obs) -> None:
+        self.inbox.put((stamp, obs))
+
+    def finish(self) -> list[_Estimate]:
+        import queue
+        self.inbox.put(None)
+        try:
+            while True:
+                try:
+                    batch = self.outbox.get(timeout=self.timeout_s)
+                except queue.Empty:
+                    raise ReplayError(f'the estimator process gave no result for {self.timeout_s:.0f} s '
+                                      f'(alive: {self.proc.is_alive()})') from None
+                if batch is None:
+                    break
+                self.done.extend(batch)
+        finally:
+            self.proc.join(timeout=5.0)
+            if self.proc.is_alive():
+                self.proc.terminate()
+                self.proc.join(timeout=5.0)
+        return self.done
+
+    def abort(self) -> None:
+        if self.proc.is_alive():
+            self.proc.terminate()
+            self.proc.join(timeout=5.0)
+
+
+class _Timer:
+    def __init__(self, result: ReplayResult) -> None:
+        self.result = result
+
+    def __call__(self, stage: str, t0: float) -> float:
+        t1 = time.perf_counter()
+        self.result.stage_ms.setdefault(stage, []).append((t1 - t0) * 1e3)
+        return t1
+
+
+def check_topics(bag: Bag, topics: ReplayTopics) -> None:
+    """Fail early when the bag lists its topics and a required one is missing or of the wrong type."""
+    if not bag.topics:
+        return          # a cut file without summary or metadata: topics are only known while reading
+    listed = ', '.join(sorted(bag.topics)) or 'none'
+    for side in SIDES:
+        for suffix, types in ((f'{side}/image_raw', IMAGE_TYPES), (f'{side}/joint_states', (JOINTS_TYPE,))):
+            name = topics.name(suffix)
+            t = bag.topics.get(name)
+            if t is None:
+                raise ReplayError(f'{bag.path}: no topic {name} (topics in the bag: {listed}); '
+                                  f'use --namespace or --remap {name}:=TOPIC')
+            if t.msgtype not in types:
+                raise ReplayError(f'{bag.path}: {name} is {t.msgtype or "of unknown type"}, expected '
+                                  f'{" or ".join(types)}')
+
+
+def replay(bag: Bag, rig: Rig, settings: ReplaySettings, topics: ReplayTopics = ReplayTopics(),
+           progress: Callable[[int], None] | None = None, workers: int = 1) -> ReplayResult:
+    """Run the pipeline over ``bag``; ``progress(images_done)`` is called as it goes. ``workers=2`` runs
+    the estimator in a second process (same output, faster on two cores)."""
+    check_topics(bag, topics)
+    routes = topics.routes()
+    res = ReplayResult()
+    clock = _Timer(res)
+    trackers = {side: FixationTracker(rig.camera(side), settings.fixation) for side in SIDES}
+    sync = StereoSync(settings.sync)
+    frontend = StereoFrontEnd(rig, settings.flow, settings.keyframes)
+    estimator = (_Subprocess if workers > 1 else _InProcess)(rig, settings.estimator)
+    last_image = dict.fromkeys(SIDES, -math.inf)
+    now = -math.inf
+    wall0 = time.perf_counter()
+
+    def process(frame: SyncedFrame) -> None:
+        t0 = time.perf_counter()
+        samples = {side: None if c is None else CameraSample(c.image, c.pan, c.tilt, c.fixation_px, c.fixation_id)
+                   for side, c in frame.cameras.items()}
+        obs = frontend.process(frame.stamp, samples)
+        clock('flow', t0)
+        estimator.submit(frame.stamp, obs)
+        res.counts['frames'] += 1
+
+    try:
+        for m in bag.messages(routes):
+            kind, side = routes[m.topic]
+            t0 = time.perf_counter()
+            try:
+                msg = bag.decode(m)
+            except DecodeError as e:
+                res.note(f'undecodable:{m.topic}', f'{e}: skipped')
+                continue
+            stamp = stamp_to_sec(msg.header.stamp)
+            if kind == 'image':
+                res.counts['images'] += 1
+                if stamp <= last_image[side]:
+                    res.note(f'image_out_of_order:{side}', f'{side} image stamps go backwards at {stamp:.3f} s: '
+                                                            f'such images are skipped')
+                    continue
+                try:
+                    gray = gray_for_camera(msg, rig.camera(side))
+                except ImageError as e:
+                    res.counts[f'bad_image:{side}'] += 1
+                    res.note(f'bad_image:{side}:{e.kind}', f'{side} image unusable ({e}): such images are skipped')
+                    continue
+                last_image[side] = stamp
+                t0 = clock('decode', t0)
+                fix = trackers[side].update(gray, stamp)
+                clock('fixation', t0)
+                sync.add_image(side, stamp, gray, max(now, stamp))
+                if fix.valid:
+                    sync.add_fixation(side, stamp, fix.pixel, fix.fixation_id)
+                else:
+                    res.counts[f'no_fixation:{side}'] += 1
+                if progress is not None:
+                    progress(res.counts['images'])
+            elif kind == 'joints':
+                try:
+                    pan, tilt = pan_tilt(msg, side)
+                except ValueError as e:
+                    res.note(f'bad_joints:{side}', f'{e}: skipped')
+                    continue
+                if not sync.add_joints(side, stamp, pan, tilt):
+                    res.note(f'joints_rejected:{side}', f'{side} joint state at {stamp:.3f} s non-finite or out of '
+                                                         f'order: such readings are skipped')
+                    continue
+            else:
+                try:
+                    res.gt_poses.append(msg_to_pose(msg.pose))
+                    res.gt_stamps.append(stamp)
+                except ValueError as e:
+                    res.note('bad_ground_truth', f'ground truth pose unusable ({e}): skipped')
+                continue
+            now = max(now, stamp)
+            for frame in sync.pop_ready(now):
+                process(frame)
+        for frame in sync.pop_ready(now, flush=True):
+            process(frame)
+        estimates = estimator.finish()
+    except BaseException:
+        estimator.abort()
+        raise
+    for e in estimates:
+        res.stage_ms.setdefault('estimate', []).append(e.ms)
+        if not e.placed:
+            res.note('frames_not_placed', f'frame at {e.stamp:.3f} s not placed: {e.message}')
+            continue
+        res.steps[e.status] += 1
+        if not (e.pose.is_finite() and e.pose_raw.is_finite()):
+            res.note('non_finite_pose', f'frame at {e.stamp:.3f} s: non-finite pose left out')
+            continue
+        res.stamps.append(e.stamp)
+        res.poses.append(e.pose)
+        res.poses_raw.append(e.pose_raw)
+
+    res.wall_s = time.perf_counter() - wall0
+    res.notes = bag.report.lines() + res.notes
+    s = sync.stats
+    res.counts.update({'sync_frames': s.frames, 'stereo_frames': s.stereo_frames,
+                       'single_camera_frames': s.single_camera_frames, 'late_images': s.late_images,
+                       'frames_without_joints': s.no_joints})
+    for side in SIDES:
+        res.counts[f'reselections:{side}'] = len(trackers[side].reselections)
+    if res.counts['images'] == 0:
+        raise ReplayError(f'{bag.path}: no image on {topics.name("right/image_raw")} or '
+                          f'{topics.name("left/image_raw")} could be read')
+    if not res.stamps:
+        raise ReplayError(f'{bag.path}: no frame could be estimated ({"; ".join(res.notes) or "no stereo frame"})')
+    res.bag_duration_s = res.stamps[-1] - res.stamps[0]
+    gt_sorted = np.all(np.diff(res.gt_stamps) > 0) if len(res.gt_stamps) > 1 else True
+    if not gt_sorted:
+        order = np.argsort(res.gt_stamps, kind='stable')
+        res.gt_stamps = [res.gt_stamps[i] for i in order]
+        res.gt_poses = [res.gt_poses[i] for i in order]
+        res.notes.append('ground truth stamps were out of order: sorted')
+    return res

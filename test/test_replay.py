@@ -1,0 +1,280 @@
+"""``fixego replay`` over the shipped bags and over damaged or foreign bags (no DDS involved).
+
+Accuracy bounds are generous on purpose (the measured numbers live in the README and ``make bench``);
+they still fail when the estimate does not follow the rig (stays put, runs away, wrong direction).
+"""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fixego_ros.bags.reader import Bag, BagError, DecodeError
+from fixego_ros.evaluation.metrics import evaluate
+from fixego_ros.evaluation.tum import read_tum
+from fixego_ros.geometry.rig import load_rig
+from fixego_ros.replay.run import ReplayError, ReplaySettings, ReplayTopics, replay
+
+BAGS = Path(__file__).resolve().parents[1] / 'bags'
+WALK, PAPER = BAGS / 'walk', BAGS / 'paper'
+
+
+def run_cli(*args: str | Path, timeout: float = 240.0) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, '-m', 'fixego_ros.cli', 'replay', *map(str, args), '--no-progress'],
+                          capture_output=True, text=True, timeout=timeout)
+
+
+def rewrite(src: Path, dst: Path, transform, frames: int | None = None, extra_types: dict | None = None) -> Path:
+    """Copy bag ``src`` to ``dst`` through ``transform(topic, msgtype, msg, t_ns) -> [(topic, msgtype, msg,
+    t_ns), ...]`` (rosbags message objects; [] drops the message); keeps ``frames`` images per camera at most."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    bag = Bag(src)
+    store = bag._store()
+    store.register(extra_types or {})
+    conns: dict[str, object] = {}
+    seen: dict[str, int] = {}
+    with Writer(dst, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        for m in bag.messages():
+            if m.topic.endswith('image_raw'):
+                seen[m.topic] = seen.get(m.topic, 0) + 1
+                if frames is not None and seen[m.topic] > frames:
+                    break
+            for topic, msgtype, msg, t in transform(m.topic, m.msgtype, bag.decode(m), m.log_time_ns):
+                if topic not in conns:
+                    conns[topic] = w.add_connection(topic, msgtype, typestore=store)
+                w.write(conns[topic], t, bytes(store.serialize_cdr(msg, msgtype)))
+    shutil.copy(src / 'rig.yaml', dst / 'rig.yaml')
+    return dst
+
+
+def keep(topic, msgtype, msg, t):
+    return [(topic, msgtype, msg, t)]
+
+
+def accuracy(stamps, poses, gt_stamps, gt_poses) -> dict:
+    return evaluate(stamps, poses, gt_stamps, gt_poses, anchor_first=True).summary
+
+
+# ------------------------------------------------------------------------------------------ shipped bags
+def test_shipped_bags_are_small_and_complete():
+    total = sum(f.stat().st_size for f in BAGS.rglob('*') if f.is_file())
+    assert total <= 30e6, f'shipped bags take {total / 1e6:.1f} MB'
+    for d in (PAPER, WALK):
+        for f in ('metadata.yaml', 'rig.yaml', 'sim.yaml', 'ground_truth.tum', f'{d.name}.mcap'):
+            assert (d / f).is_file(), f'{d / f} missing'
+        bag = Bag(d)
+        assert bag.report.has_metadata and not bag.report.notes
+        assert {'/fixego/right/image_raw', '/fixego/left/image_raw', '/fixego/right/joint_states',
+                '/fixego/left/joint_states', '/fixego/ground_truth/pose'} <= set(bag.topics)
+        assert bag.topics['/fixego/right/image_raw'].qos[0]['reliability'] == 'best_effort'
+
+
+def test_paper_bag_replays_with_bounded_error():
+    """The whole 5 m loop: the estimate must go round (path length, terminal error, heading)."""
+    rig = load_rig(PAPER / 'rig.yaml')
+    res = replay(Bag(PAPER), rig, ReplaySettings.from_getters(rig))
+    assert res.counts['images'] == 262 and len(res.stamps) == 131
+    assert not res.notes
+    for poses in (res.poses, res.poses_raw):
+        s = accuracy(res.stamps, poses, res.gt_stamps, res.gt_poses)
+        assert 0.5 < s['path_length_m']['ratio'] < 2.0, s['path_length_m']
+        assert s['position_error_m']['terminal'] < 1.5, s['position_error_m']      # loop of 5 m: 0.64 m measured
+        assert s['ape_translation_m']['se3']['rmse'] < 1.0, s['ape_translation_m']  # 0.42 m measured
+    # heading after the loop (a full turn): within 30 degrees of the truth
+    yaw = np.degrees(np.arctan2(res.poses[-1].R[1, 0], res.poses[-1].R[0, 0]))
+    yaw_gt = np.degrees(np.arctan2(res.gt_poses[-1].R[1, 0], res.gt_poses[-1].R[0, 0]))
+    assert abs((yaw - yaw_gt + 180) % 360 - 180) < 30
+
+
+def test_cli_on_walk_bag_writes_tum_and_prints_ate(tmp_path):
+    out = tmp_path / 'est.tum'
+    p = run_cli(WALK, '--out', out, '--eval-out', tmp_path / 'eval')
+    assert p.returncode == 0, p.stderr
+    assert 'Traceback' not in p.stderr
+    stamps, poses = read_tum(out)
+    raw_stamps, _ = read_tum(tmp_path / 'est.raw.tum')
+    assert len(stamps) == 41 and np.array_equal(stamps, raw_stamps)
+    assert all(p.is_finite() for p in poses)
+    assert 'ATE rmse' in p.stdout and 'real time' in p.stdout
+    gt_stamps, gt_poses = read_tum(WALK / 'ground_truth.tum')
+    s = accuracy(stamps, poses, gt_stamps, gt_poses)
+    assert 0.4 < s['path_length_m']['ratio'] < 2.5       # 1.07 measured
+    assert s['position_error_m']['mean'] < 2.0           # 0.85 m measured on a 3.7 m walk (see README)
+    for f in ('eval.json', 'eval.png', 'ground_truth.tum'):
+        assert (tmp_path / 'eval' / f).stat().st_size > 0
+
+
+def test_replay_is_deterministic_and_same_with_two_workers(tmp_path):
+    outs = []
+    for i, workers in enumerate(('1', '2', '2')):
+        out = tmp_path / f'run{i}' / 'est.tum'
+        p = run_cli(WALK, '--out', out, '--workers', workers, '--quiet')
+        assert p.returncode == 0, p.stderr
+        outs.append((out.read_bytes(), out.with_name('est.raw.tum').read_bytes()))
+    assert outs[0] == outs[1] == outs[2]
+
+
+def test_shipped_bags_regenerate_exactly(tmp_path):
+    """The regeneration script reproduces the shipped walk bag message for message."""
+    from fixego_ros.bags.shipped import by_name, compare, generate
+    generate(by_name('walk'), tmp_path / 'walk')
+    assert compare(WALK, tmp_path / 'walk') == []
+
+
+# ------------------------------------------------------------------------------------------ damaged bags
+def test_truncated_recording_replays_its_readable_part(tmp_path):
+    """A recording cut by power loss: no metadata.yaml, the MCAP cut in the middle of a chunk."""
+    bag = tmp_path / 'cut'
+    bag.mkdir()
+    data = (WALK / 'walk.mcap').read_bytes()
+    (bag / 'cut.mcap').write_bytes(data[: int(len(data) * 0.6)])
+    shutil.copy(WALK / 'rig.yaml', bag / 'rig.yaml')
+    p = run_cli(bag, '--out', tmp_path / 'est.tum')
+    assert p.returncode == 0, p.stderr
+    assert 'truncated' in p.stderr and 'no metadata.yaml' in p.stderr
+    assert 'Traceback' not in p.stderr
+    stamps, _ = read_tum(tmp_path / 'est.tum')
+    assert 15 <= len(stamps) < 41
+    gt_stamps, _ = read_tum(WALK / 'ground_truth.tum')
+    assert np.all(np.isin(np.round(stamps, 6), np.round(gt_stamps, 6)))   # a prefix of the real frames
+
+
+def test_truncated_file_with_stale_metadata_says_what_is_missing(tmp_path):
+    bag = tmp_path / 'walk'
+    shutil.copytree(WALK, bag)
+    data = (bag / 'walk.mcap').read_bytes()
+    (bag / 'walk.mcap').write_bytes(data[: int(len(data) * 0.5)])
+    p = run_cli(bag, '--out', tmp_path / 'est.tum')
+    assert p.returncode == 0, p.stderr
+    assert 'truncated' in p.stderr
+
+
+@pytest.mark.parametrize('make, expect', [
+    (lambda d: d.mkdir(), 'not a bag'),
+    (lambda d: (d.mkdir(), (d / 'x.mcap').write_bytes(b'garbage' * 100)), 'not an MCAP file'),
+    (lambda d: (d.mkdir(), (d / 'metadata.yaml').write_text('rosbag2_bagfile_information:\n  storage_identifier: '
+                                                            'sqlite3\n')), 'not supported'),
+    (lambda d: None, 'no such bag'),
+])
+def test_unusable_bags_fail_with_one_line(tmp_path, make, expect):
+    d = tmp_path / 'bag'
+    make(d)
+    p = run_cli(d, '--out', tmp_path / 'est.tum', '--rig', WALK / 'rig.yaml')
+    assert p.returncode == 2
+    assert expect in p.stderr and 'Traceback' not in p.stderr
+    assert len(p.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / 'est.tum').exists()
+
+
+def test_missing_rig_and_missing_topics_are_explained(tmp_path):
+    bag = tmp_path / 'walk'
+    shutil.copytree(WALK, bag)
+    (bag / 'rig.yaml').unlink()
+    p = run_cli(bag, '--out', tmp_path / 'est.tum')
+    assert p.returncode == 2 and 'no rig file' in p.stderr
+    p = run_cli(bag, '--out', tmp_path / 'est.tum', '--rig', WALK / 'rig.yaml', '--namespace', '/other')
+    assert p.returncode == 2 and 'no topic /other/right/image_raw' in p.stderr and '--remap' in p.stderr
+    p = run_cli(bag, '--out', tmp_path / 'est.tum', '--rig', WALK / 'rig.yaml',
+                '--remap', '/fixego/left/image_raw:=/fixego/left/camera_info')
+    assert p.returncode == 2 and 'CameraInfo' in p.stderr and 'expected sensor_msgs/msg/Image' in p.stderr
+
+
+def test_foreign_topic_names_with_remapping_and_unknown_types(tmp_path):
+    """A bag from elsewhere: other namespace, an extra topic of a custom type, CompressedImage for one camera."""
+    import cv2
+    from rosbags.typesys import get_types_from_msg
+
+    custom = get_types_from_msg('float64 speed\nstring note', 'acme_msgs/msg/Status')
+
+    def foreign(topic, msgtype, msg, t):
+        out_topic = topic.replace('/fixego/right', '/rig/cam_r').replace('/fixego/left', '/rig/cam_l')
+        if topic == '/fixego/left/image_raw':
+            from rosbags.typesys.stores.ros2_jazzy import sensor_msgs__msg__CompressedImage as Compressed
+            img = msg.data.reshape(msg.height, msg.width)
+            _, png = cv2.imencode('.png', img)
+            return [(out_topic, 'sensor_msgs/msg/CompressedImage', Compressed(msg.header, 'png', png.ravel()), t)]
+        if topic == '/fixego/ground_truth/pose':     # plus a topic of a type no type store knows
+            status = Bag(WALK)._store()
+            status.register(custom)
+            return [(topic, msgtype, msg, t), ('/rig/status', 'acme_msgs/msg/Status',
+                                               status.types['acme_msgs/msg/Status'](0.5, 'walking'), t)]
+        return [(out_topic, msgtype, msg, t)]
+
+    src = rewrite(WALK, tmp_path / 'foreign', foreign, frames=20, extra_types=custom)
+    bag = Bag(src)
+    assert bag.topics['/rig/cam_l/image_raw'].msgtype == 'sensor_msgs/msg/CompressedImage'
+    assert bag.topics['/rig/status'].msgtype == 'acme_msgs/msg/Status'
+    fresh = Bag(src)              # a reader that never saw the type: it comes from the schema in the bag
+    status_msg = fresh.decode(next(iter(fresh.messages(['/rig/status']))))
+    assert (status_msg.speed, status_msg.note) == (0.5, 'walking')
+    p = run_cli(src, '--out', tmp_path / 'est.tum', '--remap', '/fixego/right/image_raw:=/rig/cam_r/image_raw',
+                '--remap', '/fixego/left/image_raw:=/rig/cam_l/image_raw',
+                '--remap', '/fixego/right/joint_states:=/rig/cam_r/joint_states',
+                '--remap', '/fixego/left/joint_states:=/rig/cam_l/joint_states')
+    assert p.returncode == 0, p.stderr
+    stamps, _ = read_tum(tmp_path / 'est.tum')
+    assert len(stamps) == 20
+
+
+def test_reader_decodes_custom_types_from_the_bag_schema(tmp_path):
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+    store = get_typestore(Stores.EMPTY)
+    store.register(get_types_from_msg('float64 speed\nstring note', 'acme_msgs/msg/Status'))
+    Status = store.types['acme_msgs/msg/Status']
+    with Writer(tmp_path / 'b', version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        c = w.add_connection('/status', 'acme_msgs/msg/Status', typestore=store)
+        w.write(c, 5, bytes(store.serialize_cdr(Status(1.5, 'ok'), 'acme_msgs/msg/Status')))
+    bag = Bag(tmp_path / 'b')
+    (m,) = list(bag.messages())
+    msg = bag.decode(m)
+    assert (msg.speed, msg.note) == (1.5, 'ok')
+    m.data = b'\x00\x01\x00\x00\x01'            # malformed CDR: a clear error, not a library traceback
+    with pytest.raises(DecodeError, match='malformed'):
+        bag.decode(m)
+
+
+def test_bad_images_and_backward_stamps_are_skipped_and_reported(tmp_path):
+    """Wrong encoding, wrong size, a stamp that goes backwards, NaN joints: skipped, counted, said once."""
+    state = {'n': 0}
+
+    def damage(topic, msgtype, msg, t):
+        if topic == '/fixego/right/image_raw':
+            state['n'] += 1
+            n = state['n']
+            if n == 5:
+                msg.encoding = '16UC1'
+            elif n == 8:
+                msg = type(msg)(msg.header, 120, 160, 'mono8', 0, 160, np.zeros(160 * 120, np.uint8))
+            elif n == 11:
+                msg.header.stamp.sec -= 1                     # one second into the past
+        if topic == '/fixego/left/joint_states' and state['n'] == 14:
+            msg.position = np.array([np.nan, 0.0])
+        return [(topic, msgtype, msg, t)]
+
+    src = rewrite(WALK, tmp_path / 'damaged', damage, frames=25)
+    rig = load_rig(src / 'rig.yaml')
+    res = replay(Bag(src), rig, ReplaySettings.from_getters(rig))
+    text = '\n'.join(res.notes)
+    assert res.counts['bad_image:right'] == 2, res.counts
+    assert "unsupported encoding '16UC1'" in text and '160x120 image, but the rig file says 320x240' in text
+    assert res.counts['image_out_of_order:right'] == 1 and 'go backwards' in text
+    assert res.counts['joints_rejected:left'] == 1
+    assert len(res.notes) == 4                               # each problem said once
+    assert len(res.stamps) >= 20 and all(p.is_finite() for p in res.poses)
+    assert res.counts['single_camera_frames'] >= 2           # the right camera's bad frames: left alone
+
+
+def test_bag_without_images_is_an_error(tmp_path):
+    src = rewrite(WALK, tmp_path / 'noimg', lambda topic, mt, msg, t: [] if 'image' in topic else [(topic, mt, msg, t)])
+    rig = load_rig(src / 'rig.yaml')
+    with pytest.raises(ReplayError, match='no topic /fixego/right/image_raw'):
+        replay(Bag(src), rig, ReplaySettings.from_getters(rig))
+    with pytest.raises(BagError):
+        Bag(tmp_path / 'nothing-here')
+    assert ReplayTopics('/x', (('/x/right/image_raw', '/y'),)).name('right/image_raw') == '/y'
