@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 export ROS_AUTOMATIC_DISCOVERY_RANGE ?= LOCALHOST
 export MPLBACKEND ?= Agg
 
-.PHONY: install test lint demo bench paper-sim clean
+.PHONY: install test lint demo bench bags bags-check paper-sim clean
 
 install: $(STAMP)
 
@@ -34,6 +34,13 @@ paper-sim: install
 
 bench: install
 	$(VENV)/bin/python -m fixego_ros.bench --out bench
+
+# The shipped test bags (bags/paper, bags/walk) from their seeded recipe in fixego_ros/bags/shipped.py.
+bags: install
+	$(PY) -m fixego_ros.bags.shipped --force
+
+bags-check: install
+	$(PY) -m fixego_ros.bags.shipped --check
 
 clean:
 	rm -rf $(VENV) build install log .pytest_cache
