@@ -33,7 +33,7 @@ def _time_preset(name: str, n_steps: int, seed: int = 0) -> dict[str, float]:
             continue
         pairs = step_pairs(scene.rig, est._window[-1].fixation, o)
         t0 = time.perf_counter()
-        res = est.solver.solve(pairs, initial=est._last_step_raw)
+        res = est.solver.solve(pairs, initial=est._latest.motion_raw if est._latest else None)
         tf.append(time.perf_counter() - t0)
         problem, _ = est._ba_problem(o)
         for key, (mode, mini) in {'paper_powell': ('paper', 'powell'), 'paper_trf': ('paper', 'trf'),

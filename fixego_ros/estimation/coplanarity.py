@@ -11,11 +11,15 @@ constraint: with pixel noise sigma_px it has standard deviation sigma_px / f.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 EPS = 1e-12
+_CYCLIC = np.array([0, 1, 2, 0, 1])
+_D2_COEF = np.array([2.0, 1.0, 1.0])
+_CACHED = ('aT', 'bT', 'cT', 'aT_cyclic')      # RayPairs' cached properties (weights do not enter them)
 
 
 @dataclass(frozen=True)
@@ -30,13 +34,30 @@ class RayPairs:
     def __len__(self) -> int:
         return len(self.a)
 
-    @property
-    def bT(self) -> np.ndarray:
-        return self.b.T
+    # transposed (3, N) copies, contiguous and cached: the residuals are evaluated many times per solve
+    @cached_property
+    def aT(self) -> np.ndarray:
+        return np.ascontiguousarray(self.a.T)
 
-    @property
+    @cached_property
+    def bT(self) -> np.ndarray:
+        return np.ascontiguousarray(self.b.T)
+
+    @cached_property
     def cT(self) -> np.ndarray:
-        return self.centers.T
+        return np.ascontiguousarray(self.centers.T)
+
+    @cached_property
+    def aT_cyclic(self) -> np.ndarray:
+        """(5, N) rows a_x, a_y, a_z, a_x, a_y: rows 1:4 and 2:5 are the shifts a cross product takes."""
+        return self.aT.take(_CYCLIC, axis=0)
+
+    def reweighted(self, factor: float) -> RayPairs:
+        """The same pairs with weights times ``factor`` (e.g. 1/sigma: residuals in units of the noise),
+        sharing the cached transposes."""
+        out = RayPairs(self.a, self.b, self.centers, self.weights * factor)
+        out.__dict__.update({k: v for k, v in self.__dict__.items() if k in _CACHED})
+        return out
 
     @staticmethod
     def build(groups: list[tuple[np.ndarray, np.ndarray, np.ndarray, float]]) -> RayPairs:
@@ -70,7 +91,7 @@ def sampson_residuals_batch(Rs: np.ndarray, Ts: np.ndarray, pairs: RayPairs) -> 
     rays' tangent planes have squared norms 1 - (b'.t_hat)^2 - e^2 and 1 - (a.t_hat)^2 - e^2, so the
     Sampson form needs only three dot products (this is the hot path of the solver).
     """
-    a, bT, cT = pairs.a.T, pairs.bT, pairs.cT                        # (3, N)
+    a, bT, cT = pairs.aT, pairs.bT, pairs.cT                         # (3, N)
     bp = Rs @ bT                                                    # (K, 3, N)
     tc = Ts[:, :, None] + Rs @ cT - cT                              # t_c = T + (R - I) c
     th = tc / np.maximum(np.sqrt((tc * tc).sum(axis=1, keepdims=True)), EPS)
@@ -86,6 +107,61 @@ def sampson_residuals_batch(Rs: np.ndarray, Ts: np.ndarray, pairs: RayPairs) -> 
 def sampson_residuals(R: np.ndarray, T: np.ndarray, pairs: RayPairs) -> np.ndarray:
     """Normalised coplanarity residuals (N,) of one motion (R, T)."""
     return sampson_residuals_batch(R[None], np.asarray(T, dtype=float)[None], pairs)[0]
+
+
+def sampson_residuals_jacobian(R: np.ndarray, T: np.ndarray, pairs: RayPairs) -> tuple[np.ndarray, np.ndarray]:
+    """Residuals (N,) of one motion and their analytic Jacobian (N, 6) over ``[delta, T]``, where the
+    rotation is perturbed on the left, ``R -> exp(delta) R``: at ``x = 0`` the columns of
+    :func:`numeric_jacobian` without its truncation error, for under twice the cost of the residuals
+    alone (the hot path of the LM solver, hence few whole-array operations).
+
+    With b' = R b, th = t_c / |t_c|, n = a x b', e = th . n and D^2 = 2 - (b'.th)^2 - (a.th)^2 - 2 e^2, the
+    residual is w e / D, so dr = w (alpha de + beta (b'.th d(b'.th) + a.th d(a.th))) with
+    alpha = 1/D + 2 e^2/D^3 and beta = e/D^3; and d b' = delta x b', d t_c = dT + delta x (R c).
+    Vectors are (3, N) or, for cross products, (5, N) with rows x, y, z, x, y (``_CYCLIC``).
+    """
+    a, ae, c = pairs.aT, pairs.aT_cyclic, pairs.cT
+    n_rows = a.shape[1]
+    R5 = R.take(_CYCLIC, axis=0)
+    be = R5 @ pairs.bT                                                 # b', cyclic rows
+    Rce = R5 @ c                                                       # R c, cyclic rows
+    tc = Rce[:3] - c
+    tc += np.asarray(T, dtype=float)[:, None]
+    u = np.sqrt(np.einsum('in,in->n', tc, tc))
+    small = u <= EPS if u.min() <= EPS else None     # no baseline: th = t_c / EPS, as in the residuals
+    if small is not None:
+        u[small] = EPS
+    th = tc / u
+    te = th.take(_CYCLIC, axis=0)
+    V = np.empty((3, 3, n_rows))                                        # n, b', a
+    np.subtract(ae[1:4] * be[2:5], ae[2:5] * be[1:4], out=V[0])
+    V[1] = be[:3]
+    V[2] = a
+    S = np.einsum('kin,in->kn', V, th)                                  # e, b'.th, a.th
+    D2 = 2.0 - _D2_COEF @ (S * S)                                       # 2 - 2e^2 - (b'.th)^2 - (a.th)^2
+    clamped = D2 <= 1e-18 if D2.min() <= 1e-18 else None    # D held at its floor: no derivative through it
+    if clamped is not None:
+        D2[clamped] = 1e-18
+    inv_d = 1.0 / np.sqrt(D2)
+    e = S[0]
+    beta = e * inv_d**3
+    if clamped is not None:
+        beta[clamped] = 0.0
+    C = S * beta                                                        # beta e, beta b'.th, beta a.th
+    C[0] = inv_d + 2.0 * C[0]                                           # alpha
+    gt = np.einsum('kn,kin->in', C, V)             # dr/dth = alpha n + beta (b'.th b' + a.th a)
+    along = np.einsum('in,in->n', th, gt)
+    if small is not None:
+        along[small] = 0.0                   # th = t_c / EPS is not a unit vector: nothing to project out
+    g = (gt - th * along) / u                                           # dr/dt_c (projected, over |t_c|)
+    gb = C[0] * (te[1:4] * ae[2:5] - te[2:5] * ae[1:4]) + C[1] * th     # dr/db' = alpha th x a + beta b'.th th
+    ge, gbe = g.take(_CYCLIC, axis=0), gb.take(_CYCLIC, axis=0)
+    J = np.empty((6, n_rows))
+    J[:3] = be[1:4] * gbe[2:5] - be[2:5] * gbe[1:4] + Rce[1:4] * ge[2:5] - Rce[2:5] * ge[1:4]  # b'xg_b + Rcxg
+    J[3:] = g
+    w = pairs.weights
+    J *= w
+    return w * e * inv_d, J.T
 
 
 def numeric_jacobian(R0: np.ndarray, x: np.ndarray, pairs: RayPairs, h_rot: float = 1e-7,

@@ -281,7 +281,8 @@ class Estimator:
             if self.config.window >= 3 and obs.keyframe is not False:   # BA where the chain continues
                 problem, full = self._ba_problem(obs)
                 if full and len(problem):
-                    ba = refine_latest(problem, tf.pose, self.config.mode, pairs, self.config.solver.sigma)
+                    ba = refine_latest(problem, tf.pose, self.config.mode, pairs, self.config.solver.sigma,
+                                       backend=self.config.solver.backend)
                     refined = ba.pose
                     if (np.linalg.norm(refined.t) <= min(self.config.max_step_translation, self.config.max_speed * dt)
                             and rotation_angle(refined.R) <= self.config.max_step_rotation):

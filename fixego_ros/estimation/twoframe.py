@@ -2,22 +2,36 @@
 
 Unknowns: the rig motion ``Pose(R, T)`` from frame t to t+1 (DESIGN.md §5), 6 DOF. Every ray pair
 (the fixation point of each camera, and each flow point) gives one normalised coplanarity residual
-(:mod:`.coplanarity`). We solve with ``scipy.optimize.least_squares`` (trust-region, optional robust
-loss), rotation parameterised as a perturbation of the start. Scale is only observable through the
-left camera's lever arm, so the covariance is part of the answer, not an afterthought.
+(:mod:`.coplanarity`). We solve the (optionally robust) least squares with a compact Levenberg-Marquardt
+(:func:`levenberg_marquardt`: 6x6 normal equations, analytic Jacobian, fixed variable scaling; the rotation
+is updated multiplicatively on the left), or with ``scipy.optimize.least_squares`` (``backend='scipy'``,
+trust-region reflective; the same cost, ~10x the per-iteration overhead). Scale is only observable through
+the left camera's lever arm, so the covariance is part of the answer, not an afterthought.
 """
 
 from __future__ import annotations
 
+import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.linalg import lapack
 from scipy.optimize import least_squares
 
-from fixego_ros.estimation.coplanarity import RayPairs, cheirality, numeric_jacobian, sampson_residuals
+from fixego_ros.estimation.coplanarity import (
+    RayPairs,
+    cheirality,
+    numeric_jacobian,
+    sampson_residuals,
+    sampson_residuals_jacobian,
+)
 from fixego_ros.estimation.covariance import VAR_MAX, covariance_from_jacobian, residual_variance
 from fixego_ros.estimation.status import StepStatus
 from fixego_ros.geometry.rotation import Pose, exp_so3, project_to_so3
+
+LOSSES = ('linear', 'huber', 'soft_l1', 'cauchy', 'arctan')
+BACKENDS = ('lm', 'scipy')
 
 
 @dataclass(frozen=True)
@@ -25,13 +39,20 @@ class SolverConfig:
     """Options of the two-frame solve (defaults suit 640x480 at ~1700 px focal length)."""
 
     sigma: float = 1.0 / 1727.0        # expected angular noise of one ray (rad) = pixel noise / focal
-    loss: str = 'linear'               # scipy loss: linear, huber, soft_l1, cauchy, arctan
+    loss: str = 'linear'               # scipy's losses: linear, huber, soft_l1, cauchy, arctan
     loss_scale: float = 3.0            # robust loss knee, in multiples of sigma
-    max_nfev: int = 60
+    max_nfev: int = 60                 # bound on residual evaluations of one refinement
     tol: float = 1e-7                  # relative ftol/xtol of the least-squares solve
     prior_step: float = 0.05           # |T| (m) of the canonical starts when nothing better is known
     min_parallax: float = 1e-7         # rad; median rotation-compensated parallax below this = stationary
     max_translation_std: float = 0.5   # m; beyond this the step is WEAK (scale unobserved)
+    backend: str = 'lm'                # 'lm' (levenberg_marquardt below) or 'scipy' (least_squares, trf)
+
+    def __post_init__(self) -> None:
+        if self.loss not in LOSSES:
+            raise ValueError(f'loss must be one of {LOSSES}, got {self.loss!r}')
+        if self.backend not in BACKENDS:
+            raise ValueError(f'backend must be one of {BACKENDS}, got {self.backend!r}')
 
 
 @dataclass
@@ -68,7 +89,7 @@ def essential_start(pairs: RayPairs) -> list[Pose]:
         return []
     a, b = pairs.a, pairs.b
     A = np.einsum('ni,nj->nij', a, b).reshape(-1, 9)       # a^T E b = 0
-    _, _, Vt = np.linalg.svd(A)
+    _, _, Vt = np.linalg.svd(A, full_matrices=False)     # (only V: no N x N U)
     E = Vt[-1].reshape(3, 3)
     U, _, Vt = np.linalg.svd(E)
     if np.linalg.det(U) < 0:
@@ -116,6 +137,205 @@ def canonical_starts(step: float) -> list[Pose]:
             t[axis] = sign * step
             out.append(Pose(np.eye(3), t))
     return out
+
+
+# --- Levenberg-Marquardt over a rigid motion --------------------------------------------------------
+
+ResidualFn = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
+
+
+def robust_loss(z: np.ndarray, loss: str) -> tuple[np.ndarray, np.ndarray]:
+    """``rho(z)`` and ``rho'(z)`` of ``z = (r / f_scale)^2``, as ``scipy.optimize.least_squares`` defines them
+    (the cost is ``0.5 f_scale^2 sum rho``)."""
+    if loss == 'linear':
+        return z, np.ones_like(z)
+    if loss == 'huber':
+        big = z > 1.0
+        sq = np.sqrt(np.where(big, z, 1.0))
+        return np.where(big, 2.0 * sq - 1.0, z), np.where(big, 1.0 / sq, 1.0)
+    if loss == 'soft_l1':
+        t = np.sqrt(1.0 + z)
+        return 2.0 * (t - 1.0), 1.0 / t
+    if loss == 'cauchy':
+        return np.log1p(z), 1.0 / (1.0 + z)
+    if loss == 'arctan':
+        return np.arctan(z), 1.0 / (1.0 + z * z)
+    raise ValueError(f'loss must be one of {LOSSES}, got {loss!r}')
+
+
+@dataclass
+class LMResult:
+    """End point of :func:`levenberg_marquardt` with its residuals and Jacobian there."""
+
+    R: np.ndarray
+    T: np.ndarray
+    r: np.ndarray
+    J: np.ndarray
+    cost: float          # robust cost, 0.5 f_scale^2 sum rho
+    nfev: int
+    success: bool        # a tolerance was met (not stopped by max_nfev)
+    message: str
+
+
+def _eigh(H: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Eigenvalues (ascending) and vectors of a symmetric 6x6: LAPACK directly (half numpy's call overhead);
+    NaN when that fails, which the caller treats as unsolvable."""
+    s, V, info = lapack.dsyev(H)
+    if info != 0:
+        return np.full(len(H), np.nan), np.eye(len(H))
+    return s, V
+
+
+def _trust_region_step(s: list[float], gt: list[float], delta: float,
+                       lam: float) -> tuple[list[float], float, bool]:
+    """Minimiser of the model ``g.h + h.H.h / 2`` with ``|h| <= delta``, in the eigenbasis of ``H`` (eigenvalues
+    ``s``, gradient ``gt`` there): the Gauss-Newton step when it fits, else ``h = -g / (s + lam)`` with ``lam``
+    from Newton's method on ``1/|h(lam)| - 1/delta`` (Moré's LM step; scipy's trust-region solver does the
+    same on the SVD of J). ``lam`` is the previous multiplier, a warm start. Returns the step (eigenbasis),
+    its multiplier and whether it lies on the boundary. Plain floats: six of them are cheaper than numpy."""
+    s = [v if v > 0.0 else 0.0 for v in s]
+    if s[0] > 1e-12 * s[-1]:
+        h = [-g / v for g, v in zip(gt, s, strict=True)]
+        if sum(v * v for v in h) <= delta * delta:
+            return h, 0.0, False
+    g2 = [g * g for g in gt]
+    upper = math.sqrt(sum(g2)) / delta
+    lower = max(0.0, upper - s[-1])
+    for _ in range(10):
+        if not lower < lam <= upper:
+            lam = max(1e-3 * upper, math.sqrt(lower * upper))
+        hh = dh = 0.0                                   # |h|^2 and -d|h|^2/dlam / 2
+        for gi2, si in zip(g2, s, strict=True):
+            q = 1.0 / (si + lam)
+            hh += gi2 * q * q
+            dh += gi2 * q * q * q
+        h_norm = math.sqrt(hh)
+        if h_norm > delta:
+            lower = lam
+        else:
+            upper = lam
+        if abs(h_norm - delta) < 0.01 * delta:
+            break
+        lam += (h_norm - delta) / delta * hh / dh
+    return [-g / (v + lam) for g, v in zip(gt, s, strict=True)], lam, True
+
+
+def levenberg_marquardt(fun: ResidualFn, R0: np.ndarray, T0: np.ndarray, x_scale: np.ndarray | str,
+                        loss: str = 'linear', f_scale: float = 1.0, tol: float = 1e-7, max_nfev: int = 60,
+                        gtol: float = 1e-8) -> LMResult | None:
+    """Minimise ``0.5 f_scale^2 sum rho((r / f_scale)^2)`` over a motion ``(R, T)``.
+
+    ``fun(R, T)`` gives the residuals and their Jacobian (m, 6) over ``[delta, dT]`` with the rotation
+    perturbed on the left, ``R -> exp(delta) R``; each step updates it that way. Robust losses enter as
+    IRLS weights ``rho'`` (same stationary points as scipy's losses). Steps solve the 6x6 normal equations
+    with Marquardt damping ``lam`` in scaled coordinates ``x / x_scale``, ``lam`` adapted through a trust
+    region on the scaled step (Moré's LM, as scipy's 'trf' without bounds): the radius starts at
+    ``|T0 / x_scale|`` and grows or shrinks with how well the model predicted the last step, so with a
+    fixed ``x_scale`` steps along a weakly observed direction (the scale) stay bounded however flat the
+    cost is there. ``x_scale='jac'`` scales by the inverse column norms of the (weighted) Jacobian, never
+    growing, as scipy does (that inflates steps along weakly observed directions: for well posed problems).
+    Stops like scipy: relative cost decrease below ``tol`` on a well predicted step, a step below
+    ``tol * (tol + |x|)``, the scaled gradient below ``gtol``, or ``max_nfev`` residual evaluations.
+    Returns None when the start itself is not finite.
+    """
+    if loss not in LOSSES:
+        raise ValueError(f'loss must be one of {LOSSES}, got {loss!r}')
+    R, T = R0, np.array(T0, dtype=float)
+    with np.errstate(all='ignore'):
+        r, J = fun(R, T)
+    nfev = 1
+    if not (np.all(np.isfinite(r)) and np.all(np.isfinite(J))):
+        return None
+    jac_scale = isinstance(x_scale, str)
+    if jac_scale and x_scale != 'jac':
+        raise ValueError(f"x_scale must be an array or 'jac', got {x_scale!r}")
+    f2 = float(f_scale) ** 2
+
+    def robust(r: np.ndarray) -> tuple[float, np.ndarray | None]:
+        """Cost and IRLS weights (None: all 1); a non-finite r gives a non-finite cost."""
+        if loss == 'linear':
+            return 0.5 * float(r @ r), None
+        if loss == 'huber':            # rho' = min(1, f/|r|), f^2 rho = r^2 rho' (2 - rho')
+            w = f_scale / np.maximum(np.abs(r), f_scale)
+            return 0.5 * float((r * w) @ (r * (2.0 - w))), w
+        rho, w = robust_loss(r * r * (1.0 / f2), loss)
+        return 0.5 * f2 * float(np.sum(rho)), w
+
+    def column_norms(J: np.ndarray, w: np.ndarray | None) -> np.ndarray:
+        return np.sqrt(np.einsum('ij,ij->j', J, J) if w is None else (J * J).T @ w)
+
+    rot = np.zeros(3)           # rotation applied so far (first order; for the step test only)
+    x_norm = math.sqrt(float(T @ T))
+    lam = 0.0
+    success, message = False, 'maximum number of residual evaluations reached'
+    with np.errstate(all='ignore'):
+        cost, w = robust(r)
+        if jac_scale:
+            d_inv = column_norms(J, w)
+            d_inv[d_inv == 0] = 1.0
+            d = 1.0 / d_inv
+        else:
+            d = np.asarray(x_scale, dtype=float)
+        radius = math.sqrt(float(np.sum((T / d[3:]) ** 2))) or 1.0
+        while nfev < max_nfev:
+            Jd = J * d
+            Jw = Jd if w is None else Jd * w[:, None]
+            H = Jw.T @ Jd
+            g = Jw.T @ r
+            if not math.isfinite(float(H.sum())):
+                message = 'non-finite Jacobian'
+                break
+            if not float(np.abs(g).max()) >= gtol:
+                success, message = True, 'gradient below gtol'
+                break
+            s_arr, V = _eigh(H)
+            s, gt = s_arr.tolist(), (g @ V).tolist()
+            done = False
+            while nfev < max_nfev:
+                ht, lam, on_boundary = _trust_region_step(s, gt, radius, lam)
+                h_norm = math.sqrt(sum(v * v for v in ht))
+                if not math.isfinite(h_norm):
+                    message, done = 'normal equations not solvable', True
+                    break
+                step = (V @ ht) * d
+                R_new, T_new = exp_so3(step[:3].tolist()) @ R, T + step[3:]
+                r_new, J_new = fun(R_new, T_new)
+                cost_new, w_new = robust(r_new)
+                nfev += 1
+                if not math.isfinite(cost_new):
+                    radius = 0.25 * h_norm
+                    continue
+                reduction = cost - cost_new
+                predicted = -sum(gi * hi + 0.5 * si * hi * hi for gi, hi, si in zip(gt, ht, s, strict=True))
+                ratio = reduction / predicted if predicted > 0 else (1.0 if reduction == 0 == predicted else 0.0)
+                if ratio < 0.25:
+                    radius = 0.25 * h_norm
+                elif ratio > 0.75 and on_boundary:
+                    radius *= 2.0
+                small_step = math.sqrt(float(step @ step)) < tol * (tol + x_norm)
+                if reduction > 0:
+                    cost_old = cost
+                    R, T, r, J, cost, w = R_new, T_new, r_new, J_new, cost_new, w_new
+                    rot = rot + step[:3]
+                    x_norm = math.sqrt(float(rot @ rot + T @ T))
+                    if jac_scale:
+                        d_inv = np.maximum(column_norms(J, w), d_inv)
+                        d = 1.0 / d_inv
+                    if reduction < tol * cost_old and ratio > 0.25:
+                        success, message, done = True, 'relative cost decrease below tol', True
+                    elif small_step:
+                        success, message, done = True, 'step below tol', True
+                    break
+                if small_step:
+                    success, message, done = True, 'step below tol', True
+                    break
+            if done:
+                break
+    return LMResult(R, T, r, J, cost, nfev, success, message)
+
+
+# end pose, converged, message, and the rays' residuals and Jacobian there when the minimiser has them
+_Minimum = tuple[Pose, bool, str, tuple[np.ndarray, np.ndarray] | None]
 
 
 class TwoFrameSolver:
@@ -176,6 +396,53 @@ class TwoFrameSolver:
     def _refine(self, pairs: RayPairs, start: Pose,
                 prior: tuple[np.ndarray, float] | None = None) -> TwoFrameResult | None:
         cfg = self.config
+        # fixed variable scaling (not 'jac': that inflates steps along the weakly observed scale)
+        x_scale = np.concatenate([np.full(3, 1e-2), np.full(3, max(np.linalg.norm(start.t), cfg.prior_step))])
+        found = (self._minimise_scipy if cfg.backend == 'scipy' else self._minimise_lm)(pairs, start, prior, x_scale)
+        if found is None:
+            return None
+        pose, success, message, rJ = found
+        r, J = rJ if rJ is not None else sampson_residuals_jacobian(pose.R, pose.t, pairs)
+        if not (np.all(np.isfinite(r)) and np.all(np.isfinite(J))):
+            return None
+        sigma2 = residual_variance(r, 6, cfg.sigma)
+        cov = covariance_from_jacobian(J, sigma2)
+        status = StepStatus.OK
+        msg = 'converged' if success else f'stopped: {message}'
+        if float(np.sqrt(np.max(np.diag(cov)[3:]))) > cfg.max_translation_std:
+            status = StepStatus.WEAK
+            msg += '; translation weakly observed'
+        return TwoFrameResult(pose, status, r, cov, float(0.5 * np.sum(np.square(r / cfg.sigma))), len(pairs), msg,
+                              cheirality(pose.R, pose.t, pairs))
+
+    def _minimise_lm(self, pairs: RayPairs, start: Pose, prior: tuple[np.ndarray, float] | None,
+                     x_scale: np.ndarray) -> _Minimum | None:
+        """:func:`levenberg_marquardt` on the rays (and prior rows); also returns the rays' residuals and
+        Jacobian at the end point, which the covariance needs."""
+        cfg = self.config
+        scaled = pairs.reweighted(1.0 / cfg.sigma)      # residuals in units of sigma, with no per-call division
+        if prior is None:
+            def fun(R: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                return sampson_residuals_jacobian(R, T, scaled)
+        else:
+            t_prior, s_prior = prior
+            J_prior = np.hstack([np.zeros((3, 3)), np.eye(3) / s_prior])
+
+            def fun(R: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                r, J = sampson_residuals_jacobian(R, T, scaled)
+                return np.concatenate([r, (T - t_prior) / s_prior]), np.vstack([J, J_prior])
+
+        sol = levenberg_marquardt(fun, start.R, start.t, x_scale, cfg.loss, cfg.loss_scale, cfg.tol, cfg.max_nfev)
+        if sol is None or not (np.all(np.isfinite(sol.R)) and np.all(np.isfinite(sol.T))):
+            return None
+        m = len(pairs)
+        return Pose(project_to_so3(sol.R), sol.T.copy()), sol.success, sol.message, (sol.r[:m] * cfg.sigma,
+                                                                                     sol.J[:m] * cfg.sigma)
+
+    def _minimise_scipy(self, pairs: RayPairs, start: Pose, prior: tuple[np.ndarray, float] | None,
+                        x_scale: np.ndarray) -> _Minimum | None:
+        """The original path: scipy's trust-region reflective over ``x = [rotvec of R R0^T, T]``."""
+        cfg = self.config
         R0 = start.R
         scale = cfg.sigma
 
@@ -197,8 +464,6 @@ class TwoFrameSolver:
                 return np.vstack([numeric_jacobian(R0, x, pairs)[1] / scale, J_prior])
 
         x0 = np.concatenate([np.zeros(3), start.t])
-        # fixed variable scaling (not 'jac': that inflates steps along the weakly observed scale)
-        x_scale = np.concatenate([np.full(3, 1e-2), np.full(3, max(np.linalg.norm(start.t), cfg.prior_step))])
         try:
             with np.errstate(all='ignore'):
                 # trf, not MINPACK lm: lm's first step is unbounded and runs off along the weak scale
@@ -209,16 +474,4 @@ class TwoFrameSolver:
         x = sol.x
         if not np.all(np.isfinite(x)):
             return None
-        pose = Pose(project_to_so3(exp_so3(x[:3]) @ R0), x[3:].copy())
-        r, J = numeric_jacobian(pose.R, np.concatenate([np.zeros(3), pose.t]), pairs)
-        if not (np.all(np.isfinite(r)) and np.all(np.isfinite(J))):
-            return None
-        sigma2 = residual_variance(r, 6, cfg.sigma)
-        cov = covariance_from_jacobian(J, sigma2)
-        status = StepStatus.OK
-        msg = 'converged' if sol.success else f'stopped: {sol.message}'
-        if float(np.sqrt(np.max(np.diag(cov)[3:]))) > cfg.max_translation_std:
-            status = StepStatus.WEAK
-            msg += '; translation weakly observed'
-        return TwoFrameResult(pose, status, r, cov, float(0.5 * np.sum(np.square(r / scale))), len(pairs), msg,
-                              cheirality(pose.R, pose.t, pairs))
+        return Pose(project_to_so3(exp_so3(x[:3]) @ R0), x[3:].copy()), bool(sol.success), str(sol.message), None

@@ -69,6 +69,8 @@ ESTIMATOR_PARAMS: Table = {
     'prior_sigma_rel': (0.5, 'prior std as a fraction of the predicted step length'),
     'prior_sigma_min': (0.01, 'prior std at least this (m)'),
     'max_nfev': (30, 'bound on function evaluations of one two-frame solve'),
+    'solver_backend': ('lm', "least squares of the two-frame solve and the least-squares BA modes: 'lm' (our "
+                             "compact Levenberg-Marquardt, ~3x faster) or 'scipy' (scipy.optimize.least_squares trf)"),
     'max_step_translation': (0.5, 'm; a larger step is rejected as a jump and predicted instead'),
     'max_speed': (1.5, 'm/s; a step implying a faster rig is rejected as a jump and predicted instead'),
     'max_step_rotation_deg': (20.0, 'deg; a larger step rotation is rejected as a jump'),
@@ -110,7 +112,7 @@ def estimator_config(g: Getter, rig: Rig) -> EstimatorConfig:
         reject_translation_std=float(g('reject_translation_std')), velocity_prior=bool(g('velocity_prior')),
         prior_sigma_rel=float(g('prior_sigma_rel')), prior_sigma_min=float(g('prior_sigma_min')),
         solver=SolverConfig(sigma=float(g('pixel_sigma')) / f, loss=str(g('loss')), max_nfev=int(g('max_nfev')),
-                            min_parallax=float(g('stationary_parallax_px')) / f))
+                            min_parallax=float(g('stationary_parallax_px')) / f, backend=str(g('solver_backend'))))
 
 
 class ParamsError(ValueError):

@@ -1,0 +1,206 @@
+"""The two-frame solver's Levenberg-Marquardt backend ('lm', default) against the scipy backend."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from fixego_ros.estimation.coplanarity import RayPairs, sampson_residuals_jacobian
+from fixego_ros.estimation.estimator import fixations_of, step_pairs
+from fixego_ros.estimation.status import StepStatus
+from fixego_ros.estimation.twoframe import (
+    BACKENDS,
+    LOSSES,
+    SolverConfig,
+    TwoFrameSolver,
+    levenberg_marquardt,
+    robust_loss,
+)
+from fixego_ros.experiments.point_scene import PRESETS, PointScene, random_motion_sequence
+from fixego_ros.geometry.rotation import Pose, exp_so3
+
+# baseline 0.2 m, fixation at 2 m, 40 flow points per camera in 300 px: the lever arm observes the scale
+SCENE = replace(PRESETS['jp_2m'], n_flow=40, window_px=300.0)
+
+
+def problem(seed: int, noise_px: float):
+    cfg = replace(SCENE, noise_px=noise_px)
+    rng = np.random.default_rng(seed)
+    scene = PointScene(cfg, rng)
+    steps = random_motion_sequence(cfg, 2, rng)
+    _, noisy, _ = scene.frames(steps)
+    pairs = step_pairs(scene.rig, fixations_of(noisy[0]), noisy[1])
+    return steps[0], pairs, max(noise_px, 0.1) / scene.rig.right.fx
+
+
+def solvers(sigma: float, **kw) -> dict[str, TwoFrameSolver]:
+    return {b: TwoFrameSolver(SolverConfig(sigma=sigma, prior_step=0.05, backend=b, **kw)) for b in BACKENDS}
+
+
+def perturbed(truth: Pose) -> Pose:
+    return Pose(exp_so3([1e-3, -1e-3, 5e-4]) @ truth.R, 1.2 * truth.t + 0.005)
+
+
+def corrupt(pairs: RayPairs, truth: Pose, i: int, angle: float) -> RayPairs:
+    """Move ray b[i] by ``angle`` off its true epipolar plane (a gross outlier for the coplanarity residual)."""
+    b = pairs.b.copy()
+    Rb = truth.R @ b[i]
+    n = np.cross(Rb, truth.t + truth.R @ pairs.centers[i] - pairs.centers[i])
+    moved = Rb + angle * n / np.linalg.norm(n)
+    b[i] = truth.R.T @ (moved / np.linalg.norm(moved))
+    return RayPairs(pairs.a, b, pairs.centers, pairs.weights)
+
+
+def test_default_backend_is_lm_and_config_is_validated():
+    assert SolverConfig().backend == 'lm'
+    with pytest.raises(ValueError, match='backend'):
+        SolverConfig(backend='minpack')
+    with pytest.raises(ValueError, match='loss'):
+        SolverConfig(loss='l1')
+
+
+@pytest.mark.parametrize('seed', [0, 4])
+def test_backends_agree_noise_free(seed):
+    truth, pairs, sigma = problem(seed, 0.0)
+    for backend, solver in solvers(sigma, max_nfev=200).items():
+        for start in (None, perturbed(truth)):           # cold starts and a warm start
+            res = solver.solve(pairs, start)
+            assert res.status is StepStatus.OK, (backend, res.message)
+            assert np.linalg.norm(res.pose.rvec() - truth.rvec()) < 1e-7, backend
+            assert np.linalg.norm(res.pose.t - truth.t) < 1e-6 * np.linalg.norm(truth.t) + 1e-9, backend
+
+
+@pytest.mark.parametrize('seed', [0, 1, 4, 5])
+def test_backends_agree_noisy(seed):
+    truth, pairs, sigma = problem(seed, 0.1)
+    res = {b: s.solve(pairs, perturbed(truth)) for b, s in solvers(sigma, max_nfev=200).items()}
+    lm, sp = res['lm'], res['scipy']
+    assert lm.status.usable and sp.status.usable
+    assert lm.message.startswith('converged')
+    assert lm.cost <= sp.cost * (1 + 1e-6)                            # at least as far down
+    assert np.linalg.norm(lm.pose.rvec() - sp.pose.rvec()) < 1e-5      # rad; noise gives ~1e-4 errors
+    assert np.linalg.norm(lm.pose.t - sp.pose.t) < 0.02 * np.linalg.norm(sp.pose.t)
+    assert np.allclose(np.sqrt(np.diag(lm.covariance)), np.sqrt(np.diag(sp.covariance)), rtol=0.05)
+
+
+@pytest.mark.parametrize('backend', BACKENDS)
+@pytest.mark.parametrize('seed', [0, 2])
+def test_robust_losses_reject_an_injected_outlier(seed, backend):
+    truth, clean, sigma = problem(seed, 0.0)
+    pairs = corrupt(clean, truth, 3, 0.01)                # ~140 sigma off
+    err = {}
+    for loss in LOSSES:
+        solver = TwoFrameSolver(SolverConfig(sigma=sigma, prior_step=0.05, loss=loss, max_nfev=200, backend=backend))
+        # a prior pins the scale, so the comparison is about the outlier, not the weakly observed scale
+        res = solver.solve(pairs, truth, prior_t=truth.t, prior_sigma_t=0.1 * np.linalg.norm(truth.t))
+        err[loss] = np.linalg.norm(res.pose.rvec() - truth.rvec())
+    assert err['linear'] > 5e-3
+    assert err['huber'] < err['linear'] / 20 and err['soft_l1'] < err['linear'] / 20
+    assert err['cauchy'] < err['linear'] / 500 and err['arctan'] < err['linear'] / 1e4
+
+
+@pytest.mark.parametrize('seed', [0, 1])
+def test_prior_rows_fix_the_unobserved_scale(seed):
+    truth, pairs, sigma = problem(seed, 0.1)
+    # without the lever arm the rays only see the direction of T: the prior alone sets its length
+    no_lever = RayPairs(pairs.a, pairs.b, np.zeros_like(pairs.centers), pairs.weights)
+    out = {}
+    for backend, solver in solvers(sigma, max_nfev=200).items():
+        res = solver.solve(no_lever, perturbed(truth), prior_t=2 * truth.t, prior_sigma_t=0.01)
+        assert res.status.usable, res.message
+        direction = res.pose.t @ truth.t / np.linalg.norm(res.pose.t) / np.linalg.norm(truth.t)
+        assert direction > np.cos(np.radians(10.0))
+        assert np.linalg.norm(res.pose.t) == pytest.approx(2 * np.linalg.norm(truth.t), rel=0.1)
+        # the covariance is the rays' own: the scale still shows as unobserved
+        assert res.status is StepStatus.WEAK
+        out[backend] = res.pose.t
+    assert np.allclose(out['lm'], out['scipy'], atol=1e-4)
+
+
+@pytest.mark.parametrize('backend', BACKENDS)
+def test_never_nan_on_degenerate_input(backend):
+    solver = TwoFrameSolver(SolverConfig(backend=backend))
+    rng = np.random.default_rng(3)
+    same = np.tile([0.0, 0.0, 1.0], (12, 1))
+    many = rng.normal(size=(20, 3)) + [0, 0, 5]
+    lever = np.array([0.2, 0.0, 0.0])
+    cases = {
+        'identical rays': RayPairs.build([(same, same, np.zeros(3), 1.0), (same, same, lever, 1.0)]),
+        'five pairs': RayPairs.build([(many[:5], many[:5] + 0.01, np.zeros(3), 1.0)]),
+        'no pairs': RayPairs.build([]),
+        'parallax, no lever arm': RayPairs.build([(many, many + rng.normal(size=many.shape) * 0.01, np.zeros(3), 1.0)]),
+        'random rays': RayPairs.build([(many, rng.normal(size=many.shape), np.zeros(3), 1.0),
+                                       (many, rng.normal(size=many.shape), lever, 1.0)]),
+    }
+    starts = [None, Pose.identity(), Pose(exp_so3([0.0, 0.01, 0.0]), np.zeros(3)),
+              Pose(np.eye(3), np.array([0.0, 0.0, 1e-12]))]
+    for name, pairs in cases.items():
+        for start in starts:
+            for prior in ((None, 0.0), (np.array([0.0, 0.0, 0.05]), 0.01)):
+                res = solver.solve(pairs, start, *prior)
+                assert res.pose.is_finite(), (name, start)
+                assert np.all(np.isfinite(res.covariance)) and np.all(np.isfinite(res.residuals)), name
+                assert np.isfinite(res.cost), name
+    assert solver.solve(cases['five pairs']).status is StepStatus.INSUFFICIENT
+
+
+def test_robust_loss_matches_scipy_definitions():
+    z = np.concatenate([np.linspace(0.0, 4.0, 41), [10.0, 1e3]])
+    closed = {'linear': z, 'huber': np.where(z <= 1, z, 2 * np.sqrt(z) - 1), 'soft_l1': 2 * (np.sqrt(1 + z) - 1),
+              'cauchy': np.log1p(z), 'arctan': np.arctan(z)}
+    for loss in LOSSES:
+        rho, drho = robust_loss(z, loss)
+        assert np.allclose(rho, closed[loss], rtol=1e-12, atol=1e-14), loss
+        lo, hi = np.maximum(z - 1e-6, 0), z + 1e-6
+        numeric = (robust_loss(hi, loss)[0] - robust_loss(lo, loss)[0]) / (hi - lo)
+        smooth = np.abs(z - 1) > 1e-3                    # huber's kink at z = 1
+        assert np.allclose(drho[smooth], numeric[smooth], rtol=1e-5), loss
+    try:                                                 # scipy's own implementations, where available
+        from scipy.optimize._lsq.least_squares import IMPLEMENTED_LOSSES
+    except ImportError:
+        return
+    for loss in LOSSES[1:]:
+        ref = np.empty((3, len(z)))
+        IMPLEMENTED_LOSSES[loss](z, ref, cost_only=False)
+        rho, drho = robust_loss(z, loss)
+        assert np.allclose(rho, ref[0]) and np.allclose(drho, ref[1]), loss
+
+
+@pytest.mark.parametrize('loss', LOSSES)
+def test_lm_cost_is_scipys_robust_cost_and_nfev_is_bounded(loss):
+    truth, pairs, sigma = problem(1, 0.5)
+    scaled = RayPairs(pairs.a, pairs.b, pairs.centers, pairs.weights / sigma)
+    calls = []
+
+    def fun(R, T):
+        calls.append(1)
+        return sampson_residuals_jacobian(R, T, scaled)
+
+    x_scale = np.r_[np.full(3, 1e-2), np.full(3, 0.05)]
+    for max_nfev in (1, 3, 20):
+        calls.clear()
+        sol = levenberg_marquardt(fun, truth.R, truth.t * 1.5, x_scale, loss, 3.0, 1e-7, max_nfev)
+        assert len(calls) == sol.nfev <= max_nfev
+    z = (sol.r / 3.0) ** 2
+    assert sol.cost == pytest.approx(0.5 * 9.0 * np.sum(robust_loss(z, loss)[0]), rel=1e-12)
+    r, J = sampson_residuals_jacobian(sol.R, sol.T, scaled)
+    assert np.allclose(sol.r, r) and np.allclose(sol.J, J)
+
+
+def test_lm_survives_non_finite_residuals():
+    truth, pairs, sigma = problem(0, 0.1)
+    scaled = RayPairs(pairs.a, pairs.b, pairs.centers, pairs.weights / sigma)
+    x_scale = np.r_[np.full(3, 1e-2), np.full(3, 0.05)]
+    start = perturbed(truth)
+
+    def nan_away(R, T):          # NaN everywhere but close to the start: every long step fails
+        r, J = sampson_residuals_jacobian(R, T, scaled)
+        return (r, J) if np.linalg.norm(T - start.t) < 1e-3 else (r * np.nan, J)
+
+    sol = levenberg_marquardt(nan_away, start.R, start.t, x_scale, max_nfev=40)
+    assert sol is not None and np.all(np.isfinite(sol.T)) and np.all(np.isfinite(sol.R))
+    assert np.linalg.norm(sol.T - start.t) < 1e-3
+    assert levenberg_marquardt(lambda R, T: (np.full(3, np.nan), np.zeros((3, 6))), np.eye(3), np.zeros(3),
+                               x_scale) is None
