@@ -325,7 +325,7 @@ def test_player_skips_types_without_python_package_and_remaps(ros_context, tmp_p
 # ---------------------------------------------------------------------------------------------- CLI process
 def _cli(*args: str, timeout: float = 60.0) -> subprocess.CompletedProcess:
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
-    return subprocess.run([sys.executable, '-m', 'fixego_ros.bags.play_cli', *args], capture_output=True,
+    return subprocess.run([sys.executable, '-m', 'fixego_ros.cli', 'play', *args], capture_output=True,
                           text=True, timeout=timeout, env=env, cwd=Path(__file__).resolve().parents[1])
 
 

@@ -244,7 +244,7 @@ def test_node_records_what_is_published(ros_context, tmp_path, store):
 
 # ---------------------------------------------------------------------------------------------- the command
 def _cli(*args: str) -> list[str]:
-    return [sys.executable, '-m', 'fixego_ros.bags.record_cli', *args]
+    return [sys.executable, '-m', 'fixego_ros.cli', 'record', *args]
 
 
 def test_cli_refuses_an_existing_bag_dir(tmp_path):
@@ -311,10 +311,10 @@ def test_cli_duration_in_process_with_nothing_to_record(tmp_path, capsys):
     pytest.importorskip('rclpy')
     from conftest import private_domain_id
 
-    from fixego_ros.bags.record_cli import main
+    from fixego_ros.cli import main
 
     t = time.monotonic()
-    assert main([str(tmp_path / 'bag'), '/test/silent', '--duration', '0.5', '--quiet',
+    assert main(['record', str(tmp_path / 'bag'), '/test/silent', '--duration', '0.5', '--quiet',
                  '--domain-id', str(private_domain_id())]) == 0
     assert time.monotonic() - t < 10
     line = capsys.readouterr().out.strip()

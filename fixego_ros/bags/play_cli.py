@@ -18,11 +18,6 @@ def register(subparsers) -> None:
         description='Publish the messages of a rosbag2/MCAP bag as recorded (raw CDR, recorded QoS) at '
                     'their recorded pace, scaled by --rate. Damaged bags play what can be read. Exits 0 '
                     'when the bag has been played, 2 when it cannot be opened.')
-    add_arguments(p)
-    p.set_defaults(func=run)
-
-
-def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument('bag', type=Path, metavar='BAG_DIR', help='rosbag2 directory or .mcap file')
     p.add_argument('--rate', type=float, default=1.0, help='speed factor (default 1; 0 = as fast as possible)')
     p.add_argument('--loop', action='store_true', help='replay from the start when the bag ends')
@@ -33,6 +28,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument('--domain-id', type=int, help='ROS_DOMAIN_ID (default: inherited)')
     p.add_argument('--delay', type=float, default=0.5, metavar='S',
                    help='wait S seconds for discovery before the first message (default 0.5)')
+    p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -58,13 +54,3 @@ def run(args: argparse.Namespace) -> int:
     if args.remap:
         overrides.append(Parameter('remap', value=[str(r) for r in args.remap]))
     return run_player(args=[], overrides=overrides, domain_id=args.domain_id, prog='fixego play')
-
-
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog='fixego play', description='Play a rosbag2/MCAP bag.')
-    add_arguments(parser)
-    return run(parser.parse_args(argv))
-
-
-if __name__ == '__main__':
-    sys.exit(main())

@@ -1,8 +1,6 @@
 """``fixego record BAG_DIR [TOPIC ...]``: record live topics into a rosbag2/MCAP bag (``ros2 bag record``
 is not available as a wheel). Runs :class:`~fixego_ros.nodes.bag_recorder.BagRecorderNode` in-process
 until Ctrl-C, SIGTERM or ``--duration``, then closes the bag and prints one summary line on stdout.
-
-Runs standalone too: ``python -m fixego_ros.bags.record_cli BAG_DIR ...``.
 """
 
 from __future__ import annotations
@@ -17,7 +15,12 @@ from pathlib import Path
 PROG = 'fixego record'
 
 
-def add_arguments(p: argparse.ArgumentParser) -> None:
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        'record', help='record topics into a rosbag2/MCAP bag (like ros2 bag record)',
+        description='Record live ROS 2 topics into a new rosbag2 (version 9) bag with zstd-compressed MCAP '
+                    'storage, until Ctrl-C, SIGTERM or --duration. Subscriptions adapt their QoS to the '
+                    'publishers; new topics are picked up as they appear. Prints one summary line at the end.')
     p.add_argument('bag', type=Path, metavar='BAG_DIR', help='bag directory to create (must not exist)')
     p.add_argument('topics', nargs='*', metavar='TOPIC', help='topics to record (default: every topic discovered)')
     p.add_argument('--duration', type=float, metavar='S', help='stop after S seconds (default: at Ctrl-C)')
@@ -25,15 +28,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument('--include-hidden', action='store_true', help='without TOPIC: also record hidden topics')
     p.add_argument('--no-compression', action='store_true', help='do not zstd-compress the MCAP chunks')
     p.add_argument('--quiet', action='store_true', help='print only warnings and the summary line')
-
-
-def register(subparsers) -> None:
-    p = subparsers.add_parser(
-        'record', help='record topics into a rosbag2/MCAP bag (like ros2 bag record)',
-        description='Record live ROS 2 topics into a new rosbag2 (version 9) bag with zstd-compressed MCAP '
-                    'storage, until Ctrl-C, SIGTERM or --duration. Subscriptions adapt their QoS to the '
-                    'publishers; new topics are picked up as they appear. Prints one summary line at the end.')
-    add_arguments(p)
     p.set_defaults(func=run)
 
 
@@ -91,13 +85,3 @@ def run(args: argparse.Namespace) -> int:
             signal.signal(s, handler)
     print(f'{PROG}: {summary.line()}', flush=True)
     return 0 if summary.ok else 1
-
-
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog=PROG, description='Record live ROS 2 topics into a rosbag2/MCAP bag.')
-    add_arguments(parser)
-    return run(parser.parse_args(argv))
-
-
-if __name__ == '__main__':
-    sys.exit(main())

@@ -23,11 +23,6 @@ def register(subparsers) -> None:
         description='Run passive fixation tracking, flow and estimation over a rosbag2/MCAP bag with the '
                     'topics of DESIGN.md §3 (remappable) and write EST.tum and EST.raw.tum. Deterministic: the '
                     'same bag and options give the same bytes.')
-    add_arguments(p)
-    p.set_defaults(func=run)
-
-
-def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument('bag', type=Path, metavar='BAG_DIR', help='rosbag2 directory (or a single .mcap file)')
     p.add_argument('--out', required=True, type=Path, metavar='EST.tum', help='refined trajectory to write; the '
                    'two-frame one goes next to it as EST.raw.tum')
@@ -50,6 +45,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help='2 = run the estimator in a second process (same output; default on multi-core machines)')
     p.add_argument('--no-progress', action='store_true', help='no progress bar on stderr')
     p.add_argument('--quiet', action='store_true', help='print only errors and the result lines')
+    p.set_defaults(func=run)
 
 
 def _pairs(items: list[str], what: str) -> list[tuple[str, str]]:
@@ -189,13 +185,3 @@ def _evaluate(args: argparse.Namespace, res, say, fail) -> int:
             return fail(f'cannot write to {d}: {e}')
         say(f'wrote {d / "ground_truth.tum"}, {d / "eval.json"} and {d / "eval.png"}')
     return 0
-
-
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog=PROG)
-    add_arguments(p)
-    return run(p.parse_args(argv))
-
-
-if __name__ == '__main__':
-    sys.exit(main())
