@@ -22,11 +22,9 @@ import threading
 import time
 from collections import Counter
 
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.duration import Duration
 from rclpy.exceptions import InvalidParameterTypeException, ParameterUninitializedException
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -43,6 +41,7 @@ from fixego_ros.nodes.common import (
     declare_parameters,
     diagnostic_status,
     publish_diagnostics,
+    spin_node,
 )
 
 PARAMS: dict[str, tuple[object, str]] = {
@@ -294,26 +293,13 @@ class BagPlayer(Node):
 def run(args: list[str] | None = None, overrides: list[Parameter] | None = None, domain_id: int | None = None,
         prog: str = 'bag_player') -> int:
     """Init rclpy, play until the bag ends (or Ctrl-C), shut down; the exit code (0, 1 failure, 2 setup)."""
-    rclpy.init(args=args, domain_id=domain_id)
-    node = None
-    code = 0
     try:
-        node = BagPlayer(parameter_overrides=overrides or [])
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
-        while rclpy.ok() and not node.finished:
-            executor.spin_once(timeout_sec=0.1)
-        code = node.exit_code
+        node = spin_node(lambda: BagPlayer(parameter_overrides=overrides or []), args,
+                         finished=lambda n: n.finished, domain_id=domain_id)
     except (BagError, PlayError, InvalidParameterTypeException) as e:
         print(f'{prog}: {e}', file=sys.stderr)
-        code = 2
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return code
+        return 2
+    return node.exit_code if node is not None else 0
 
 
 def main(args: list[str] | None = None) -> int:

@@ -53,19 +53,27 @@ def declare_parameters(node: Node, params: dict[str, tuple[object, str]]) -> Cal
     return lambda name: node.get_parameter(name).value
 
 
-def spin_node(factory: Callable[[], Node], args: list[str] | None = None) -> None:
-    """``main`` of a node: init, spin until Ctrl-C or shutdown, destroy the node, shut down."""
-    rclpy.init(args=args)
+def spin_node(factory: Callable[[], Node], args: list[str] | None = None, *,
+              finished: Callable[[Node], bool] | None = None, domain_id: int | None = None) -> Node | None:
+    """``main`` of a node: init, spin until Ctrl-C, shutdown or ``finished(node)`` (for nodes that end by
+    themselves), destroy the node, shut down. Returns the destroyed node (what it recorded, e.g. an exit
+    code, stays readable); exceptions from ``factory`` propagate after the clean-up."""
+    rclpy.init(args=args, domain_id=domain_id)
     node = None
     try:
         node = factory()
-        rclpy.spin(node)
+        if finished is None:
+            rclpy.spin(node)
+        else:
+            while rclpy.ok() and not finished(node):
+                rclpy.spin_once(node, timeout_sec=0.1)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
+    return node
 
 
 def sec_to_stamp(t: float) -> Time:

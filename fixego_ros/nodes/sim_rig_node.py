@@ -19,11 +19,9 @@ import time
 from pathlib import Path
 
 import numpy as np
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from rcl_interfaces.msg import ParameterDescriptor, ParameterType
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image
 from std_srvs.srv import Trigger
@@ -38,6 +36,7 @@ from fixego_ros.nodes.common import (
     array_to_image,
     diagnostic_status,
     publish_diagnostics,
+    spin_node,
 )
 from fixego_ros.sim.bag_writer import camera_info_msg, pose_msg
 from fixego_ros.sim.render import Renderer
@@ -225,6 +224,10 @@ class SimRigNode(Node):
         level, msg = (WARN, 'rendering slower than the frame rate') if late else (OK, 'running')
         publish_diagnostics(self, self.pub_diag, [self._status(level, 'finished' if self._ended else msg)])
 
+    def destroy_node(self) -> None:
+        self.close()
+        super().destroy_node()
+
     def close(self) -> None:
         """Stop the emulators and remove the pty file if it is still ours."""
         for emu in self.emulators.values():
@@ -239,19 +242,7 @@ class SimRigNode(Node):
 
 
 def main(args=None) -> None:
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = SimRigNode()
-        while rclpy.ok() and not node.finished:
-            rclpy.spin_once(node, timeout_sec=0.1)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.close()
-            node.destroy_node()
-        rclpy.try_shutdown()
+    spin_node(SimRigNode, args, finished=lambda n: n.finished)
 
 
 if __name__ == '__main__':
