@@ -54,16 +54,13 @@ def generate(spec: ShippedBag, out_dir: Path, progress: bool = False):
     """Write ``spec`` to ``out_dir`` (must not exist) with its ground truth as TUM; returns the summary."""
     from fixego_ros.evaluation.tum import write_tum
     from fixego_ros.geometry.rig import default_rig_path, load_rig
-    from fixego_ros.geometry.rotation import rig_pose_to_base_link
     from fixego_ros.sim.bag_writer import write_bag
     from fixego_ros.sim.run import Simulation, resize_rig
 
     rig = resize_rig(load_rig(default_rig_path()), spec.width, spec.height)
     sim = Simulation(rig, spec.settings)
     summary = write_bag(out_dir, rig, spec.settings, progress=progress, sim=sim)
-    stamps = [spec.settings.epoch + t for t in sim.stamps]
-    inv0 = sim.poses[0].inverse()
-    write_tum(out_dir / 'ground_truth.tum', stamps, [rig_pose_to_base_link(inv0 @ p) for p in sim.poses])
+    write_tum(out_dir / 'ground_truth.tum', [spec.settings.epoch + t for t in sim.stamps], sim.ground_truth())
     return summary
 
 

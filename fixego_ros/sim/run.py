@@ -15,7 +15,7 @@ from fixego_ros.geometry.rig import Rig, make_rig
 from fixego_ros.geometry.rotation import Pose, rig_pose_to_base_link
 from fixego_ros.sim.render import Renderer
 from fixego_ros.sim.servo_model import FixationServo, ServoParams, ServoState
-from fixego_ros.sim.trajectories import Trajectory, make_trajectory, steps_duration
+from fixego_ros.sim.trajectories import Trajectory, make_trajectory, relative_poses, steps_duration
 from fixego_ros.sim.world import World, make_room
 
 EPOCH = 1_700_000_000.0  # s: bag stamps start here, so output is deterministic
@@ -95,10 +95,14 @@ class Simulation:
     def __len__(self) -> int:
         return len(self.stamps)
 
+    def ground_truth(self) -> list[Pose]:
+        """``base_link`` in ``odom`` (= ``base_link`` at frame 0) at every frame."""
+        return [rig_pose_to_base_link(p) for p in relative_poses(self.poses)]
+
     def frames(self) -> Iterator[Frame]:
-        inv0 = self.poses[0].inverse()
+        gt = self.ground_truth()
         for k, (t, pose) in enumerate(zip(self.stamps, self.poses, strict=True)):
             states = {side: (servo.start(t, pose) if k == 0 else servo.step(t, pose))
                       for side, servo in self.servos.items()}
             images = {side: self.renderer.render(side, pose, st.pan, st.tilt) for side, st in states.items()}
-            yield Frame(k, float(t), pose, rig_pose_to_base_link(inv0 @ pose), states, images)
+            yield Frame(k, float(t), pose, gt[k], states, images)
