@@ -31,6 +31,10 @@ class CameraFrame:
     cam_to_rig: np.ndarray            # optical frame -> rig frame at this frame (pan/tilt applied)
     flow_prev: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # rays at t-1, rig frame
     flow_curr: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # same points at t
+    # persistent point tracks seen at this frame (landmarks of the sliding window): ids never reused
+    # within a camera, and the rig-frame unit ray of each at this frame
+    track_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    track_rays: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
 
 @dataclass
