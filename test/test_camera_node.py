@@ -161,3 +161,75 @@ def test_passive_node_tracks_without_serial(ros_context, rig_file):
         ex.shutdown(timeout_sec=1.0)
         node.destroy_node()
         peer.destroy_node()
+
+
+def test_left_node_vergence_on_start_measures_the_right_fixation_distance(ros_context, tmp_path):
+    """Simulated rig (frozen) + both camera nodes over VISCA ptys; the left node's start-up vergence step
+    publishes the right fixation point's distance, which the simulator's ray cast confirms."""
+    import time
+
+    from diagnostic_msgs.msg import DiagnosticArray
+    from geometry_msgs.msg import PoseWithCovarianceStamped
+
+    from fixego_ros.geometry.rig import default_rig_path, load_rig
+    from fixego_ros.nodes.camera_node import VERGENCE_QOS
+    from fixego_ros.nodes.sim_rig_node import SimRigNode
+    from fixego_ros.sim.run import resize_rig
+
+    rig_path = tmp_path / 'rig.yaml'
+    resize_rig(load_rig(default_rig_path()), 320, 240).save(rig_path)
+    sim = SimRigNode(context=ros_context, parameter_overrides=[
+        Parameter('trajectory', value='paper'), Parameter('time_scale', value=0.0), Parameter('fps', value=15.0),
+        Parameter('rig_file', value=str(rig_path)), Parameter('exit_at_end', value=False),
+        Parameter('pty_file', value=str(tmp_path / 'ptys.json'))])
+    common = [Parameter('rig_file', value=str(rig_path)), Parameter('search_radius_px', value=30.0),
+              Parameter('border_margin_px', value=25.0)]
+    right = CameraNode(context=ros_context, cli_args=['--ros-args', '-r', '__node:=right_camera_node'],
+                       parameter_overrides=[Parameter('side', value='right'),
+                                            Parameter('port', value=sim.ptys['right']), *common])
+    left = CameraNode(context=ros_context, cli_args=['--ros-args', '-r', '__node:=left_camera_node'],
+                      parameter_overrides=[Parameter('side', value='left'), Parameter('port', value=sim.ptys['left']),
+                                           Parameter('vergence_on_start', value=True),
+                                           Parameter('vergence_timeout_s', value=30.0), *common])
+    probe = rclpy.create_node('vergence_probe', context=ros_context)
+    ex = executor_for(ros_context, sim, right, left, probe)
+    got: list[PoseWithCovarianceStamped] = []
+    diags: list[DiagnosticArray] = []
+    lfix: list[PointStamped] = []
+    probe.create_subscription(PoseWithCovarianceStamped, '/fixego/vergence', got.append, VERGENCE_QOS)
+    probe.create_subscription(DiagnosticArray, '/diagnostics', diags.append, RELIABLE_QOS)
+    probe.create_subscription(PointStamped, '/fixego/left/fixation', lfix.append, RELIABLE_QOS)
+    t0 = time.monotonic()
+    try:
+        assert spin_until(ex, lambda: bool(got), timeout_s=40.0, step_s=0.01), \
+            f'no /fixego/vergence; left state: {left.vergence_state}'
+        t_step = time.monotonic() - t0
+        msg = got[0]
+        assert msg.header.frame_id == 'rig'
+        p = np.array([msg.pose.pose.position.x, msg.pose.pose.position.y, msg.pose.pose.position.z])
+        cov = np.array(msg.pose.covariance).reshape(6, 6)[:3, :3]
+        dist = float(np.linalg.norm(p))
+        std = float(np.sqrt(p @ cov @ p) / dist)
+        # truth: the simulator's ray cast along the published direction from the right camera centre
+        pose = sim.trajectory.pose_at(0.0)
+        true_dist, _ = sim.renderer.world.raycast(pose.t, pose.R @ (p / dist))
+        err = dist - true_dist
+        print(f'vergence: true {true_dist:.3f} m, estimated {dist:.3f} m (err {100 * err / true_dist:+.2f} %), '
+              f'std {std:.3f} m, {t_step:.1f} s after start')
+        assert abs(err) < 0.05 * true_dist
+        assert 0.0 < std < 0.1 * true_dist
+        assert np.all(np.isfinite(np.array(msg.pose.covariance)))
+        # the left node goes back to independent fixation: a new fixation id, and a 'done' status
+        assert spin_until(ex, lambda: left.vergence is not None and left.vergence.finished, timeout_s=10.0)
+        n = len(lfix)
+        assert spin_until(ex, lambda: len(lfix) > n + 3, timeout_s=5.0)
+        assert int(lfix[-1].point.z) == max(int(f.point.z) for f in lfix)
+        assert left.tracker.reselections[-1].reason == 'vergence_end'
+        assert spin_until(ex, lambda: any(s.name.endswith('left: vergence') and s.message.startswith('done')
+                                          for d in diags for s in d.status), timeout_s=3.0)
+    finally:
+        ex.shutdown(timeout_sec=1.0)
+        for n in (left, right, probe):
+            n.destroy_node()
+        sim.close()
+        sim.destroy_node()

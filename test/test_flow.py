@@ -41,7 +41,7 @@ def pair() -> tuple[np.ndarray, np.ndarray]:
 
 def check_counts(tr) -> None:
     c = tr.counts
-    assert c.detected == c.lost + c.min_eig + c.outside + c.fb + c.ncc + c.kept
+    assert c.detected == c.lost + c.min_eig + c.outside + c.fb + c.ncc + c.epipolar + c.kept
     assert c.kept == len(tr.prev_px) == len(tr.curr_px)
     assert tr.prev_px.dtype == tr.curr_px.dtype == np.float64
     assert tr.prev_px.shape == tr.curr_px.shape == (c.kept, 2)
@@ -231,8 +231,10 @@ def test_fixation_ray_and_camera_rotation_at_t(sim_pair, side):
     assert np.degrees(np.arccos(min(1.0, float(cam.fixation_ray @ truth)))) < 1e-4
     assert cam.fixation_id == 7
     assert np.allclose(cam.cam_to_rig, rig.cam_to_rig(side, s1.pan, s1.tilt))
-    # the flow window was centred on the fixation pixel of the previous frame, not this one's
-    assert fe.last_tracks[side].center_px == pytest.approx(frames[0][side].fixation_px)
+    # the tracks were started in the window around the keyframe's fixation pixel; the region now follows t's
+    tr = fe.last_tracks[side]
+    assert np.all(np.abs(tr.prev_px - frames[0][side].fixation_px) <= 50.5)
+    assert tr.center_px == pytest.approx(frames[1][side].fixation_px)
     assert obs[0].prev_stamp is None and obs[1].prev_stamp == pytest.approx(10.0)
     assert len(obs[0].camera(side).flow_prev) == 0 and fe.last[side].pairs == len(cam.flow_prev)
 
@@ -292,7 +294,7 @@ def test_wrong_image_size_bad_joints_and_no_fixation(small_rig):
     nan_fix = CameraSample(synthetic_samples(5)['right'].gray, 0.05, -0.02, (np.nan, 1.0), 3)
     o5 = fe.process(0.5, synthetic_samples(5, right=nan_fix))
     assert o5.right.fixation_ray is None and o5.right.fixation_id == -1
-    assert fe.last_tracks['right'].center_px == ((W - 1) / 2, (H - 1) / 2)   # no fixation at t-1: centre
+    assert fe.last_tracks['right'].center_px == ((W - 1) / 2, (H - 1) / 2)   # no fixation at t: centre
     for o in (o1, o2, o3, o4, o5):
         for cam in (o.right, o.left):
             if cam is not None:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pytest
 
@@ -10,6 +12,7 @@ from fixego_ros.estimation.status import StepStatus
 from fixego_ros.experiments.point_scene import PRESETS, PointScene, random_motion_sequence
 from fixego_ros.pipeline.observation import (
     KIND_FLOW,
+    KIND_TRACK,
     ROW_DTYPE,
     ObservationError,
     observation_to_rows,
@@ -119,6 +122,83 @@ def test_rows_round_trip(scene_frames):
         np.testing.assert_allclose(b.flow_prev, a.flow_prev, atol=1e-12)
         np.testing.assert_allclose(b.flow_curr, a.flow_curr, atol=1e-12)
         assert b.fixation_id == a.fixation_id
+
+
+def _with_tracks(o: FrameObservation, seed: int = 0) -> FrameObservation:
+    """A copy of ``o`` with persistent tracks on both cameras: ids up to 2**53 - 1 (the largest a float64
+    holds)."""
+    o = copy.deepcopy(o)
+    rng = np.random.default_rng(seed)
+    for side, ids in (('right', np.array([0, 7, 123456789012, 2**53 - 1], np.int64)),
+                      ('left', np.arange(40, 95, dtype=np.int64))):
+        rays = rng.normal(size=(len(ids), 3)) + [0.0, 0.0, 3.0]
+        o.camera(side).track_ids = ids
+        o.camera(side).track_rays = rays / np.linalg.norm(rays, axis=1, keepdims=True)
+    return o
+
+
+def test_rows_round_trip_with_tracks(scene_frames):
+    _, _, obs = scene_frames
+    o = _with_tracks(obs[2])
+    rows = observation_to_rows(o)
+    assert np.sum(rows['kind'] == KIND_TRACK) == 4 + 55
+    back = rows_to_observation(o.stamp, rows)
+    for side in ('right', 'left'):
+        a, b = o.camera(side), back.camera(side)
+        assert b.track_ids.dtype == np.int64 and np.array_equal(b.track_ids, a.track_ids)   # exactly
+        np.testing.assert_allclose(b.track_rays, a.track_rays, atol=1e-12)
+        np.testing.assert_allclose(b.flow_prev, a.flow_prev, atol=1e-12)
+    # no tracks: empty arrays of the right types
+    plain = rows_to_observation(obs[3].stamp, observation_to_rows(obs[3]))
+    assert plain.right.track_ids.dtype == np.int64 and plain.right.track_rays.shape == (0, 3)
+
+
+def _track_rows(o: FrameObservation) -> tuple[np.ndarray, np.ndarray]:
+    rows = observation_to_rows(o)
+    return rows, np.flatnonzero(rows['kind'] == KIND_TRACK)
+
+
+@pytest.mark.parametrize('corrupt, match', [
+    (lambda r, t: r['x0'].__setitem__(t[1], 7.5), 'integers'),
+    (lambda r, t: r['x0'].__setitem__(t[1], -1.0), 'integers'),
+    (lambda r, t: r['x0'].__setitem__(t[1], 2.0**53), 'integers'),
+    (lambda r, t: r['x0'].__setitem__(t[2], r['x0'][t[1]]), 'repeated'),
+    (lambda r, t: r['y0'].__setitem__(t[1], 0.5), 'y0 = z0 = 0'),
+    (lambda r, t: r['z1'].__setitem__(t[1], 3.0), 'unit'),
+])
+def test_rows_malformed_tracks_rejected(scene_frames, corrupt, match):
+    _, _, obs = scene_frames
+    rows, t = _track_rows(_with_tracks(obs[2], 1))
+    corrupt(rows, t)
+    with pytest.raises(ObservationError, match=match):
+        rows_to_observation(obs[2].stamp, rows)
+
+
+def test_rows_track_rows_need_their_camera_row(scene_frames):
+    _, _, obs = scene_frames
+    rows, _ = _track_rows(_with_tracks(obs[2], 2))
+    keep = ~((rows['side'] == 1) & (rows['kind'] != KIND_TRACK))
+    with pytest.raises(ObservationError, match='without a camera row'):
+        rows_to_observation(obs[2].stamp, rows[keep])
+    bad_ids = _with_tracks(obs[2], 3)
+    bad_ids.right.track_ids = np.array([-3, 1, 2, 4], np.int64)
+    with pytest.raises(ObservationError, match='track ids'):
+        observation_to_rows(bad_ids)
+
+
+def test_flow_node_yaml_lists_every_parameter_with_its_default():
+    """config/flow_node.yaml repeats each declared parameter's default, with a comment."""
+    from pathlib import Path
+
+    from fixego_ros.nodes.flow_node import PARAMS
+    from fixego_ros.pipeline.params import load_params_file
+
+    path = Path(__file__).resolve().parents[1] / 'config' / 'flow_node.yaml'
+    values = load_params_file(path, 'flow_node')
+    assert values == {k: v for k, (v, _) in PARAMS.items()}
+    for name in PARAMS:
+        line = next(x for x in path.read_text().splitlines() if x.strip().startswith(f'{name}:'))
+        assert '  # ' in line, f'{name}: no comment'
 
 
 def test_rows_missing_camera_and_missing_fixation(scene_frames):

@@ -10,11 +10,13 @@ import shutil
 import subprocess
 import sys
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 import pytest
 
 from fixego_ros.bags.reader import Bag, BagError, DecodeError
+from fixego_ros.estimation.estimator import Estimator
 from fixego_ros.evaluation.metrics import evaluate
 from fixego_ros.evaluation.tum import read_tum
 from fixego_ros.geometry.rig import load_rig
@@ -278,3 +280,98 @@ def test_bag_without_images_is_an_error(tmp_path):
     with pytest.raises(BagError):
         Bag(tmp_path / 'nothing-here')
     assert ReplayTopics('/x', (('/x/right/image_raw', '/y'),)).name('right/image_raw') == '/y'
+
+
+# ------------------------------------------------------------------------------------------ speed aid
+class SpeedCheckingEstimator(Estimator):
+    """The replay's estimator with ``add_velocity`` checking (and, in process, recording) what it is fed:
+    finite, rig frame, in stamp order. Module level, so ``workers=2`` builds it in the estimator process too."""
+
+    seen: ClassVar[list[tuple[float, np.ndarray, np.ndarray]]] = []      # in-process runs only
+
+    def add_velocity(self, stamp: float, v_rig: np.ndarray, cov_rig: np.ndarray) -> None:
+        assert np.isfinite(stamp) and v_rig.shape == (3,) and cov_rig.shape == (3, 3)
+        assert np.all(np.isfinite(v_rig)) and np.all(np.isfinite(cov_rig)) and np.allclose(cov_rig, cov_rig.T)
+        assert np.all(np.linalg.eigvalsh(cov_rig) > 0)
+        last = getattr(self, '_speed_last', -np.inf)
+        assert stamp > last, (stamp, last)
+        self._speed_last = stamp
+        SpeedCheckingEstimator.seen.append((stamp, v_rig, cov_rig))
+        super().add_velocity(stamp, v_rig, cov_rig)
+
+
+@pytest.fixture(scope='module')
+def wheel_bag(tmp_path_factory) -> Path:
+    """2 s of the walk at 320x240, 10 Hz, with simulated wheel odometry (std 5 cm/s)."""
+    from fixego_ros.cli import main as fixego
+    out = tmp_path_factory.mktemp('wheel') / 'walk_wheel'
+    assert fixego(['sim', '--trajectory', 'walk', '--duration', '2', '--width', '320', '--height', '240',
+                   '--fps', '10', '--wheel-odom-std', '0.05', '--no-progress', '--out', str(out)]) == 0
+    return out
+
+
+def test_replay_feeds_wheel_odometry_and_is_same_with_two_workers(wheel_bag, tmp_path, monkeypatch, capsys):
+    from fixego_ros.cli import main as fixego
+    from fixego_ros.geometry.rotation import RIG_TO_BASE
+    from fixego_ros.replay import run as replay_run
+
+    monkeypatch.setattr(replay_run, 'Estimator', SpeedCheckingEstimator)   # a spy: the real estimator underneath
+    SpeedCheckingEstimator.seen = []
+    outs = []
+    for workers in ('1', '2'):
+        out = tmp_path / f'w{workers}' / 'est.tum'
+        assert fixego(['replay', str(wheel_bag), '--out', str(out), '--workers', workers, '--no-progress',
+                       '--speed-topic', '/fixego/wheel/odom']) == 0
+        outs.append((out.read_bytes(), out.with_name('est.raw.tum').read_bytes()))
+        assert 'speed aid /fixego/wheel/odom: 21 samples given to the estimator' in capsys.readouterr().out
+    assert outs[0] == outs[1]
+    # in-process run: every frame's sample, the true twist (forward walk at ~1 m/s) in rig axes
+    seen = SpeedCheckingEstimator.seen
+    assert len(seen) == 21
+    v_base = np.array([RIG_TO_BASE @ v for _, v, _ in seen])
+    assert np.median(v_base[:, 0]) > 0.5 and np.all(np.abs(np.median(v_base[:, 1:], axis=0)) < 0.3)
+    np.testing.assert_allclose(seen[5][2], np.eye(3) * 0.05 ** 2)
+    # without the option the topic is ignored and the output is that of the bag without it
+    out = tmp_path / 'off' / 'est.tum'
+    SpeedCheckingEstimator.seen = []
+    assert fixego(['replay', str(wheel_bag), '--out', str(out), '--workers', '1', '--no-progress', '--quiet']) == 0
+    assert SpeedCheckingEstimator.seen == []
+
+
+def test_bad_wheel_odometry_is_skipped_and_said_once(wheel_bag, tmp_path, monkeypatch):
+    from fixego_ros.pipeline.odometry import SpeedSettings
+    from fixego_ros.replay import run as replay_run
+
+    monkeypatch.setattr(replay_run, 'Estimator', SpeedCheckingEstimator)   # a spy: the real estimator underneath
+    state = {'n': 0}
+
+    def damage(topic, msgtype, msg, t):
+        if topic == '/fixego/wheel/odom':
+            state['n'] += 1
+            if state['n'] in (3, 4):
+                msg.twist.twist.linear.x = np.nan
+            elif state['n'] == 6:
+                msg.child_frame_id = 'odom'
+            elif state['n'] == 8:
+                cov = np.array(msg.twist.covariance)
+                cov[0] = -1.0
+                msg.twist.covariance = cov
+            elif state['n'] == 10:
+                msg.header.stamp.sec -= 1
+        return [(topic, msgtype, msg, t)]
+
+    src = rewrite(wheel_bag, tmp_path / 'damaged', damage)
+    rig = load_rig(src / 'rig.yaml')
+    SpeedCheckingEstimator.seen = []
+    res = replay(Bag(src), rig, ReplaySettings.from_getters(rig, speed=SpeedSettings('/fixego/wheel/odom')),
+                 workers=1)
+    text = '\n'.join(res.notes)
+    assert res.counts['speed_samples'] == 21 - 5 == len(SpeedCheckingEstimator.seen)
+    assert res.counts['bad_speed:velocity'] == 2 and res.counts['bad_speed:frame'] == 1
+    assert res.counts['bad_speed:covariance'] == 1 and res.counts['bad_speed:order'] == 1
+    assert len(res.notes) == 4 and 'non-finite linear velocity' in text and "'odom'" in text
+    assert len(res.stamps) == 21 and all(p.is_finite() for p in res.poses)
+    # asking for a speed topic the bag does not have, or one of another type, says so
+    for topic, match in (('/nope', 'no speed topic /nope'), ('/fixego/ground_truth/pose', 'expected nav_msgs')):
+        with pytest.raises(ReplayError, match=match):
+            replay(Bag(src), rig, ReplaySettings.from_getters(rig, speed=SpeedSettings(topic)))

@@ -1,5 +1,7 @@
-"""Benchmark of the flow front end at 640x480: ms per camera of ``track_flow`` and per stereo pair of
-``StereoFrontEnd.process``, for each preset, and the median number of flow points kept.
+"""Benchmark of the flow front end at 640x480: ms per camera of ``track_flow`` (two-frame flow, corners
+detected every frame) and per stereo pair of ``StereoFrontEnd.process`` (persistent tracks, predicted LK,
+epipolar RANSAC, keyframes), for each preset with the shipped ``flow_node`` defaults, and the median
+number of flow points kept / flow pairs per camera.
 
 Images are the simulator's (default rig and room, noise 2 grey levels) along the start of the papers'
 loop at 30 fps, with the servo model's pan/tilt and fixation pixels, so the windows hold the
@@ -20,11 +22,12 @@ import numpy as np
 
 from fixego_ros.geometry.rig import SIDES, default_rig_path, load_rig
 from fixego_ros.pipeline.frontend import CameraSample, StereoFrontEnd
+from fixego_ros.pipeline.params import FLOW_PARAMS, flow_params, keyframe_policy, params_getter
 from fixego_ros.sim.render import Renderer
 from fixego_ros.sim.servo_model import FixationServo
 from fixego_ros.sim.trajectories import paper
 from fixego_ros.sim.world import make_room
-from fixego_ros.tracking.flow import PRESETS, FlowParams, track_flow
+from fixego_ros.tracking.flow import PRESETS, track_flow
 
 
 def _frames(n: int) -> list[dict[str, CameraSample]]:
@@ -59,7 +62,8 @@ def run(n_frames: int = 31, passes: int = 3) -> dict[str, float]:
     out: dict[str, float] = {}
     try:
         for preset in PRESETS:
-            params = FlowParams(preset=preset)
+            g = params_getter(FLOW_PARAMS, {'preset': preset})
+            params = flow_params(g)
             for label, n_threads in (('', threads), ('_1thread', 1)):
                 cv2.setNumThreads(n_threads)
                 ms, points = [], []
@@ -73,16 +77,18 @@ def run(n_frames: int = 31, passes: int = 3) -> dict[str, float]:
                 out[f'{preset}.track_ms{label}.median'] = _median_ms(ms)
             out[f'{preset}.points.median'] = float(np.median(points))
             cv2.setNumThreads(threads)
-            fe = StereoFrontEnd(rig, params)
-            ms = []
+            fe = StereoFrontEnd(rig, params, keyframe_policy(g))
+            ms, pairs = [], []
             for _ in range(passes):
                 fe.reset()
                 for k, frame in enumerate(frames):
                     t0 = time.perf_counter()
-                    fe.process(k / 30.0, frame)
+                    obs = fe.process(k / 30.0, frame)
                     if k > 0:
                         ms.append(time.perf_counter() - t0)
+                        pairs += [len(obs.camera(side).flow_prev) for side in SIDES]
             out[f'{preset}.process_ms.median'] = _median_ms(ms)
+            out[f'{preset}.pairs.median'] = float(np.median(pairs))
     finally:
         cv2.setNumThreads(threads)
     for k, v in out.items():

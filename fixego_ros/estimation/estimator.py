@@ -8,6 +8,7 @@ data and step motions are kept.
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from dataclasses import dataclass, field
 
@@ -16,6 +17,15 @@ import numpy as np
 from fixego_ros.estimation.coplanarity import RayPairs
 from fixego_ros.estimation.covariance import VAR_MAX
 from fixego_ros.estimation.local_ba import MODES, BAProblem, BAResult, BATerm, refine_latest
+from fixego_ros.estimation.sliding_window import (
+    FIXATION,
+    TRACK,
+    SlidingWindow,
+    SpeedSamples,
+    StepFactor,
+    WindowConfig,
+    landmark_key,
+)
 from fixego_ros.estimation.status import StepStatus
 from fixego_ros.estimation.twoframe import SolverConfig, TwoFrameResult, TwoFrameSolver
 from fixego_ros.geometry.rig import SIDES, Rig
@@ -84,6 +94,33 @@ def step_pairs(rig: Rig, prev: dict[str, Fixation | None], obs: FrameObservation
     return RayPairs.build(groups)
 
 
+def landmark_observations(rig: Rig, obs: FrameObservation) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Landmark keys, rig-frame rays and camera centres of everything a frame saw: each camera's
+    persistent tracks and its fixation point (the sliding window's observations)."""
+    keys, rays, centers = [], [], []
+    for i, side in enumerate(SIDES):
+        cam = obs.camera(side)
+        if cam is None:
+            continue
+        c = rig.center(side)
+        ids = np.asarray(cam.track_ids, np.int64).reshape(-1)
+        tr = np.asarray(cam.track_rays, float).reshape(-1, 3)
+        if len(ids) == len(tr) and len(ids):
+            keys.append(landmark_key(TRACK, i, ids))
+            rays.append(tr)
+            centers.append(np.broadcast_to(c, tr.shape))
+        if cam.fixation_ray is not None and cam.fixation_id >= 0 and np.all(np.isfinite(cam.fixation_ray)):
+            keys.append(landmark_key(FIXATION, i, np.array([cam.fixation_id])))
+            rays.append(np.asarray(cam.fixation_ray, float).reshape(1, 3))
+            centers.append(c.reshape(1, 3))
+    if not keys:
+        return np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3))
+    return np.concatenate(keys), np.concatenate(rays), np.concatenate(centers)
+
+
+REFINEMENTS = ('sliding', 'local')
+
+
 @dataclass(frozen=True)
 class EstimatorConfig:
     window: int = 3                  # n: frames in the local BA (3..10); 0 or 1 disables it
@@ -98,8 +135,17 @@ class EstimatorConfig:
     prior_sigma_rel: float = 0.5
     prior_sigma_min: float = 0.01     # m
     solver: SolverConfig = field(default_factory=SolverConfig)
+    # 'sliding': keyframe poses refined with persistent landmarks over a sliding window (scale carried
+    # from turns through straights); 'local': the papers' local BA of the latest step over ``window`` frames
+    refinement: str = 'local'
+    sliding: WindowConfig = field(default_factory=WindowConfig)
+    scale_min_rotation_deg: float = 15.0   # the metric scale counts as observed after this much rig rotation
 
     def __post_init__(self) -> None:
+        if self.refinement not in REFINEMENTS:
+            raise ValueError(f'refinement must be one of {REFINEMENTS}, got {self.refinement!r}')
+        if not (math.isfinite(self.scale_min_rotation_deg) and self.scale_min_rotation_deg >= 0):
+            raise ValueError(f'scale_min_rotation_deg must be finite and >= 0, got {self.scale_min_rotation_deg}')
         if self.mode not in MODES:
             raise ValueError(f'mode must be one of {MODES}, got {self.mode!r}')
         if self.window not in (0, 1) and not 3 <= self.window <= 10:
@@ -122,6 +168,8 @@ class FrameResult:
     ba: BAResult | None = None
     ref_stamp: float | None = None  # stamp of the keyframe ``step`` starts from
     placed: bool = True             # False: the frame was ignored (out of order, unknown reference)
+    scale_observed: bool = False    # False until enough rotation (or a scale aid) has fixed the metric scale
+    scale_note: str = ''            # why / how (one line, for diagnostics)
 
 
 @dataclass
@@ -143,6 +191,10 @@ class _Latest:
     pose: Pose
     pose_raw: Pose
     pose_cov: np.ndarray
+    step_cov: np.ndarray = field(default_factory=lambda: np.diag([1e-2] * 3 + [VAR_MAX] * 3))
+    step_meas: Pose = field(default_factory=Pose.identity)   # the measured (two-frame or predicted) motion
+    speed: tuple[np.ndarray, np.ndarray] | None = None       # external-speed translation over the step
+    landmarks: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
 
 class Estimator:
@@ -154,8 +206,13 @@ class Estimator:
     high frame rate; the newest frame becomes a keyframe when the observation says so
     (``obs.keyframe``), or else as soon as a later flow starts from it. The local BA refines only
     frames that become keyframes, since only their motion carries on into the trajectory. With
-    ``prev_stamp`` always the previous frame, every frame is a keyframe (the papers' scheme). The
-    local BA runs over the last n keyframes and the new frame.
+    ``prev_stamp`` always the previous frame, every frame is a keyframe (the papers' scheme).
+
+    Refinement (``config.refinement``): ``'local'`` is the papers' local BA of the latest step over the
+    last n keyframes; ``'sliding'`` (default) refines the recent keyframe poses together with the
+    persistent landmarks (:mod:`.sliding_window`). Either way the metric scale is reported unobserved
+    (``FrameResult.scale_observed``, large position covariance) until the rig has turned by
+    ``scale_min_rotation_deg`` or a scale aid (:meth:`add_velocity`, :meth:`add_fixation_point`) was used.
     """
 
     GAP_TOLERANCE_S = 1e-6
@@ -176,6 +233,58 @@ class Estimator:
         self._key_cov = np.zeros((6, 6))
         self._latest: _Latest | None = None
         self._velocity: tuple[np.ndarray, np.ndarray] | None = None  # [rvec, t] per second: refined, raw
+        self._sliding = SlidingWindow(self.config.sliding) if self.config.refinement == 'sliding' else None
+        self._speed = SpeedSamples()
+        self._pending_points: list[tuple[float, int, np.ndarray, np.ndarray]] = []
+        self._rotation_seen = 0.0          # rad of rig rotation between keyframes so far
+        self._aids: set[str] = set()       # scale aids that have been used
+        self._history: dict[float, Pose] = {}   # refined keyframe poses by stamp (the smoothed trajectory)
+
+    # ------------------------------------------------------------------------------------ scale aids
+    def add_velocity(self, stamp: float, v_rig: np.ndarray, cov_rig: np.ndarray) -> None:
+        """External speed source: velocity of the rig origin (m/s) in the rig frame at ``stamp`` with its
+        3x3 covariance. Raises ValueError on non-finite values or a stamp not after the previous one."""
+        v = np.asarray(v_rig, float).reshape(3)
+        cov = np.asarray(cov_rig, float).reshape(3, 3)
+        if not (math.isfinite(stamp) and np.all(np.isfinite(v)) and np.all(np.isfinite(cov))):
+            raise ValueError('velocity sample with non-finite stamp, velocity or covariance')
+        if np.any(np.linalg.eigvalsh(0.5 * (cov + cov.T)) <= 0):
+            raise ValueError('velocity covariance must be positive definite')
+        self._speed.add(float(stamp), v, cov)
+
+    def add_fixation_point(self, stamp: float, side: str, point_rig: np.ndarray, cov_rig: np.ndarray) -> None:
+        """Vergence aid: camera ``side``'s fixation point was at ``point_rig`` (rig frame at ``stamp``, m)
+        with covariance ``cov_rig``. Used by the sliding window when the frame at ``stamp`` becomes a
+        keyframe (it is kept until then); ignored by the 'local' refinement."""
+        if side not in SIDES:
+            raise ValueError(f'side must be one of {SIDES}, got {side!r}')
+        point = np.asarray(point_rig, float).reshape(3)
+        cov = np.asarray(cov_rig, float).reshape(3, 3)
+        if not (math.isfinite(stamp) and np.all(np.isfinite(point)) and np.all(np.isfinite(cov))):
+            raise ValueError('fixation point with non-finite stamp, position or covariance')
+        self._pending_points.append((float(stamp), SIDES.index(side), point, cov))
+        self._attach_points()
+
+    @property
+    def scale_observed(self) -> bool:
+        return bool(self._aids) or self._rotation_seen >= math.radians(self.config.scale_min_rotation_deg)
+
+    def scale_note(self) -> str:
+        if self._aids:
+            return 'scale from ' + ' and '.join(sorted(self._aids))
+        need = self.config.scale_min_rotation_deg
+        seen = math.degrees(self._rotation_seen)
+        if seen >= need:
+            return f'scale observed: {seen:.0f} deg of rotation seen'
+        return f'scale unobserved: {seen:.1f} of {need:.0f} deg rotation seen, no scale aid'
+
+    def trajectory(self) -> list[tuple[float, Pose]]:
+        """Refined keyframe poses so far (revised as the sliding window refines them), oldest first, and
+        the newest frame's pose when it is not a keyframe: what a path display should show."""
+        out = sorted(self._history.items())
+        if self._latest is not None:
+            out.append((self._latest.stamp, self._latest.pose))
+        return out
 
     @property
     def last_stamp(self) -> float | None:
@@ -261,15 +370,22 @@ class Estimator:
         if self._key_stamp is None:
             self._key_stamp = obs.stamp
             self._window.append(_Slot(fix, Pose.identity()))
+            self._history[obs.stamp] = Pose.identity()
+            if self._sliding is not None:
+                self._sliding.add(obs.stamp, Pose.identity(), *landmark_observations(self.rig, obs), None)
             return FrameResult(self._index, obs.stamp, StepStatus.INIT, self._key_pose, self._key_pose_raw,
                                Pose.identity(), Pose.identity(), np.zeros((6, 6)), self._key_cov.copy(),
-                               'first frame')
+                               'first frame', scale_observed=self.scale_observed, scale_note=self.scale_note())
         dt = obs.stamp - self._key_stamp
         pairs = step_pairs(self.rig, self._window[-1].fixation, obs, self.config.fixation_weight)
         prediction = self._predict(dt)
         start = self._latest.motion_raw if self._latest is not None else (prediction[1] if prediction else None)
         cfg = self.config
-        if cfg.velocity_prior and prediction is not None:
+        speed = self._speed.translation(self._key_stamp, obs.stamp)
+        if speed is not None:
+            sigma = math.sqrt(max(float(np.max(np.linalg.eigvalsh(speed[1]))), 1e-12))
+            tf = self.solver.solve(pairs, initial=start, prior_t=speed[0], prior_sigma_t=sigma)
+        elif cfg.velocity_prior and prediction is not None:
             t_pred = prediction[1].t
             sigma = max(cfg.prior_sigma_min, cfg.prior_sigma_rel * float(np.linalg.norm(t_pred)))
             tf = self.solver.solve(pairs, initial=start, prior_t=t_pred, prior_sigma_t=sigma)
@@ -282,7 +398,7 @@ class Estimator:
             cov = tf.covariance
             status = tf.status
             message = tf.message
-            if self.config.window >= 3 and obs.keyframe is not False:   # BA where the chain continues
+            if self._sliding is None and self.config.window >= 3 and obs.keyframe is not False:
                 problem, full = self._ba_problem(obs)
                 if full and len(problem):
                     ba = refine_latest(problem, tf.pose, self.config.mode, pairs, self.config.solver.sigma,
@@ -307,22 +423,66 @@ class Estimator:
         pose_cov = self._propagate(self._key_pose, self._key_cov, motion, cov)
         pose = (self._key_pose @ motion).normalized()
         pose_raw = (self._key_pose_raw @ motion_raw).normalized()
-        self._latest = _Latest(obs.stamp, fix, motion, motion_raw, pose, pose_raw, pose_cov)
+        self._latest = _Latest(obs.stamp, fix, motion, motion_raw, pose, pose_raw, pose_cov, cov, motion, speed,
+                               landmark_observations(self.rig, obs) if self._sliding is not None else None)
+        if speed is not None:
+            self._aids.add('the speed source')
         key_stamp = self._key_stamp
         if obs.keyframe:
             self._promote()
+            pose, motion = self._key_pose, self._history_step(key_stamp, motion)
         if gap:
             message = f'{gap}; {message}' if message else gap
+        observed = self.scale_observed
+        if not observed:      # the position is known only up to an unobserved scale: say so
+            pose_cov = pose_cov.copy()
+            pose_cov[3:, 3:] += np.eye(3) * (1.0 + float(np.linalg.norm(pose.t))) ** 2
         return FrameResult(self._index, obs.stamp, status, pose, pose_raw, motion, motion_raw, cov,
-                           pose_cov.copy(), message, tf, ba, key_stamp)
+                           pose_cov.copy(), message, tf, ba, key_stamp, scale_observed=observed,
+                           scale_note=self.scale_note())
 
     def _promote(self) -> None:
-        """The newest frame becomes the keyframe later flow starts from."""
+        """The newest frame becomes the keyframe later flow starts from (refined by the sliding window)."""
         f = self._latest
         assert f is not None
-        self._window.append(_Slot(f.fixation, f.motion))
-        self._key_stamp, self._key_pose, self._key_pose_raw, self._key_cov = f.stamp, f.pose, f.pose_raw, f.pose_cov
+        prev_pose = self._key_pose
+        pose = f.pose
+        if self._sliding is not None and f.landmarks is not None:
+            factor = StepFactor(f.step_meas, f.step_cov, *(f.speed if f.speed is not None else (None, None)))
+            self._sliding.hold_open = not self.scale_observed
+            pose = self._sliding.add(f.stamp, f.pose, *f.landmarks, factor).normalized()
+            for stamp, p in self._sliding.poses():
+                if stamp in self._history:
+                    self._history[stamp] = p
+            prev_pose = self._history.get(self._key_stamp, prev_pose)
+        self._rotation_seen += rotation_angle(prev_pose.R.T @ pose.R)
+        self._window.append(_Slot(f.fixation, prev_pose.inverse() @ pose))
+        self._history[f.stamp] = pose
+        self._key_stamp, self._key_pose, self._key_pose_raw, self._key_cov = f.stamp, pose, f.pose_raw, f.pose_cov
         self._latest = None
+        self._attach_points()
+
+    def _history_step(self, key_stamp: float, motion: Pose) -> Pose:
+        """Refined motion from the keyframe at ``key_stamp`` to the newest keyframe."""
+        ref = self._history.get(key_stamp)
+        return motion if ref is None else (ref.inverse() @ self._key_pose).normalized()
+
+    def _attach_points(self) -> None:
+        """Give pending vergence points to the sliding window once their frame is a keyframe in it."""
+        if self._sliding is None or not self._pending_points:
+            return
+        kept = []
+        frames = {f.stamp: f for f in self._sliding.frames}
+        for stamp, side_index, point, cov in self._pending_points:
+            f = frames.get(stamp)
+            if f is None:
+                if self._key_stamp is None or stamp > self._key_stamp:
+                    kept.append((stamp, side_index, point, cov))      # its keyframe is still to come
+                continue                                             # not a keyframe, or gone: dropped
+            fix = f.keys[(f.keys % 2 == FIXATION) & ((f.keys // 2) % 2 == side_index)]
+            if len(fix) and self._sliding.add_prior(stamp, int(fix[0]), point, cov):
+                self._aids.add('the vergence step')
+        self._pending_points = kept
 
     def _predict(self, dt: float) -> tuple[Pose, Pose] | None:
         """Constant-velocity motion over ``dt`` (refined, raw), or None before the first solved step."""
@@ -345,6 +505,11 @@ class Estimator:
         self._key_cov = self._propagate(self._key_pose, self._key_cov, step, cov)
         self._key_pose = (self._key_pose @ step).normalized()
         self._key_pose_raw = (self._key_pose_raw @ step_raw).normalized()
+        if self._sliding is not None:
+            empty = (np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)))
+            self._sliding.hold_open = not self.scale_observed
+            self._key_pose = self._sliding.add(ref, self._key_pose, *empty, StepFactor(step, cov)).normalized()
+        self._history[ref] = self._key_pose
         self._key_stamp = ref
         # the missed frames' fixations are unknown: no fixation pair or BA term may span the gap
         self._window.append(_Slot({side: None for side in SIDES}, step))

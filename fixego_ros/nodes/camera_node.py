@@ -5,6 +5,16 @@ Topics (namespace /fixego, see README): subscribes ``<side>/image_raw`` (unless 
 in passive mode also ``<side>/joint_states``; publishes ``<side>/joint_states`` (active mode),
 ``<side>/fixation`` (geometry_msgs/PointStamped: x, y = pixel, z = fixation id; nothing is published
 for a frame without a valid fixation) and ``/diagnostics``. Services ``~/reselect``, ``~/home``.
+
+Start-up vergence (scale aid, off by default; ``vergence_on_start:=true`` on the *left* node, active mode):
+the left node also subscribes ``/fixego/right/{image_raw,fixation,joint_states}``, drives its head so the
+right fixation ray's epipolar curve is in view, finds the right fixation point in its image
+(:func:`fixego_ros.tracking.vergence.find_partner_point`), fixates it with its own tracker and servo, and
+once both fixations have settled triangulates it with the two heads' joint readings at one image stamp.
+It publishes ``/fixego/vergence`` (geometry_msgs/PoseWithCovarianceStamped, frame ``rig``, transient
+local), drives its head back and selects its own point again. One attempt, bounded by
+``vergence_timeout_s``; the outcome is a ``vergence`` status on ``/diagnostics``. The right node needs no
+change: if it re-selects during the step, the step fails (its fixation id changed).
 """
 
 from __future__ import annotations
@@ -12,9 +22,11 @@ from __future__ import annotations
 import math
 from collections import deque
 
+import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import PointStamped
+from geometry_msgs.msg import PointStamped, PoseWithCovarianceStamped
 from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile
 from sensor_msgs.msg import Image, JointState
 from std_srvs.srv import Trigger
 
@@ -39,7 +51,8 @@ from fixego_ros.nodes.common import (
 from fixego_ros.pipeline.messages import pan_tilt
 from fixego_ros.pipeline.params import FIXATION_PARAMS, fixation_params
 from fixego_ros.tracking.fixation import FixationTracker, LimitCheck
-from fixego_ros.tracking.servo import FixationServo, JointHistory, ServoLoop, ServoParams
+from fixego_ros.tracking.servo import FixationServo, JointHistory, ServoLoop, ServoParams, Target
+from fixego_ros.tracking.vergence import VergenceParams, VergenceStep
 from fixego_ros.visca.driver import ViscaCamera
 from fixego_ros.visca.profiles import get_profile
 
@@ -65,7 +78,19 @@ PARAMS: dict[str, tuple[object, str]] = {
                                         'on the side that moves the head back into its range'),
     'joint_max_wait_s': (0.25, 'how long an image stamp may wait for the PosInq reading after it'),
     'diagnostics_period_s': (1.0, 'diagnostics publishing period'),
+    'vergence_on_start': (False, 'left node only, active mode: at start-up fixate the right camera\'s point too and '
+                                 'publish its triangulated distance on /fixego/vergence (scale aid)'),
+    'vergence_timeout_s': (20.0, 'bound on the whole vergence step; then independent fixation goes on'),
+    'vergence_settle_px': (3.0, 'both fixations this close to their principal points (3 frames) to triangulate'),
+    'vergence_min_depth_m': (0.8, 'nearest depth searched along the right fixation ray'),
+    'vergence_max_depth_m': (10.0, 'farthest depth searched along the right fixation ray'),
+    'vergence_ncc_min': (0.8, 'partner point: best NCC below this is no match'),
+    'vergence_margin_min': (0.1, 'partner point: best minus second-best NCC peak below this is ambiguous'),
+    'vergence_pixel_sigma_px': (0.5, 'fixation pixel noise used for the covariance'),
+    'vergence_joint_sigma_deg': (0.033, 'joint reading noise used for the covariance (EVI-D30 unit / sqrt 12)'),
 }
+
+VERGENCE_QOS = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 class CameraNode(Node):
@@ -76,6 +101,7 @@ class CameraNode(Node):
         if self.side not in ('right', 'left'):
             raise ValueError(f"side must be 'right' or 'left', got {self.side!r}")
         rig = load_rig(g('rig_file') or default_rig_path())
+        self.rig = rig
         self.camera = rig.camera(self.side)
         self.calibration = rig.calibration(self.side)
         self.profile = get_profile(str(g('profile')))
@@ -133,6 +159,7 @@ class CameraNode(Node):
         self.create_service(Trigger, '~/home', self._srv_home)
         self.create_timer(float(g('diagnostics_period_s')), self._publish_diagnostics)
         self.stats = {'frames': 0, 'frames_without_fixation': 0, 'joint_states': 0, 'joint_states_dropped': 0}
+        self._setup_vergence(g)
         self.get_logger().info(
             f'{self.side} camera: {"passive" if self.passive else f"VISCA on {port}"}, profile {self.profile.name}'
             + ('' if self.profile.verified else ' (UNVERIFIED numbers: run `fixego ptz calibrate`)'))
@@ -184,11 +211,27 @@ class CameraNode(Node):
             self._pending.append(msg.header.stamp)
             self._flush_joints()
         joints = self.history.at(t, max_extrapolation_s=0.1)
-        if joints is not None:
-            offset = self.limits.check(*joints)
-            if offset is not None:
-                self.tracker.request_reselect('limit', offset)
-        st = self.tracker.update(gray, t)
+        act = None
+        if self.vergence is not None and not self.vergence.finished:
+            self._vergence_stamps[t] = msg.header.stamp
+            act = self.vergence.on_left_image(t, gray, self._now())
+            self._vergence_report()
+            if act.kind == 'hold':     # the step drives the head: no tracking, no fixation published
+                if self.loop is not None and act.aim is not None:
+                    self.loop.set_target(self._aim_target(act.aim))
+                return
+            if act.reselect:
+                self.tracker.request_reselect('vergence_end')
+        if act is not None and act.select is not None:
+            st = self.tracker.select_at(gray, act.select, t, 'vergence')
+        else:
+            if joints is not None and not (self.vergence is not None and self.vergence.phase == 'converging'):
+                offset = self.limits.check(*joints)
+                if offset is not None:
+                    self.tracker.request_reselect('limit', offset)
+            st = self.tracker.update(gray, t)
+        if act is not None and self.vergence is not None:
+            self.vergence.on_left_fixation(t, st.pixel, st.fixation_id, st.reselected)
         if st.reselected:
             self.servo.reset()
             self.get_logger().info(f'fixation {st.fixation_id} selected at ({st.pixel[0]:.1f}, '
@@ -257,6 +300,120 @@ class CameraNode(Node):
         response.message = 'homing'
         return response
 
+    # ---------------------------------------------------------------------------------------- vergence
+    def _setup_vergence(self, g) -> None:
+        self.vergence: VergenceStep | None = None
+        self.vergence_state = 'off'
+        self._vergence_reported = ''
+        self._vergence_stamps: dict[float, object] = {}
+        self._vergence_subs: list = []
+        self.pub_vergence = None
+        if not bool(g('vergence_on_start')):
+            return
+        if self.side != 'left':
+            self.vergence_state = 'off (vergence is performed by the left camera node)'
+            self.get_logger().warning('vergence_on_start is only used by the left camera node: ignored')
+            return
+        if self.loop is None:
+            self.vergence_state = 'failed: passive mode (no head to move)'
+            self.get_logger().warning('vergence step not possible in passive mode (no serial port): skipped')
+            return
+        p = VergenceParams(min_depth_m=float(g('vergence_min_depth_m')), max_depth_m=float(g('vergence_max_depth_m')),
+                           ncc_min=float(g('vergence_ncc_min')), margin_min=float(g('vergence_margin_min')),
+                           pixel_sigma_px=float(g('vergence_pixel_sigma_px')),
+                           joint_sigma_deg=float(g('vergence_joint_sigma_deg')),
+                           settle_px=float(g('vergence_settle_px')), timeout_s=float(g('vergence_timeout_s')))
+        self.vergence = VergenceStep(self.rig, self.history, p)
+        self.pub_vergence = self.create_publisher(PoseWithCovarianceStamped, '/fixego/vergence', VERGENCE_QOS)
+        self._vergence_subs = [
+            self.create_subscription(Image, '/fixego/right/image_raw', self._on_right_image, SENSOR_QOS),
+            self.create_subscription(PointStamped, '/fixego/right/fixation', self._on_right_fixation, RELIABLE_QOS),
+            self.create_subscription(JointState, '/fixego/right/joint_states', self._on_right_joints, RELIABLE_QOS)]
+        self._vergence_timer = self.create_timer(0.05, self._vergence_report)
+        self.get_logger().info('start-up vergence step armed (left fixates the right camera\'s point once)')
+
+    def _on_right_image(self, msg: Image) -> None:
+        if self.vergence is None or not self.vergence.wants_right_images:
+            return
+        try:
+            gray = image_to_gray(msg)
+        except ImageError:
+            return
+        if gray.shape == (self.rig.right.height, self.rig.right.width):
+            self.vergence.add_right_image(stamp_to_sec(msg.header.stamp), gray)
+
+    def _on_right_fixation(self, msg: PointStamped) -> None:
+        if self.vergence is not None and math.isfinite(msg.point.x) and math.isfinite(msg.point.y):
+            self.vergence.add_right_fixation(stamp_to_sec(msg.header.stamp), (msg.point.x, msg.point.y),
+                                             int(msg.point.z))
+
+    def _on_right_joints(self, msg: JointState) -> None:
+        try:
+            pan, tilt = pan_tilt(msg, 'right')
+        except ValueError:
+            return
+        if self.vergence is not None and math.isfinite(pan) and math.isfinite(tilt):
+            self.vergence.add_right_joints(stamp_to_sec(msg.header.stamp), pan, tilt)
+
+    def _aim_target(self, aim: tuple[float, float]) -> Target:
+        pr = self.profile
+        pan_u, tilt_u = pr.clamp(pr.pan_units(math.degrees(aim[0])), pr.tilt_units(math.degrees(aim[1])))
+        return Target(pan_u, tilt_u, pr.pan_speed_max, pr.tilt_speed_max)
+
+    def _vergence_report(self) -> None:
+        """Poll the step (timeouts, triangulation) and report its outcome once; never blocks."""
+        v = self.vergence
+        if v is None:
+            return
+        v.poll(self._now())       # the result may also come from the poll inside on_left_image
+        self.vergence_state = v.status
+        if v.result is not None and self._vergence_reported != 'done':
+            self._vergence_reported = 'done'
+            self._publish_vergence(v.result)
+        elif v.status.startswith('failed') and not self._vergence_reported:
+            self._vergence_reported = 'failed'
+            self.get_logger().warning(f'vergence step {v.status}; independent fixation goes on')
+        if v.finished:
+            for sub in self._vergence_subs:
+                self.destroy_subscription(sub)
+            self._vergence_subs = []
+            self._vergence_timer.cancel()
+            self._vergence_stamps.clear()
+        elif len(self._vergence_stamps) > 400:
+            for k in sorted(self._vergence_stamps)[:200]:
+                del self._vergence_stamps[k]
+
+    def _publish_vergence(self, res) -> None:
+        out = PoseWithCovarianceStamped()
+        stamp = self._vergence_stamps.get(res.stamp)
+        out.header.stamp = stamp if stamp is not None else sec_to_stamp(res.stamp)
+        out.header.frame_id = 'rig'
+        pos = out.pose.pose.position
+        pos.x, pos.y, pos.z = (float(x) for x in res.point_rig)
+        out.pose.pose.orientation.w = 1.0
+        cov = np.zeros((6, 6))
+        cov[:3, :3] = res.cov_rig
+        cov[3:, 3:] = np.eye(3) * 1e6          # the orientation carries no information
+        out.pose.covariance = [float(x) for x in cov.ravel()]
+        self.pub_vergence.publish(out)
+        self.get_logger().info(
+            f'vergence: right fixation point at {res.distance_m:.3f} m (std {res.std_m:.3f} m, vergence '
+            f'{math.degrees(res.angle_rad):.2f} deg, NCC {res.match.ncc:.2f}) after {res.duration_s:.1f} s')
+
+    def _vergence_status(self):
+        v = self.vergence
+        values: dict[str, object] = {'state': self.vergence_state}
+        level, message = OK, self.vergence_state
+        if v is not None and v.result is not None:
+            r = v.result
+            message = f'done: {r.distance_m:.3f} m, std {r.std_m:.3f} m'
+            values.update({'distance_m': f'{r.distance_m:.4f}', 'std_m': f'{r.std_m:.4f}',
+                           'vergence_deg': f'{math.degrees(r.angle_rad):.3f}', 'ncc': f'{r.match.ncc:.3f}',
+                           'margin': f'{r.match.margin:.3f}', 'duration_s': f'{r.duration_s:.2f}'})
+        elif self.vergence_state.startswith('failed'):
+            level = WARN
+        return diagnostic_status(f'fixego camera_node {self.side}: vergence', 'vergence', level, message, values)
+
     # ---------------------------------------------------------------------------------------- diagnostics
     def _publish_diagnostics(self) -> None:
         st = self.tracker.last
@@ -283,7 +440,7 @@ class CameraNode(Node):
                 level, message = ERROR, f'serial port {self.driver.state}: {self.driver.last_error}'
         publish_diagnostics(self, self.pub_diag, [diagnostic_status(
             f'fixego camera_node {self.side}', self.driver.port if self.driver else 'passive', level, message,
-            values)])
+            values), self._vergence_status()])
 
     def destroy_node(self) -> None:
         if self.loop is not None:

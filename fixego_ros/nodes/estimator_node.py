@@ -7,6 +7,15 @@ a two-frame solve per step, then the local bundle adjustment over the last n fra
 covariance; weakly observed axes get large variances), ``/diagnostics``, and TF ``odom -> base_link``
 when tf2_ros is importable. ``~/reset`` (std_srvs/Trigger) restarts the trajectory.
 
+Scale aid (off by default): with ``speed_topic`` set it subscribes that nav_msgs/Odometry (e.g. wheel
+odometry; twist in ``base_frame``, REP-105) and forwards each valid sample, in stamp order, to
+``Estimator.add_velocity`` as the rig-frame velocity and covariance (:mod:`fixego_ros.pipeline.odometry`;
+an all-zero covariance means unknown and becomes ``speed_default_std``). A sample older than
+``speed_max_age_s`` relative to the newest frame is not used (dropped as stale when it arrives, and the
+aid reports stale on /diagnostics when frames run that far ahead of the newest sample). /diagnostics
+carries a ``scale`` status (OK once the estimator has observed the metric scale, WARN with the reason
+otherwise) and, when the aid is on, a ``speed aid`` status.
+
 Bad input never stops the node: a malformed observation is rejected whole (logged once, counted on
 /diagnostics); a step the solver cannot make is replaced by a constant-velocity prediction and flagged;
 nothing non-finite is ever published.
@@ -45,12 +54,14 @@ from fixego_ros.nodes.common import (
     stamp_to_sec,
 )
 from fixego_ros.pipeline.observation import ROW_DTYPE, ObservationError, rows_to_observation
+from fixego_ros.pipeline.odometry import SPEED_PARAMS, OdometryError, SpeedInput, SpeedSettings
 from fixego_ros.pipeline.params import ESTIMATOR_PARAMS, estimator_config
 
 PARAMS: dict[str, tuple[object, str]] = {
     'rig_file': ('', 'rig calibration YAML (DESIGN.md §4); empty = the package config/rig.yaml'),
     'observation_topic': ('/fixego/flow/observation', 'flow observations (PointCloud2 rows, see README)'),
     **ESTIMATOR_PARAMS,
+    **SPEED_PARAMS,
     'max_lag_s': (0.1, 'when an observation is this far behind the clock and not a keyframe, skip it (keyframes '
                        'are always solved: the trajectory continues through them)'),
     'max_keyframe_lag_s': (0.5, 'even keyframes are skipped this far behind (the estimator then bridges the gap '
@@ -95,6 +106,13 @@ class EstimatorNode(Node):
         self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', RELIABLE_QOS)
         self.tf = self._make_tf_broadcaster() if bool(g('publish_tf')) else None
         self.create_subscription(PointCloud2, str(g('observation_topic')), self._on_observation, RELIABLE_QOS)
+        self.speed = SpeedInput(SpeedSettings.from_getter(g, self.base_frame))
+        self.speed_topic = self.speed.settings.topic
+        self.speed_stats: Counter[str] = Counter()
+        self.speed_last: float | None = None       # stamp of the newest sample forwarded
+        self.speed_rejected_recent, self.speed_error = 0, ''
+        if self.speed_topic:
+            self.create_subscription(Odometry, self.speed_topic, self._on_speed, RELIABLE_QOS)
         self.create_service(Trigger, '~/reset', self._srv_reset)
         self.create_timer(float(g('diagnostics_period_s')), self._publish_diagnostics)
         self.status_counts: Counter[str] = Counter()
@@ -104,7 +122,8 @@ class EstimatorNode(Node):
         self.last: FrameResult | None = None
         self.last_error = ''
         self.get_logger().info(f'estimator: local BA n={self.config.window} mode={self.config.mode}, '
-                               f'TF {"on" if self.tf else "off"}')
+                               f'TF {"on" if self.tf else "off"}, speed aid '
+                               f'{self.speed_topic or "off"}')
 
     def _make_tf_broadcaster(self):
         try:
@@ -146,6 +165,25 @@ class EstimatorNode(Node):
                                       'counted on /diagnostics)', throttle_duration_sec=10.0)
         self.last = res
         self._publish(msg.header.stamp, res)
+
+    def _on_speed(self, msg: Odometry) -> None:
+        try:
+            sample = self.speed.from_msg(msg, self.last.stamp if self.last is not None else None)
+            self.estimator.add_velocity(sample.stamp, sample.v_rig, sample.cov_rig)
+        except (OdometryError, ValueError) as e:     # ValueError: the estimator refused it (never expected)
+            if not isinstance(e, OdometryError):
+                e = OdometryError(f'estimator refused the sample: {e}', 'estimator')
+            self.speed_stats[f'rejected_{e.kind}'] += 1
+            self.speed_rejected_recent += 1
+            self.speed_error = str(e)
+            self.once.warn(f'speed:{e.kind}', f'speed sample on {self.speed_topic} dropped: {e} (further ones '
+                                              'are only counted on /diagnostics)')
+            return
+        if self.speed.assumed_frame:
+            self.once.warn('speed:no_frame', f'{self.speed_topic}: empty child_frame_id, twist taken as '
+                                             f'{self.base_frame}')
+        self.speed_stats['samples'] += 1
+        self.speed_last = sample.stamp
 
     # -------------------------------------------------------------------------------------- output
     def _publish(self, stamp, res: FrameResult) -> None:
@@ -212,6 +250,7 @@ class EstimatorNode(Node):
     # -------------------------------------------------------------------------------------- services
     def _srv_reset(self, request, response):
         self.estimator.reset()
+        self.speed.reset()
         self.path.clear()
         self.path_raw.clear()
         self.last = None
@@ -241,8 +280,39 @@ class EstimatorNode(Node):
                 level, message = WARN, 'scale weakly observed (large translation covariance)'
         if self.once.active('malformed'):
             level, message = ERROR, self.last_error
-        publish_diagnostics(self, self.pub_diag, [diagnostic_status(
-            'fixego estimator_node', 'estimator', level, message, values)])
+        statuses = [diagnostic_status('fixego estimator_node', 'estimator', level, message, values),
+                    self._scale_status()]
+        if self.speed_topic:
+            statuses.append(self._speed_status())
+        publish_diagnostics(self, self.pub_diag, statuses)
+
+    def _scale_status(self):
+        if self.last is None:
+            return diagnostic_status('fixego estimator_node: scale', 'estimator', WARN, 'no frame yet')
+        observed, note = bool(self.last.scale_observed), str(self.last.scale_note)
+        message = note if observed or note.startswith('scale unobserved') else f'scale unobserved: {note}'
+        return diagnostic_status('fixego estimator_node: scale', 'estimator', OK if observed else WARN, message,
+                                 {'scale_observed': observed, 'scale_note': note})
+
+    def _speed_status(self):
+        n = self.speed_stats['samples']
+        values: dict[str, object] = {'topic': self.speed_topic, 'samples': n,
+                                     **{k: v for k, v in sorted(self.speed_stats.items()) if k != 'samples'}}
+        if self.speed_last is None:
+            return diagnostic_status('fixego estimator_node: speed aid', 'speed aid', WARN,
+                                     f'no valid sample on {self.speed_topic} yet', values)
+        age = self.get_clock().now().nanoseconds * 1e-9 - self.speed_last
+        values['last_age_s'] = f'{age:.3f}'
+        level, message = OK, f'receiving: {n} samples, last {age:.2f} s ago'
+        behind = self.last.stamp - self.speed_last if self.last is not None else 0.0
+        if behind > self.speed.max_age_s:
+            level, message = WARN, (f'stale: newest sample {behind:.2f} s older than the newest frame '
+                                    f'(speed_max_age_s {self.speed.max_age_s:g})')
+        elif self.speed_rejected_recent:
+            level, message = WARN, (f'{message}; {self.speed_rejected_recent} rejected since the last report '
+                                    f'({self.speed_error})')
+        self.speed_rejected_recent = 0
+        return diagnostic_status('fixego estimator_node: speed aid', 'speed aid', level, message, values)
 
 
 def main(args: list[str] | None = None) -> None:

@@ -2,11 +2,14 @@
 
 Subscribes each camera's ``image_raw`` (sensor-data QoS), ``joint_states`` and ``fixation`` (from
 ``camera_node``), matches them by stamp (:class:`~fixego_ros.pipeline.sync.StereoSync`, bounded waits),
-tracks pyramidal Lucas-Kanade flow in a window around each fixation point and turns every point into
-rig-frame rays with the pan/tilt of each of the two frames (:class:`~fixego_ros.pipeline.frontend.StereoFrontEnd`).
-Publishes ``/fixego/flow/observation`` (sensor_msgs/PointCloud2 rows, :mod:`fixego_ros.pipeline.observation`)
-and ``/diagnostics``. A frame with one camera only gives a one-camera observation; dropped frames show
-up as a gap between the observation's ``t0`` and the previous frame, which the estimator bridges.
+keeps persistent point tracks in a window around each fixation point (pyramidal Lucas-Kanade frame to
+frame from positions predicted by the pan/tilt readings and the rig's angular velocity, epipolar RANSAC)
+and turns every point into rig-frame rays with the pan/tilt of its frame
+(:class:`~fixego_ros.pipeline.frontend.StereoFrontEnd`). Publishes ``/fixego/flow/observation``
+(sensor_msgs/PointCloud2 rows: cameras, flow pairs keyframe -> t, live tracks;
+:mod:`fixego_ros.pipeline.observation`) and ``/diagnostics``. A frame with one camera only gives a
+one-camera observation; dropped frames show up as a gap between the observation's ``t0`` and the
+previous frame, which the estimator bridges.
 """
 
 from __future__ import annotations
@@ -70,7 +73,7 @@ class FlowNode(Node):
         self.create_timer(0.02, self._drain)
         self.create_timer(float(g('diagnostics_period_s')), self._publish_diagnostics)
         self.stats = {'images': 0, 'bad_images': 0, 'observations': 0, 'keyframes': 0, 'points_right': 0,
-                      'points_left': 0}
+                      'points_left': 0, 'tracks_right': 0, 'tracks_left': 0}
         self.process_ms: deque[float] = deque(maxlen=300)
         self.last_problem = ''
         self.get_logger().info(f'flow: preset {self.flow_params.preset}, window {self.flow_params.window_px} px')
@@ -129,6 +132,7 @@ class FlowNode(Node):
             for side in SIDES:
                 cam = obs.camera(side)
                 self.stats[f'points_{side}'] = len(cam.flow_prev) if cam is not None else 0
+                self.stats[f'tracks_{side}'] = len(cam.track_ids) if cam is not None else 0
 
     # -------------------------------------------------------------------------------------- diagnostics
     def _publish_diagnostics(self) -> None:
@@ -139,6 +143,9 @@ class FlowNode(Node):
                        'overflow_images': s.overflow_images, 'no_joints': s.no_joints, 'no_fixation': s.no_fixation,
                        'rejected_inputs': s.rejected, 'preset': self.flow_params.preset})
         values.update(self.frontend.stats)     # each camera's last status, reason and point counts
+        totals = self.frontend.totals           # which LK attempt the tracks came from, RANSAC runs
+        values.update({f'{side}.{k}_total': totals[f'{side}.{k}'] for side in SIDES
+                       for k in ('lk_predicted', 'lk_zero', 'lk_stereo', 'lk_retry', 'ransac', 'epipolar')})
         ms = np.array(self.process_ms) if self.process_ms else np.zeros(1)
         values.update({'process_ms_p50': f'{np.median(ms):.2f}', 'process_ms_p95': f'{np.percentile(ms, 95):.2f}'})
         level, message = OK, 'tracking flow'

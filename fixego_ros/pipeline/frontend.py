@@ -1,43 +1,92 @@
 """Stereo front end: synchronised camera samples -> the estimator's :class:`FrameObservation` (ROS-free).
 
-Per camera and frame it turns the fixation pixel into a rig-frame ray and tracks flow from the previous
-processed frame around the previous fixation pixel (:func:`~fixego_ros.tracking.flow.track_flow`).
-Pixels become rig-frame rays with the pan/tilt of the frame they were seen in: the t-1 end of a flow
-pair with the readings at t-1, the t end with those at t. That is what removes the cameras' own
-rotation from the flow, so what remains is the rig's motion (DESIGN.md §2, §5).
+**Persistent tracks.** Per camera the front end keeps a set of point tracks with integer ids (never
+reused within a camera, increasing). Every frame they are tracked from the previous processed frame with
+pyramidal Lucas-Kanade and the forward-backward and correlation checks
+(:func:`~fixego_ros.tracking.flow.track_points`); a track dies when it fails a check, leaves the image
+(border) or its track region (below), or is an epipolar outlier. When fewer than a target number remain
+in the flow region, new corners are detected there (at least ``min_distance_px`` from the live tracks)
+and get new ids; a camera holds at most the target number of tracks (the LK cost is per point). A track
+leaving its region still gives its flow pair at that frame, then ends. Regions follow the fixation
+pixel at t (image centre without one): ``paper``: the papers' ``paper_points`` in the central
+``paper_region_px`` square, tracks die on leaving it; ``window``: up to ``max_corners`` in the
+``window_px`` square, tracks die on leaving that square grown by a quarter of its side each way;
+``full``: ``max_corners`` over the whole image. Each :class:`CameraFrame` carries
+every live track at t (``track_ids``, ``track_rays``).
 
-Flow starts at a *keyframe*: by default the previous frame (the papers' scheme). At a high frame rate
-consecutive frames are a few millimetres apart, far too little baseline for the two-frame solve, so a
-:class:`KeyframePolicy` may keep one keyframe over several frames: each frame is then tracked from the
-keyframe image directly (fixation keeps the image motion near the fixation point small, so LK still
-follows), and the observation's ``prev_stamp`` names the keyframe. A new keyframe is taken after
-``max_frames`` frames, once the rotation-compensated parallax reaches ``min_parallax_px``, when too few
-of the keyframe's points still track, or when a fixation point is re-selected.
+**Predicted LK.** Image motion between frames can be large (a head lags its fixation point or swings
+back at a pan limit), so LK starts from a prediction: the pan/tilt of both frames are known, and the
+rig rotation over the step is predicted at constant angular velocity from the previous step (Kabsch
+rotation of the previous step's track rays, both cameras; the left camera uses the step the right one
+has just measured when it has enough tracks; a camera that lost most points is retried with the
+rotation the other one measured). A track's ray at t-1 is rotated into the rig at t, into the
+camera at t's pan/tilt and projected. When most points fail from the prediction, LK is tried once from
+zero motion and the better attempt is kept (``totals`` counts ``lk_predicted``/``lk_zero``/``lk_retry``).
+
+**Flow and keyframes.** Pixels become rig-frame rays with the pan/tilt of the frame they were seen in,
+which removes the cameras' own rotation from the flow, so what remains is the rig's motion (DESIGN.md
+§2, §5). Flow starts at a *keyframe*: by default the previous frame (the papers' scheme). A
+:class:`KeyframePolicy` may keep one keyframe over several frames (at a high frame rate consecutive
+frames are a few millimetres apart, too little baseline for the two-frame solve). The flow pairs of a
+camera are its tracks alive at both the keyframe and t: ``flow_prev`` = the ray stored when the keyframe
+was taken, ``flow_curr`` = the ray at t; the observation's ``prev_stamp`` names the keyframe. A new
+keyframe is taken after ``max_frames`` frames, when the rig rotation keyframe -> t (Kabsch on the pairs)
+exceeds ``max_rotation_deg``, once the rotation-compensated parallax reaches ``min_parallax_px``, when
+too few of the keyframe's tracks survive, or when a fixation point is re-selected.
+
+**Epipolar outliers.** With at least 8 pairs, a camera's pairs keyframe -> t must fit one essential
+model ``a . (T_c x R b) = 0`` (rig-frame rays; T_c the camera centre's motion). RANSAC
+(``cv2.findEssentialMat``, rays rotated into the camera's optical frame at the keyframe as normalised
+coordinates, bound ``ransac_px`` / focal) drops the outliers from the pairs and kills their tracks. It
+is skipped when the median rotation-compensated parallax is below ``ransac_min_parallax_px`` (E is then
+degenerate and any pair fits some E).
+
+Counts per camera and frame (:class:`~fixego_ros.tracking.flow.FlowCounts`): ``detected`` = live tracks
+of t-1 tracked into t = ``lost + min_eig + outside + fb + ncc + epipolar + kept``; ``new`` = tracks
+started at t.
 
 A camera contributes flow only if it also had a usable sample at the keyframe; a camera that is
 missing, has an image of the wrong size or non-finite joint readings is left out of the observation
-(None) for this frame, and the reason is kept in :attr:`StereoFrontEnd.last`.
+(None) for this frame, its tracks end, and the reason is kept in :attr:`StereoFrontEnd.last`.
 """
 
 from __future__ import annotations
 
 import math
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
+import cv2
 import numpy as np
 
 from fixego_ros.estimation.estimator import CameraFrame, FrameObservation
 from fixego_ros.estimation.twoframe import kabsch_rotation
 from fixego_ros.geometry.rig import SIDES, Rig
-from fixego_ros.tracking.flow import FlowCounts, FlowParams, FlowTracks, track_flow
+from fixego_ros.geometry.rotation import exp_so3, log_so3, rotation_angle
+from fixego_ros.tracking.flow import (
+    Box,
+    FlowCounts,
+    FlowParams,
+    FlowTracks,
+    PointFlow,
+    detect_corners,
+    square_box,
+    track_points,
+    valid_box,
+)
 
 # per-camera outcome of a frame
-OK = 'ok'                        # flow tracked from the previous frame (it may still have 0 points)
-NO_PREVIOUS = 'no_previous'      # first frame, or the camera was not usable at the previous frame
+OK = 'ok'                        # tracked from the previous frame; flow from the keyframe (it may still have 0 pairs)
+NO_PREVIOUS = 'no_previous'      # first frame, or the camera was not usable at the keyframe
 MISSING = 'missing'              # no sample for this camera
 BAD_IMAGE = 'bad_image'          # not a 2-D image of the rig camera's size
 BAD_JOINTS = 'bad_joints'        # non-finite pan/tilt readings
+
+# which LK attempt a camera's tracks came from
+LK_PREDICTED = 'predicted'       # from the predicted positions
+LK_ZERO = 'zero'                 # the prediction failed for most points; zero motion did better
+LK_STEREO = 'stereo'             # ... and the rotation the other camera measured over this step did better
+MIN_ROTATION_PAIRS = 8           # pairs for a Kabsch rotation worth predicting with
 
 
 @dataclass
@@ -58,7 +107,8 @@ class KeyframePolicy:
     max_frames: int = 1                 # frames per keyframe at most; 1 = flow between consecutive frames
     min_parallax_px: float = 0.0        # new keyframe once the median rotation-compensated parallax reaches
                                         # this (0 = off)
-    min_tracked_fraction: float = 0.5   # new keyframe when fewer of the keyframe's points still track
+    min_tracked_fraction: float = 0.5   # new keyframe when fewer of the keyframe's tracks survive
+    max_rotation_deg: float = 8.0       # new keyframe once the rig rotation keyframe -> t exceeds this (0 = off)
 
     def __post_init__(self) -> None:
         if self.max_frames < 1:
@@ -67,6 +117,8 @@ class KeyframePolicy:
             raise ValueError(f'min_parallax_px must be finite and >= 0, got {self.min_parallax_px}')
         if not 0.0 <= self.min_tracked_fraction <= 1.0:
             raise ValueError(f'min_tracked_fraction must be in [0, 1], got {self.min_tracked_fraction}')
+        if not (math.isfinite(self.max_rotation_deg) and self.max_rotation_deg >= 0):
+            raise ValueError(f'max_rotation_deg must be finite and >= 0, got {self.max_rotation_deg}')
 
 
 def parallax_px(a: np.ndarray, b: np.ndarray, focal_px: float) -> float:
@@ -79,16 +131,68 @@ def parallax_px(a: np.ndarray, b: np.ndarray, focal_px: float) -> float:
     return float(np.median(np.arccos(cosang)) * focal_px)
 
 
+def epipolar_outliers(a: np.ndarray, b: np.ndarray, cam_to_rig: np.ndarray, focal_px: float,
+                      threshold_px: float, min_parallax_px: float = 0.5) -> np.ndarray | None:
+    """Outliers (N,) bool of one camera's ray pairs ``a`` (keyframe) -> ``b`` (now), both rig frame, under
+    an essential model ``a . (T x R b) = 0``: RANSAC (``cv2.findEssentialMat``, prob 0.999) on the rays
+    rotated into the camera's optical frame ``cam_to_rig`` (so z > 0) as normalised coordinates, bound
+    ``threshold_px / focal_px``. None when it was not run: fewer than 8 usable pairs, or a median
+    rotation-compensated parallax below ``min_parallax_px`` (E degenerate: every pair fits some E)."""
+    if len(a) < 8 or parallax_px(a, b, focal_px) < min_parallax_px:
+        return None
+    ac, bc = a @ cam_to_rig, b @ cam_to_rig            # rows: C^T a
+    front = (ac[:, 2] > 0.05) & (bc[:, 2] > 0.05)
+    if front.sum() < 8:
+        return None
+    x1 = ac[front, :2] / ac[front, 2:]
+    x2 = bc[front, :2] / bc[front, 2:]
+    E, mask = cv2.findEssentialMat(x1, x2, focal=1.0, pp=(0.0, 0.0), method=cv2.RANSAC, prob=0.999,
+                                   threshold=float(threshold_px) / float(focal_px))
+    if E is None or mask is None:
+        return None
+    out = np.zeros(len(a), bool)
+    out[np.flatnonzero(front)[mask.ravel() == 0]] = True
+    return out
+
+
+@dataclass(frozen=True)
+class Tracks:
+    """Live point tracks of one camera at one frame."""
+
+    ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))   # (N,) int64
+    px: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))         # (N, 2) pixels
+    rays: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))       # (N, 3) rig-frame unit rays
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    def select(self, keep: np.ndarray) -> Tracks:
+        return Tracks(self.ids[keep], self.px[keep], self.rays[keep])
+
+    def plus(self, other: Tracks) -> Tracks:
+        return Tracks(np.concatenate([self.ids, other.ids]), np.concatenate([self.px, other.px]),
+                      np.concatenate([self.rays, other.rays]))
+
+
+def _in_box(px: np.ndarray, box: Box) -> np.ndarray:
+    x0, y0, x1, y1 = box
+    return (px[:, 0] >= x0) & (px[:, 0] < x1) & (px[:, 1] >= y0) & (px[:, 1] < y1)
+
+
 @dataclass(frozen=True)
 class SideReport:
     """What happened to one camera in the last :meth:`StereoFrontEnd.process` call."""
 
     status: str = MISSING
-    detail: str = ''                          # human-readable reason (also the flow's own reason)
+    detail: str = ''                          # human-readable reason
     counts: FlowCounts = field(default_factory=FlowCounts)
-    pairs: int = 0                            # flow pairs in the observation (after the finite-ray filter)
+    pairs: int = 0                            # flow pairs in the observation (tracks at the keyframe and now)
     has_fixation: bool = False
-    window: tuple[int, int, int, int] | None = None
+    window: tuple[int, int, int, int] | None = None   # detection region at t
+    tracks: int = 0                           # live tracks at t (new ones included)
+    lk: str = ''                              # LK_PREDICTED | LK_ZERO | LK_STEREO | '' (nothing tracked)
+    lk_retry: bool = False                    # another LK attempt was made after the prediction failed
+    ransac: bool = False                      # the epipolar RANSAC ran
 
 
 def _finite_px(px: tuple[float, float] | None) -> tuple[float, float] | None:
@@ -102,11 +206,12 @@ def _finite_px(px: tuple[float, float] | None) -> tuple[float, float] | None:
 
 
 class StereoFrontEnd:
-    """Feed synchronised frames in order with :meth:`process`; :meth:`reset` forgets the previous frame.
+    """Feed synchronised frames in order with :meth:`process`; :meth:`reset` forgets the previous frames
+    and ends every track (ids still never repeat).
 
     After each call, :attr:`last` holds a :class:`SideReport` per camera and :attr:`last_tracks` the
-    pixel tracks behind the flow rays (None when no flow was tracked); :attr:`totals` sums the
-    statuses and counts over all frames since construction.
+    pixels behind the flow pairs (keyframe -> t; None when the camera had no keyframe); :attr:`totals`
+    sums the statuses, counts and LK modes over all frames since construction.
     """
 
     def __init__(self, rig: Rig, params: FlowParams | None = None, keyframes: KeyframePolicy | None = None) -> None:
@@ -114,13 +219,20 @@ class StereoFrontEnd:
         self.params = params or FlowParams()
         self.keyframes = keyframes or KeyframePolicy()
         self.totals: Counter[str] = Counter()
+        self._next_id = dict.fromkeys(SIDES, 0)
         self.reset()
 
     def reset(self) -> None:
         self._prev: dict[str, CameraSample | None] = dict.fromkeys(SIDES)   # the keyframe's samples
         self._prev_stamp: float | None = None                              # the keyframe's stamp
+        self._key: dict[str, Tracks] = {side: Tracks() for side in SIDES}  # tracks at the keyframe
+        self._last: dict[str, CameraSample | None] = dict.fromkeys(SIDES)   # the previous frame's samples
+        self._tracks: dict[str, Tracks] = {side: Tracks() for side in SIDES}  # live tracks there
+        self._last_stamp: float | None = None
+        self._omega = np.zeros(3)           # rig angular velocity of the last step (rad/s, rig frame)
         self._since_key = 0
         self.last_parallax_px = 0.0
+        self.last_rotation_deg = 0.0
         self.last: dict[str, SideReport] = {side: SideReport() for side in SIDES}
         self.last_tracks: dict[str, FlowTracks | None] = dict.fromkeys(SIDES)
 
@@ -136,27 +248,58 @@ class StereoFrontEnd:
             out[f'{side}.status'] = r.status
             out[f'{side}.detail'] = r.detail
             out[f'{side}.pairs'] = r.pairs
+            out[f'{side}.tracks'] = r.tracks
+            out[f'{side}.lk'] = r.lk
             out.update({f'{side}.{k}': v for k, v in r.counts.as_dict().items()})
         return out
 
     def process(self, stamp: float, samples: dict[str, CameraSample | None]) -> FrameObservation:
         """One synchronised frame; ``samples`` maps 'right'/'left' to a sample or None (missing keys = None)."""
+        stamp = float(stamp)
+        dt = stamp - self._last_stamp if self._last_stamp is not None else 0.0
+        R_pred = exp_so3(self._omega * dt) if 0.0 < dt < 1.0 else np.eye(3)
         current: dict[str, CameraSample | None] = {}
-        cams = {side: self._camera(side, samples.get(side), current) for side in SIDES}
-        obs = FrameObservation(float(stamp), cams['right'], cams['left'], self._prev_stamp)
+        frames = {side: self._check(side, samples.get(side), current) for side in SIDES}
+        # follow each camera's tracks; the rotation one camera measures predicts the other's
+        follows: dict[str, _Follow | None] = {}
+        measured: dict[str, np.ndarray] = {}
+        for side in SIDES:
+            follows[side] = f = self._follow(side, current[side], R_pred) if frames[side] is not None else None
+            if f is not None and len(f.step[0]) >= MIN_ROTATION_PAIRS:
+                measured[side] = R_pred = kabsch_rotation(*f.step)
+        for side in SIDES:            # a camera that lost most points: once more with the other's rotation
+            f, other = follows[side], [R for o, R in measured.items() if o != side]
+            if f is not None and other and 2 * f.flow.counts.kept < len(self._tracks[side]):
+                follows[side] = self._follow(side, current[side], other[0], f)
+        step = [f.step for f in follows.values() if f is not None and len(f.step[0]) >= MIN_ROTATION_PAIRS]
+        if step and dt > 0.0:
+            self._omega = log_so3(kabsch_rotation(np.concatenate([a for a, _ in step]),
+                                                  np.concatenate([b for _, b in step]))) / dt
+        elif all(c is None for c in current.values()):
+            self._omega = np.zeros(3)
+        self._last_stamp = stamp
+        cams = {side: self._finish(side, frames[side], current[side], follows[side]) if frames[side] is not None
+                else None for side in SIDES}
+        obs = FrameObservation(stamp, cams['right'], cams['left'], self._prev_stamp)
         self._since_key += 1
         obs.keyframe = self._new_keyframe(obs, current)
         if obs.keyframe:
-            self._prev, self._prev_stamp, self._since_key = current, float(stamp), 0
+            self._prev, self._prev_stamp, self._since_key = current, stamp, 0
+            self._key = {side: self._tracks[side] if current[side] is not None else Tracks() for side in SIDES}
         for side, r in self.last.items():
             self.totals[f'{side}.{r.status}'] += 1
             for k, v in r.counts.as_dict().items():
                 self.totals[f'{side}.{k}'] += v
+            if r.lk:
+                self.totals[f'{side}.lk_{r.lk}'] += 1
+            self.totals[f'{side}.lk_retry'] += int(r.lk_retry)
+            self.totals[f'{side}.ransac'] += int(r.ransac)
         return obs
 
     def _new_keyframe(self, obs: FrameObservation, current: dict[str, CameraSample | None]) -> bool:
         """Whether the frame just processed becomes the keyframe (see :class:`KeyframePolicy`)."""
         pol = self.keyframes
+        self.last_parallax_px = self.last_rotation_deg = 0.0
         if self._prev_stamp is None or self._since_key >= pol.max_frames:
             return True
         a, b = [], []
@@ -168,14 +311,22 @@ class StereoFrontEnd:
                 continue
             if key.fixation_id != now.fixation_id:
                 return True                  # re-selected: the fixation pair needs a common keyframe
-            if rep.counts.detected and rep.pairs < pol.min_tracked_fraction * rep.counts.detected:
+            n_key = len(self._key[side])
+            if n_key and rep.pairs < pol.min_tracked_fraction * n_key:
                 return True
             cam = obs.camera(side)
             if cam is not None and len(cam.flow_prev):
                 a.append(cam.flow_prev)
                 b.append(cam.flow_curr)
-        if pol.min_parallax_px > 0 and a:
-            self.last_parallax_px = parallax_px(np.concatenate(a), np.concatenate(b), self.rig.camera('right').fx)
+        if not a:
+            return False
+        A, B = np.concatenate(a), np.concatenate(b)
+        if len(A) >= 3:
+            self.last_rotation_deg = math.degrees(rotation_angle(kabsch_rotation(A, B)))
+            if pol.max_rotation_deg > 0 and self.last_rotation_deg > pol.max_rotation_deg:
+                return True
+        if pol.min_parallax_px > 0:
+            self.last_parallax_px = parallax_px(A, B, self.rig.camera('right').fx)
             return self.last_parallax_px >= pol.min_parallax_px
         return False
 
@@ -183,17 +334,78 @@ class StereoFrontEnd:
     def _skip(self, side: str, status: str, detail: str) -> None:
         self.last[side] = SideReport(status, detail)
         self.last_tracks[side] = None
+        self._last[side] = None
+        self._tracks[side] = Tracks()
 
-    def _camera(self, side: str, s: CameraSample | None, current: dict[str, CameraSample | None]) -> CameraFrame | None:
+    def _regions(self, centre: tuple[float, float], shape: tuple[int, int]) -> tuple[Box, Box, int]:
+        """(detection region, track region, target count) around the window centre at t."""
+        p = self.params
+        valid = valid_box(shape, p.border_px)
+        if p.preset == 'full':
+            return valid, valid, p.max_corners
+        cx, cy = centre
+        window = square_box(cx, cy, p.window_px, valid)
+        if p.preset == 'paper':
+            region = square_box(cx, cy, p.paper_region_px, window)
+            return region, region, p.paper_points
+        return window, square_box(cx, cy, p.window_px + 2 * (p.window_px // 4), valid), p.max_corners
+
+    def _predict(self, side: str, tracks: Tracks, pan: float, tilt: float, R_pred: np.ndarray) -> np.ndarray:
+        """Predicted pixels (N, 2) at t of tracks seen at t-1 (NaN where a point would be behind the camera):
+        ray at t-1 -> rig at t (``R_pred`` = rig axes at t in the rig at t-1) -> camera at t -> pixel."""
+        d = (tracks.rays @ R_pred) @ self.rig.cam_to_rig(side, pan, tilt)   # rows: C_t^T R^T r
+        out = np.full((len(d), 2), np.nan)
+        front = d[:, 2] > 1e-3
+        if front.any():
+            out[front] = self.rig.camera(side).rays_to_pixels(d[front])
+        return out
+
+    def _follow(self, side: str, now: CameraSample, R_pred: np.ndarray,
+                before: _Follow | None = None) -> _Follow | None:
+        """Track the live tracks of the previous frame into ``now``, LK from the predicted positions. First call
+        (``before`` None): when most points fail, once more from zero motion; the better attempt wins.
+        Second call: from the other camera's measured rotation, kept only if better than ``before``."""
+        tracks, last = self._tracks[side], self._last[side]
+        if last is None or not len(tracks):
+            return None
+        p = self.params
+        guess = self._predict(side, tracks, now.pan, now.tilt, R_pred)
+        flow = track_points(last.gray, now.gray, tracks.px, p, guess)
+        if before is not None:
+            if flow.counts.kept <= before.flow.counts.kept:
+                return replace(before, retry=True)
+            return self._followed(side, now, tracks, flow, LK_STEREO, True)
+        moved = np.linalg.norm(np.where(np.isfinite(guess), guess, tracks.px) - tracks.px, axis=1)
+        if 2 * flow.counts.kept >= len(tracks) or not np.any(moved > 1.0):
+            return self._followed(side, now, tracks, flow, LK_PREDICTED, False)
+        zero = track_points(last.gray, now.gray, tracks.px, p)
+        if zero.counts.kept > flow.counts.kept:
+            return self._followed(side, now, tracks, zero, LK_ZERO, True)
+        return self._followed(side, now, tracks, flow, LK_PREDICTED, True)
+
+    def _followed(self, side: str, now: CameraSample, tracks: Tracks, flow: PointFlow, lk: str, retry: bool) -> _Follow:
+        ok = flow.ok
+        rays = self.rig.pixels_to_rig_rays(side, flow.curr_px[ok], now.pan, now.tilt)
+        fin = np.all(np.isfinite(rays), axis=1)
+        counts = replace(flow.counts, lost=flow.counts.lost + int((~fin).sum()), kept=int(fin.sum()))
+        old = tracks.select(ok)
+        return _Follow(flow, Tracks(old.ids[fin], flow.curr_px[ok][fin], rays[fin]), counts, (old.rays[fin], rays[fin]),
+                       lk, retry)
+
+    def _check(self, side: str, s: CameraSample | None, current: dict[str, CameraSample | None]) -> CameraFrame | None:
+        """The camera's frame at t without flow (fixation ray, rotation), or None when the sample is unusable;
+        ``current[side]`` becomes the checked sample (or None)."""
         current[side] = None
         if s is None:
             self._skip(side, MISSING, 'no sample')
             return None
         cam = self.rig.camera(side)
         img = s.gray
-        if not isinstance(img, np.ndarray) or img.ndim != 2 or img.shape != (cam.height, cam.width):
+        if not isinstance(img, np.ndarray) or img.ndim != 2 or img.shape != (cam.height, cam.width) \
+                or img.dtype != np.uint8:
             shape = getattr(img, 'shape', None)
-            self._skip(side, BAD_IMAGE, f'image shape {shape}, rig camera is {cam.height}x{cam.width} (HxW)')
+            self._skip(side, BAD_IMAGE, f'image shape {shape} dtype {getattr(img, "dtype", None)}, rig camera '
+                                        f'is {cam.height}x{cam.width} (HxW) uint8')
             return None
         try:
             pan, tilt = float(s.pan), float(s.tilt)
@@ -203,28 +415,97 @@ class StereoFrontEnd:
         if not np.all(np.isfinite(C)):
             self._skip(side, BAD_JOINTS, f'pan/tilt readings not finite: {s.pan!r}, {s.tilt!r}')
             return None
-
         fix_px = _finite_px(s.fixation_px)
         ray = None
         if fix_px is not None:
             r = self.rig.pixels_to_rig_rays(side, np.array([fix_px]), pan, tilt)[0]
             ray = r if np.all(np.isfinite(r)) else None
-        frame = CameraFrame(ray, int(s.fixation_id) if ray is not None else -1, C)
-
-        prev = self._prev[side]
         current[side] = CameraSample(img, pan, tilt, fix_px, int(s.fixation_id) if fix_px is not None else -1)
+        return CameraFrame(ray, int(s.fixation_id) if ray is not None else -1, C)
+
+    def _finish(self, side: str, frame: CameraFrame, now: CameraSample, f: _Follow | None) -> CameraFrame:
+        """Region, flow pairs keyframe -> t with the epipolar check, new tracks; fills ``frame``."""
+        p = self.params
+        cam = self.rig.camera(side)
+        if f is not None:
+            tracks, counts, lk, retry = f.tracks, f.counts, f.lk, f.retry
+        else:
+            tracks, counts, lk, retry = Tracks(), FlowCounts(), '', False
+
+        fix_px = now.fixation_px
+        centre = fix_px if fix_px is not None else ((cam.width - 1) / 2.0, (cam.height - 1) / 2.0)
+        region, keep_box, target = self._regions(centre, now.gray.shape)
+
+        # 1. flow pairs keyframe -> t; epipolar outliers end
+        key, prev = self._key[side], self._prev[side]
+        ransac = False
         if prev is None:
-            self.last[side] = SideReport(NO_PREVIOUS, 'no usable sample at the previous frame',
-                                         has_fixation=ray is not None)
+            status, detail = NO_PREVIOUS, 'no usable sample at the keyframe'
             self.last_tracks[side] = None
-            return frame
-        tracks = track_flow(prev.gray, img, prev.fixation_px, self.params)
-        self.last_tracks[side] = tracks
-        if len(tracks):
-            a = self.rig.pixels_to_rig_rays(side, tracks.prev_px, prev.pan, prev.tilt)
-            b = self.rig.pixels_to_rig_rays(side, tracks.curr_px, pan, tilt)
-            good = np.all(np.isfinite(a), axis=1) & np.all(np.isfinite(b), axis=1)
-            frame.flow_prev, frame.flow_curr = a[good], b[good]
-        self.last[side] = SideReport(OK, tracks.reason, tracks.counts, len(frame.flow_prev), ray is not None,
-                                     tracks.window)
+        else:
+            status, detail = OK, ''
+            _, ia, ib = np.intersect1d(key.ids, tracks.ids, assume_unique=True, return_indices=True)
+            a, b = key.rays[ia], tracks.rays[ib]
+            if len(a) >= 8 and p.ransac_px > 0:
+                out = epipolar_outliers(a, b, self.rig.cam_to_rig(side, prev.pan, prev.tilt), cam.fx, p.ransac_px,
+                                        p.ransac_min_parallax_px)
+                ransac = out is not None
+                if out is not None and out.any():
+                    n_out = int(out.sum())
+                    counts = replace(counts, epipolar=n_out, kept=counts.kept - n_out)
+                    dead = np.zeros(len(tracks), bool)
+                    dead[ib[out]] = True
+                    ia, ib, a, b = ia[~out], ib[~out], a[~out], b[~out]
+                    tracks = tracks.select(~dead)
+                    ib = _reindex(ib, dead)
+            frame.flow_prev, frame.flow_curr = a, b
+            if not len(a):
+                detail = 'no track alive at both the keyframe and now' if len(key) else 'no tracks at the keyframe'
+            self.last_tracks[side] = FlowTracks(key.px[ia], tracks.px[ib], counts, window=region, center_px=centre)
+
+        # 2. tracks outside their region end (after giving their pair: the region moves when the fixation
+        # point is re-selected, and the step keyframe -> t still needs their flow)
+        keep = _in_box(tracks.px, keep_box)
+        if not keep.all():
+            n_out = int((~keep).sum())
+            counts = replace(counts, outside=counts.outside + n_out, kept=counts.kept - n_out)
+            tracks = tracks.select(keep)
+
+        # 3. new tracks where the region has fewer than the target (and the camera fewer than that in all)
+        need = min(target - int(_in_box(tracks.px, region).sum()), target - len(tracks))
+        n_new = 0
+        if need > 0 and region[2] - region[0] >= 1 and region[3] - region[1] >= 1:
+            pts = detect_corners(now.gray, region, need, p, exclude=tracks.px)
+            rays = self.rig.pixels_to_rig_rays(side, pts, now.pan, now.tilt)
+            fin = np.all(np.isfinite(rays), axis=1)
+            n_new = int(fin.sum())
+            if n_new:
+                ids = self._next_id[side] + np.arange(n_new, dtype=np.int64)
+                self._next_id[side] += n_new
+                tracks = tracks.plus(Tracks(ids, pts[fin], rays[fin]))
+        counts = replace(counts, new=n_new)
+        if self.last_tracks[side] is not None:
+            self.last_tracks[side] = replace(self.last_tracks[side], counts=counts)
+
+        frame.track_ids, frame.track_rays = tracks.ids.copy(), tracks.rays.copy()
+        self._tracks[side], self._last[side] = tracks, now
+        self.last[side] = SideReport(status, detail, counts, len(frame.flow_prev), frame.fixation_ray is not None,
+                                     region, len(tracks), lk, retry, ransac)
         return frame
+
+
+@dataclass(frozen=True)
+class _Follow:
+    """One camera's tracks followed from the previous frame into t."""
+
+    flow: PointFlow
+    tracks: Tracks                              # the survivors at t
+    counts: FlowCounts
+    step: tuple[np.ndarray, np.ndarray]         # their rays at t-1 and at t (rig frames)
+    lk: str
+    retry: bool
+
+
+def _reindex(idx: np.ndarray, dead: np.ndarray) -> np.ndarray:
+    """Indices ``idx`` into an array from which the ``dead`` entries were removed (``idx`` not dead)."""
+    return idx - np.cumsum(dead)[idx]

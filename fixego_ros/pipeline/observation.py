@@ -13,6 +13,10 @@ keyframe the flow starts from; 0 when there is none), ``x0 y0 z0``, ``x1 y1 z1``
   vector of the camera's optical frame in the rig frame at t (pan/tilt applied).
 - ``kind`` 1, one row per flow point: ``x0 y0 z0`` = its ray at t0 (rig frame at t0), ``x1 y1 z1`` = the
   ray of the same scene point at t (rig frame at t). ``fixation_id`` repeats the camera row's.
+- ``kind`` 2, one row per live point track of the camera at t (``CameraFrame.track_ids/track_rays``):
+  ``x0`` = the track id, an integer carried exactly by the float64 (ids are 0 <= id < 2**53; PointCloud2
+  has no 64-bit integer field), ``y0 = z0 = 0``, ``x1 y1 z1`` = the track's ray at t (rig frame at t).
+  ``fixation_id`` repeats the camera row's. Ids are unique within a camera.
 
 Decoding validates everything (sides, kinds, finite values, unit rays) and raises
 :class:`ObservationError` with the reason, so a malformed message is rejected as a whole.
@@ -26,7 +30,8 @@ from fixego_ros.estimation.estimator import CameraFrame, FrameObservation
 from fixego_ros.geometry.rig import SIDES
 from fixego_ros.geometry.rotation import exp_so3, log_so3
 
-KIND_CAMERA, KIND_FLOW = 0, 1
+KIND_CAMERA, KIND_FLOW, KIND_TRACK = 0, 1, 2
+MAX_TRACK_ID = 2**53 - 1     # largest id a float64 holds exactly
 FLAG_KEYFRAME = 1
 ROW_DTYPE = np.dtype([('side', '<u1'), ('kind', '<u1'), ('flags', '<u1'), ('fixation_id', '<i4'), ('t0', '<f8'),
                       ('x0', '<f8'), ('y0', '<f8'), ('z0', '<f8'), ('x1', '<f8'), ('y1', '<f8'), ('z1', '<f8')])
@@ -68,7 +73,16 @@ def observation_to_rows(obs: FrameObservation) -> np.ndarray:
         if len(flow):
             _set(flow, _A, np.asarray(cam.flow_prev, float))
             _set(flow, _B, np.asarray(cam.flow_curr, float))
-        parts += [head, flow]
+        ids = np.asarray(cam.track_ids).reshape(-1)
+        tracks = np.zeros(len(ids), ROW_DTYPE)
+        tracks['side'], tracks['kind'], tracks['fixation_id'], tracks['t0'], tracks['flags'] = \
+            si, KIND_TRACK, fid, t0, flags
+        if len(tracks):
+            if np.any(ids < 0) or np.any(ids > MAX_TRACK_ID):
+                raise ObservationError(f'{side}: track ids must be in [0, 2**53)')
+            tracks['x0'] = ids.astype(np.float64)
+            _set(tracks, _B, np.asarray(cam.track_rays, float).reshape(-1, 3))
+        parts += [head, flow, tracks]
     return np.concatenate(parts) if parts else np.zeros(0, ROW_DTYPE)
 
 
@@ -77,6 +91,21 @@ def _unit(v: np.ndarray, what: str) -> np.ndarray:
     if np.any(np.abs(n - 1.0) > 1e-3):
         raise ObservationError(f'{what}: rays must be unit vectors (norms {n.min():.3g}..{n.max():.3g})')
     return v / n[:, None]
+
+
+def _tracks(rows: np.ndarray, side: str) -> tuple[np.ndarray, np.ndarray]:
+    """Track ids (int64) and rays of a camera's track rows, validated."""
+    if not len(rows):
+        return np.zeros(0, np.int64), np.zeros((0, 3))
+    x = rows['x0'].astype(np.float64)
+    if np.any(x < 0) or np.any(x > MAX_TRACK_ID) or np.any(x != np.floor(x)):
+        raise ObservationError(f'{side}: track ids must be integers in [0, 2**53)')
+    if np.any(rows['y0'] != 0.0) or np.any(rows['z0'] != 0.0):
+        raise ObservationError(f'{side}: track rows must have y0 = z0 = 0')
+    ids = x.astype(np.int64)
+    if len(np.unique(ids)) != len(ids):
+        raise ObservationError(f'{side}: repeated track ids')
+    return ids, _unit(_get(rows, _B), f'{side} tracks')
 
 
 def rows_to_observation(stamp: float, rows: np.ndarray) -> FrameObservation:
@@ -91,7 +120,7 @@ def rows_to_observation(stamp: float, rows: np.ndarray) -> FrameObservation:
         raise ObservationError(f'{int(np.sum(~np.all(np.isfinite(floats), axis=1)))} rows with NaN/inf values')
     if np.any(rows['side'] >= len(SIDES)):
         raise ObservationError(f'unknown side index {int(rows["side"].max())} (0 right, 1 left)')
-    if np.any(rows['kind'] > KIND_FLOW):
+    if np.any(rows['kind'] > KIND_TRACK):
         raise ObservationError(f'unknown row kind {int(rows["kind"].max())}')
     t0s = np.unique(rows['t0'])
     if len(t0s) > 1:
@@ -106,11 +135,12 @@ def rows_to_observation(stamp: float, rows: np.ndarray) -> FrameObservation:
     for si, side in enumerate(SIDES):
         head = rows[(rows['side'] == si) & (rows['kind'] == KIND_CAMERA)]
         flow = rows[(rows['side'] == si) & (rows['kind'] == KIND_FLOW)]
+        track = rows[(rows['side'] == si) & (rows['kind'] == KIND_TRACK)]
         if len(head) > 1:
             raise ObservationError(f'{side}: {len(head)} camera rows (expected at most 1)')
         if len(head) == 0:
-            if len(flow):
-                raise ObservationError(f'{side}: flow rows without a camera row')
+            if len(flow) or len(track):
+                raise ObservationError(f'{side}: flow or track rows without a camera row')
             cams[side] = None
             continue
         rvec = _get(head, _A)[0]
@@ -120,5 +150,5 @@ def rows_to_observation(stamp: float, rows: np.ndarray) -> FrameObservation:
         ray = _unit(_get(head, _B), f'{side} fixation')[0] if fid >= 0 else None
         prev = _unit(_get(flow, _A), f'{side} flow at t0') if len(flow) else np.zeros((0, 3))
         curr = _unit(_get(flow, _B), f'{side} flow at t') if len(flow) else np.zeros((0, 3))
-        cams[side] = CameraFrame(ray, fid, exp_so3(rvec), prev, curr)
+        cams[side] = CameraFrame(ray, fid, exp_so3(rvec), prev, curr, *_tracks(track, side))
     return FrameObservation(float(stamp), cams['right'], cams['left'], t0 if t0 > 0.0 else None, keyframe)

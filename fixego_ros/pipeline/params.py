@@ -47,9 +47,12 @@ FLOW_PARAMS: Table = {
     'fb_max_px': (0.5, 'forward-backward consistency bound (px)'),
     'lk_win': (21, 'Lucas-Kanade window (px)'),
     'lk_levels': (3, 'pyramid levels'),
+    'ransac_px': (1.0, "epipolar RANSAC inlier bound per camera, keyframe -> now (px; 0 = off)"),
     'keyframe_max_frames': (10, 'frames tracked from one keyframe at most (1 = consecutive frames, the papers)'),
     'keyframe_min_parallax_px': (0.0, 'new keyframe once the rotation-compensated parallax reaches this (0 = off)'),
     'keyframe_min_tracked_fraction': (0.5, "new keyframe when fewer of the keyframe's points still track"),
+    'keyframe_max_rotation_deg': (8.0, 'new keyframe once the rig rotation since the keyframe exceeds this '
+                                       '(deg; 0 = off)'),
     'slop_s': (0.01, 'images of the two cameras closer than this form one frame (s)'),
     'max_wait_s': (0.25, 'bound on waiting for a partner image, joint state or fixation (s)'),
     'joint_extrapolation_s': (0.0, 'how far past the newest joint state an image may be (s); 0 = wait for one'),
@@ -88,13 +91,14 @@ def flow_params(g: Getter) -> FlowParams:
     return FlowParams(preset=str(g('preset')), window_px=int(g('window_px')),
                       paper_region_px=int(g('paper_region_px')), paper_points=int(g('paper_points')),
                       max_corners=int(g('max_corners')), min_eig=float(g('min_eig')), fb_max_px=float(g('fb_max_px')),
-                      lk_win=int(g('lk_win')), lk_levels=int(g('lk_levels')))
+                      lk_win=int(g('lk_win')), lk_levels=int(g('lk_levels')), ransac_px=float(g('ransac_px')))
 
 
 def keyframe_policy(g: Getter) -> KeyframePolicy:
     return KeyframePolicy(max_frames=int(g('keyframe_max_frames')),
                           min_parallax_px=float(g('keyframe_min_parallax_px')),
-                          min_tracked_fraction=float(g('keyframe_min_tracked_fraction')))
+                          min_tracked_fraction=float(g('keyframe_min_tracked_fraction')),
+                          max_rotation_deg=float(g('keyframe_max_rotation_deg')))
 
 
 def sync_params(g: Getter) -> SyncParams:

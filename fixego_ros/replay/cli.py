@@ -2,8 +2,10 @@
 
 Writes ``EST.tum`` (refined) and ``EST.raw.tum`` (two-frame only): TUM lines ``stamp tx ty tz qx qy qz
 qw``, the pose of ``base_link`` in ``odom`` (DESIGN.md §6). Prints what was skipped and why, the speed
-against real time, and the ATE when the bag holds ``ground_truth/pose``. Exit codes: 0 done (possibly
-with documented degradations, printed), 2 the bag or the options cannot be used.
+against real time, and the ATE when the bag holds ``ground_truth/pose``. ``--speed-topic`` (off by
+default) feeds a nav_msgs/Odometry speed source recorded in the bag (e.g. ``fixego sim --wheel-odom-std``)
+to the estimator as a scale aid. Exit codes: 0 done (possibly with documented degradations, printed), 2
+the bag or the options cannot be used.
 """
 
 from __future__ import annotations
@@ -39,6 +41,12 @@ def register(subparsers) -> None:
     p.add_argument('--namespace', default='/fixego', help='topic namespace of the inputs (default /fixego)')
     p.add_argument('--remap', action='append', default=[], metavar='FROM:=TO',
                    help='read contract topic FROM (e.g. /fixego/right/image_raw) from bag topic TO (repeatable)')
+    p.add_argument('--speed-topic', metavar='TOPIC',
+                   help='scale aid: feed this nav_msgs/Odometry topic of the bag (twist in base_link, e.g. '
+                        '/fixego/wheel/odom) to the estimator (estimator_node speed_topic; default: off)')
+    p.add_argument('--speed-default-std', type=float, metavar='M_S',
+                   help='std (m/s) of a speed sample whose covariance is all zeros (estimator_node '
+                        'speed_default_std)')
     p.add_argument('--eval-out', type=Path, metavar='DIR',
                    help='with ground truth: also write DIR/ground_truth.tum, DIR/eval.json and DIR/eval.png')
     p.add_argument('--workers', type=int, choices=(1, 2), default=2 if (os.cpu_count() or 1) > 1 else 1,
@@ -62,6 +70,7 @@ def settings_from_args(args: argparse.Namespace, rig):
     """ReplaySettings from the node tables, the parameter files and the options (later wins)."""
     import yaml
 
+    from fixego_ros.pipeline.odometry import SPEED_PARAMS, SpeedSettings
     from fixego_ros.pipeline.params import (
         ESTIMATOR_PARAMS,
         FIXATION_PARAMS,
@@ -72,13 +81,15 @@ def settings_from_args(args: argparse.Namespace, rig):
     )
     from fixego_ros.replay.run import ReplaySettings
 
-    nodes = {'camera_node': FIXATION_PARAMS, 'flow_node': FLOW_PARAMS, 'estimator_node': ESTIMATOR_PARAMS}
+    nodes = {'camera_node': FIXATION_PARAMS, 'flow_node': FLOW_PARAMS,
+             'estimator_node': {**ESTIMATOR_PARAMS, **SPEED_PARAMS}}
     values: dict[str, dict[str, object]] = {n: {} for n in nodes}
     for f in args.params_file:
         for n in nodes:
             values[n].update(load_params_file(f, n))
     options = {'flow_node': {'preset': args.preset, 'keyframe_max_frames': args.keyframe_max_frames},
-               'estimator_node': {'window': args.window, 'mode': args.mode}}
+               'estimator_node': {'window': args.window, 'mode': args.mode, 'speed_topic': args.speed_topic,
+                                  'speed_default_std': args.speed_default_std}}
     for n, kv in options.items():
         values[n].update({k: v for k, v in kv.items() if v is not None})
     for name, text in _pairs(args.param, '--param'):
@@ -89,7 +100,8 @@ def settings_from_args(args: argparse.Namespace, rig):
         for n in owners:     # fb_max_px exists for the fixation tracker and the flow: -p sets both
             values[n][name] = yaml.safe_load(text)
     getters = {n: params_getter(table, values[n]) for n, table in nodes.items()}
-    return ReplaySettings.from_getters(rig, getters['camera_node'], getters['flow_node'], getters['estimator_node'])
+    return ReplaySettings.from_getters(rig, getters['camera_node'], getters['flow_node'], getters['estimator_node'],
+                                       SpeedSettings.from_getter(getters['estimator_node']))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -149,6 +161,8 @@ def run(args: argparse.Namespace) -> int:
     stages = ', '.join(f'{k} {np.median(v):.2f}' for k, v in res.stage_ms.items() if v)
     say(f'median ms per call: {stages}; fixation re-selections right {c["reselections:right"]}, '
         f'left {c["reselections:left"]}')
+    if settings.speed.topic:
+        say(f'speed aid {settings.speed.topic}: {c["speed_samples"]} samples given to the estimator')
     say(f'wrote {out} and {raw_out}')
     if res.gt_stamps:
         return _evaluate(args, res, say, fail)

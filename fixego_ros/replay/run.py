@@ -14,6 +14,11 @@ Bad data degrades and is reported, never silently: undecodable messages, images 
 encoding or size, non-finite joint states and stamps that go backwards are skipped and counted
 (:attr:`ReplayResult.counts`); a cut recording is replayed up to the cut (:attr:`ReplayResult.notes`).
 What makes a replay impossible raises :class:`ReplayError` with a one-line reason.
+
+Scale aid (off by default, :attr:`ReplaySettings.speed`): nav_msgs/Odometry messages on the speed topic
+are converted (:mod:`fixego_ros.pipeline.odometry`) and fed to ``Estimator.add_velocity`` in bag order,
+through the same queue as the frames (so ``workers=2`` sees the same interleaving); they do not drive the
+synchroniser's clock. Unusable ones are skipped and noted once per cause.
 """
 
 from __future__ import annotations
@@ -32,6 +37,7 @@ from fixego_ros.geometry.rig import SIDES, Rig
 from fixego_ros.geometry.rotation import Pose, rig_pose_to_base_link
 from fixego_ros.pipeline.frontend import CameraSample, KeyframePolicy, StereoFrontEnd
 from fixego_ros.pipeline.messages import ImageError, gray_for_camera, msg_to_pose, pan_tilt, stamp_to_sec
+from fixego_ros.pipeline.odometry import ODOMETRY_TYPE, OdometryError, SpeedInput, SpeedSettings, VelocitySample
 from fixego_ros.pipeline.params import (
     ESTIMATOR_PARAMS,
     FIXATION_PARAMS,
@@ -83,16 +89,17 @@ class ReplaySettings:
     keyframes: KeyframePolicy
     sync: SyncParams
     estimator: EstimatorConfig
+    speed: SpeedSettings = field(default_factory=SpeedSettings)      # scale aid; topic '' = off
 
     @classmethod
     def from_getters(cls, rig: Rig, camera: Getter | None = None, flow: Getter | None = None,
-                     estimator: Getter | None = None) -> ReplaySettings:
+                     estimator: Getter | None = None, speed: SpeedSettings | None = None) -> ReplaySettings:
         """The nodes' parameters (defaults of :mod:`~fixego_ros.pipeline.params` unless a getter is given)."""
         camera = camera or params_getter(FIXATION_PARAMS)
         flow = flow or params_getter(FLOW_PARAMS)
         estimator = estimator or params_getter(ESTIMATOR_PARAMS)
         return cls(fixation_params(camera), flow_params(flow), keyframe_policy(flow), sync_params(flow),
-                   estimator_config(estimator, rig))
+                   estimator_config(estimator, rig), speed or SpeedSettings())
 
 
 @dataclass
@@ -140,11 +147,15 @@ def _update(estimator: Estimator, stamp: float, obs) -> _Estimate:
                      rig_pose_to_base_link(r.pose_raw), (time.perf_counter() - t0) * 1e3)
 
 
-def _estimator_worker(rig: Rig, config: EstimatorConfig, inbox, outbox) -> None:
-    """Second process: estimate observations from ``inbox`` in order until None, results to ``outbox``."""
-    estimator = Estimator(rig, config)
+def _estimator_worker(factory: type[Estimator], rig: Rig, config: EstimatorConfig, inbox, outbox) -> None:
+    """Second process: estimate observations (and take velocity samples) from ``inbox`` in order until None,
+    results to ``outbox``. ``factory`` is the parent's estimator class, so both processes run the same one."""
+    estimator = factory(rig, config)
     batch: list[_Estimate] = []
     while (item := inbox.get()) is not None:
+        if isinstance(item, VelocitySample):
+            estimator.add_velocity(item.stamp, item.v_rig, item.cov_rig)
+            continue
         batch.append(_update(estimator, *item))
         if len(batch) >= 16:
             outbox.put(batch)
@@ -161,6 +172,9 @@ class _InProcess:
     def submit(self, stamp: float, obs) -> None:
         self.done.append(_update(self.estimator, stamp, obs))
 
+    def submit_velocity(self, s: VelocitySample) -> None:
+        self.estimator.add_velocity(s.stamp, s.v_rig, s.cov_rig)
+
     def finish(self) -> list[_Estimate]:
         return self.done
 
@@ -175,14 +189,17 @@ class _Subprocess:
         import multiprocessing as mp
         ctx = mp.get_context('spawn')      # no fork: the parent holds OpenCV's thread pool
         self.inbox, self.outbox = ctx.Queue(), ctx.Queue()
-        self.proc = ctx.Process(target=_estimator_worker, args=(rig, config, self.inbox, self.outbox), daemon=True,
-                                name='fixego-replay-estimator')
+        self.proc = ctx.Process(target=_estimator_worker, args=(Estimator, rig, config, self.inbox, self.outbox),
+                                daemon=True, name='fixego-replay-estimator')
         self.proc.start()
         self.timeout_s = timeout_s
         self.done: list[_Estimate] = []
 
     def submit(self, stamp: float, obs) -> None:
         self.inbox.put((stamp, obs))
+
+    def submit_velocity(self, s: VelocitySample) -> None:
+        self.inbox.put(s)
 
     def finish(self) -> list[_Estimate]:
         import queue
@@ -220,11 +237,18 @@ class _Timer:
         return t1
 
 
-def check_topics(bag: Bag, topics: ReplayTopics) -> None:
+def check_topics(bag: Bag, topics: ReplayTopics, speed_topic: str = '') -> None:
     """Fail early when the bag lists its topics and a required one is missing or of the wrong type."""
     if not bag.topics:
         return          # a cut file without summary or metadata: topics are only known while reading
     listed = ', '.join(sorted(bag.topics)) or 'none'
+    if speed_topic:
+        t = bag.topics.get(speed_topic)
+        if t is None:
+            raise ReplayError(f'{bag.path}: no speed topic {speed_topic} (topics in the bag: {listed})')
+        if t.msgtype != ODOMETRY_TYPE:
+            raise ReplayError(f'{bag.path}: speed topic {speed_topic} is {t.msgtype or "of unknown type"}, '
+                              f'expected {ODOMETRY_TYPE}')
     for side in SIDES:
         for suffix, types in ((f'{side}/image_raw', IMAGE_TYPES), (f'{side}/joint_states', (JOINTS_TYPE,))):
             name = topics.name(suffix)
@@ -241,8 +265,13 @@ def replay(bag: Bag, rig: Rig, settings: ReplaySettings, topics: ReplayTopics = 
            progress: Callable[[int], None] | None = None, workers: int = 1) -> ReplayResult:
     """Run the pipeline over ``bag``; ``progress(images_done)`` is called as it goes. ``workers=2`` runs
     the estimator in a second process (same output, faster on two cores)."""
-    check_topics(bag, topics)
+    speed_topic = settings.speed.topic
+    check_topics(bag, topics, speed_topic)
     routes = topics.routes()
+    if speed_topic:
+        routes[speed_topic] = ('speed', '')
+    speed = SpeedInput(settings.speed)
+    last_frame: float | None = None      # stamp of the newest frame given to the estimator
     res = ReplayResult()
     clock = _Timer(res)
     trackers = {side: FixationTracker(rig.camera(side), settings.fixation) for side in SIDES}
@@ -254,12 +283,14 @@ def replay(bag: Bag, rig: Rig, settings: ReplaySettings, topics: ReplayTopics = 
     wall0 = time.perf_counter()
 
     def process(frame: SyncedFrame) -> None:
+        nonlocal last_frame
         t0 = time.perf_counter()
         samples = {side: None if c is None else CameraSample(c.image, c.pan, c.tilt, c.fixation_px, c.fixation_id)
                    for side, c in frame.cameras.items()}
         obs = frontend.process(frame.stamp, samples)
         clock('flow', t0)
         estimator.submit(frame.stamp, obs)
+        last_frame = frame.stamp
         res.counts['frames'] += 1
 
     try:
@@ -272,6 +303,19 @@ def replay(bag: Bag, rig: Rig, settings: ReplaySettings, topics: ReplayTopics = 
                 res.note(f'undecodable:{m.topic}', f'{e}: skipped')
                 continue
             stamp = stamp_to_sec(msg.header.stamp)
+            if kind == 'speed':          # does not drive the synchroniser's clock
+                try:
+                    sample = speed.from_msg(msg, last_frame)
+                except OdometryError as e:
+                    res.note(f'bad_speed:{e.kind}', f'speed sample on {m.topic} unusable ({e}): such samples '
+                                                    'are skipped')
+                    continue
+                if speed.assumed_frame and 'speed_frame_assumed' not in res.counts:
+                    res.note('speed_frame_assumed', f'{m.topic}: empty child_frame_id, twist taken as '
+                                                    f'{settings.speed.base_frame}')
+                estimator.submit_velocity(sample)
+                res.counts['speed_samples'] += 1
+                continue
             if kind == 'image':
                 res.counts['images'] += 1
                 if stamp <= last_image[side]:

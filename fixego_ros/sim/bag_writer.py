@@ -11,6 +11,14 @@ Topics (namespace ``/fixego``): ``{right,left}/image_raw``, ``{right,left}/camer
 ``ground_truth/{right,left}/fixation`` (geometry_msgs/PointStamped: ``point.x, point.y`` = true pixel
 of the servo's fixation point, no message while it is behind the camera; ``point.z`` = fixation id, which
 increases by one at each re-selection).
+
+Optional (``wheel_odom_std``, off by default, so the default output is unchanged byte for byte):
+``wheel/odom`` (nav_msgs/Odometry, frame ``odom``, child ``base_link``), one per frame and written before
+the frame's images: the true ``base_link`` linear velocity in ``base_link`` (finite differences of the
+true poses, :meth:`~fixego_ros.sim.run.Simulation.base_velocities`) plus seeded Gaussian noise of std
+``wheel_odom_std`` m/s per axis, with covariance diag(std²) on the linear part (at least (1e-4 m/s)², so
+it never reads as "unknown"). The angular part is not measured: zero with variance 1e6. The pose is left
+at identity with variance 1e6 (a speed source only).
 """
 
 from __future__ import annotations
@@ -24,22 +32,48 @@ import yaml
 
 from fixego_ros.geometry.rig import Rig
 from fixego_ros.geometry.rotation import Pose
+from fixego_ros.pipeline.odometry import MIN_STD
 from fixego_ros.progress import Progress
 from fixego_ros.sim.run import Frame, SimSettings, Simulation
 
 NS = '/fixego'
 SIDES = ('right', 'left')
+WHEEL_ODOM_TOPIC = f'{NS}/wheel/odom'
+UNKNOWN_VARIANCE = 1e6
+_WHEEL_NOISE_STREAM = 0x0D0   # second seed word of the wheel odometry noise (its own stream: images unchanged)
 
 
-def topics() -> dict[str, str]:
-    """Topic -> message type of a simulated bag, in writing order."""
+def topics(wheel_odom: bool = False) -> dict[str, str]:
+    """Topic -> message type of a simulated bag, in writing order (connections in this order)."""
     out = {f'{NS}/ground_truth/pose': 'geometry_msgs/msg/PoseStamped'}
     for side in SIDES:
         out[f'{NS}/{side}/image_raw'] = 'sensor_msgs/msg/Image'
         out[f'{NS}/{side}/camera_info'] = 'sensor_msgs/msg/CameraInfo'
         out[f'{NS}/{side}/joint_states'] = 'sensor_msgs/msg/JointState'
         out[f'{NS}/ground_truth/{side}/fixation'] = 'geometry_msgs/msg/PointStamped'
+    if wheel_odom:
+        out[WHEEL_ODOM_TOPIC] = 'nav_msgs/msg/Odometry'
     return out
+
+
+def wheel_odom_msg(t: float, v_base: np.ndarray, std: float):
+    """nav_msgs/Odometry carrying the linear velocity ``v_base`` (base_link, m/s) with variance ``std``²."""
+    from nav_msgs.msg import Odometry
+
+    from fixego_ros.nodes.common import sec_to_stamp
+    msg = Odometry()
+    msg.header.stamp = sec_to_stamp(t)
+    msg.header.frame_id = 'odom'
+    msg.child_frame_id = 'base_link'
+    msg.pose.pose.orientation.w = 1.0
+    pose_cov = np.diag([UNKNOWN_VARIANCE] * 6)
+    var = max(std, MIN_STD) ** 2        # never all zeros: that would mean "unknown" (REP-105 practice)
+    twist_cov = np.diag([var] * 3 + [UNKNOWN_VARIANCE] * 3)
+    msg.pose.covariance = [float(x) for x in pose_cov.ravel()]
+    msg.twist.covariance = [float(x) for x in twist_cov.ravel()]
+    lin = msg.twist.twist.linear
+    lin.x, lin.y, lin.z = (float(x) for x in v_base)
+    return msg
 
 
 def camera_info_msg(rig: Rig, side: str, t: float):
@@ -140,9 +174,12 @@ class BagSummary:
 
 
 def write_bag(out_dir: str | Path, rig: Rig, settings: SimSettings | None = None, progress: bool = True,
-              sim: Simulation | None = None) -> BagSummary:
-    """Simulate ``settings`` on ``rig`` and write the bag directory ``out_dir`` (must not exist)."""
+              sim: Simulation | None = None, wheel_odom_std: float | None = None) -> BagSummary:
+    """Simulate ``settings`` on ``rig`` and write the bag directory ``out_dir`` (must not exist);
+    ``wheel_odom_std`` (m/s) adds the simulated wheel odometry topic (module docstring)."""
     settings = settings or (sim.s if sim is not None else SimSettings())
+    if wheel_odom_std is not None and not (np.isfinite(wheel_odom_std) and wheel_odom_std >= 0):
+        raise ValueError(f'wheel odometry std must be a finite number >= 0 m/s, got {wheel_odom_std}')
     from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
     from rosbags.typesys import Stores, get_typestore
 
@@ -150,6 +187,11 @@ def write_bag(out_dir: str | Path, rig: Rig, settings: SimSettings | None = None
     if out_dir.exists():
         raise FileExistsError(f'{out_dir} exists already; rosbag2 directories are never overwritten')
     sim = sim or Simulation(rig, settings)
+    wheel = None
+    if wheel_odom_std is not None:
+        rng = np.random.default_rng([settings.seed, _WHEEL_NOISE_STREAM])
+        v_true = sim.base_velocities()
+        wheel = v_true + rng.normal(0.0, wheel_odom_std, v_true.shape) if wheel_odom_std > 0 else v_true
     typestore = get_typestore(Stores.ROS2_JAZZY)
     wall0 = time.monotonic()
     bar = Progress(len(sim), f'fixego sim {settings.trajectory}', progress)
@@ -158,12 +200,18 @@ def write_bag(out_dir: str | Path, rig: Rig, settings: SimSettings | None = None
     writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)   # zstd MCAP chunks, as rosbag2's
     with writer:
         writer.set_custom_data('fixego_sim', ' '.join(f'{k}={v}' for k, v in settings.to_dict().items()))
+        if wheel is not None:
+            writer.set_custom_data('fixego_sim_wheel_odom_std', f'{wheel_odom_std}')
         conns = {topic: writer.add_connection(topic, msgtype, typestore=typestore,
                                               offered_qos_profiles=[_qos(topic.endswith('image_raw'))])
-                 for topic, msgtype in topics().items()}
+                 for topic, msgtype in topics(wheel is not None).items()}
         for frame in sim.frames():
             stamp_ns = round((settings.epoch + frame.t) * 1e9)
-            for topic, msg in frame_messages(frame, rig, settings.epoch, settings.encoding):
+            msgs = frame_messages(frame, rig, settings.epoch, settings.encoding)
+            if wheel is not None:   # before the frame's images: replay feeds it to the estimator first
+                t = settings.epoch + frame.t
+                msgs.insert(0, (WHEEL_ODOM_TOPIC, wheel_odom_msg(t, wheel[frame.index], wheel_odom_std)))
+            for topic, msg in msgs:
                 writer.write(conns[topic], stamp_ns, canonical_cdr(msg, conns[topic].msgtype, typestore))
                 n_msgs += 1
             bar.update(frame.index + 1)
@@ -172,6 +220,8 @@ def write_bag(out_dir: str | Path, rig: Rig, settings: SimSettings | None = None
             'topics_simulator_only': [f'{NS}/ground_truth/{s}/fixation' for s in SIDES],
             'step_marks_s': None if sim.trajectory.marks is None
             else [float(settings.epoch + m) for m in sim.trajectory.marks]}
+    if wheel is not None:
+        meta['wheel_odometry'] = {'topic': WHEEL_ODOM_TOPIC, 'std_m_s': float(wheel_odom_std)}
     (out_dir / 'sim.yaml').write_text(yaml.safe_dump(meta, sort_keys=False))
     size = sum(f.stat().st_size for f in out_dir.iterdir() if f.is_file())
     return BagSummary(out_dir, len(sim), n_msgs, float(sim.stamps[-1]), size,

@@ -29,6 +29,9 @@ def register(subparsers) -> None:
     g.add_argument('--duration', type=float, help='stop after this many seconds')
     g.add_argument('--steps', type=int, help='paper trajectory: stop at this step mark (0..130)')
     p.add_argument('--texel', type=float, default=0.002, help='texture resolution in m (default 0.002)')
+    p.add_argument('--wheel-odom-std', type=float, metavar='S',
+                   help='also write /fixego/wheel/odom (nav_msgs/Odometry, one per frame): the true base_link '
+                        'velocity plus seeded Gaussian noise of std S m/s, covariance S^2 (default: off)')
     p.add_argument('--no-progress', action='store_true', help='no progress bar on stderr')
     p.set_defaults(func=run)
 
@@ -52,13 +55,17 @@ def run(args: argparse.Namespace) -> int:
     if args.steps is not None and args.trajectory != 'paper':
         print('fixego sim: --steps applies to the paper trajectory only (use --duration)', file=sys.stderr)
         return 2
+    if args.wheel_odom_std is not None and not (0 <= args.wheel_odom_std < float('inf')):
+        print(f'fixego sim: --wheel-odom-std must be a finite number >= 0, got {args.wheel_odom_std}',
+              file=sys.stderr)
+        return 2
     if args.out.exists():
         print(f'fixego sim: {args.out} exists already (bags are never overwritten)', file=sys.stderr)
         return 2
     settings = SimSettings(trajectory=args.trajectory, seed=args.seed, fps=args.fps, encoding=args.encoding,
                            noise_sigma=args.noise, speed=args.speed, duration=args.duration, steps=args.steps,
                            texel=args.texel)
-    s = write_bag(args.out, rig, settings, progress=not args.no_progress)
+    s = write_bag(args.out, rig, settings, progress=not args.no_progress, wheel_odom_std=args.wheel_odom_std)
     print(f'wrote {s.path}: {s.frames} frames ({s.duration_s:.1f} s), {s.messages} messages, '
           f'{s.bytes / 1e6:.1f} MB in {s.wall_s:.1f} s; fixation re-selections right {s.reselections["right"]}, '
           f'left {s.reselections["left"]}')

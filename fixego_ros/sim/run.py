@@ -12,10 +12,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from fixego_ros.geometry.rig import Rig, make_rig
-from fixego_ros.geometry.rotation import Pose, rig_pose_to_base_link
+from fixego_ros.geometry.rotation import RIG_TO_BASE, Pose, rig_pose_to_base_link
 from fixego_ros.sim.render import Renderer
 from fixego_ros.sim.servo_model import FixationServo, ServoParams, ServoState
-from fixego_ros.sim.trajectories import Trajectory, make_trajectory, relative_poses, steps_duration
+from fixego_ros.sim.trajectories import DT, Trajectory, make_trajectory, relative_poses, steps_duration
 from fixego_ros.sim.world import World, make_room
 
 EPOCH = 1_700_000_000.0  # s: bag stamps start here, so output is deterministic
@@ -98,6 +98,17 @@ class Simulation:
     def ground_truth(self) -> list[Pose]:
         """``base_link`` in ``odom`` (= ``base_link`` at frame 0) at every frame."""
         return [rig_pose_to_base_link(p) for p in relative_poses(self.poses)]
+
+    def base_velocities(self, h: float = DT) -> np.ndarray:
+        """(n, 3) true linear velocity of ``base_link`` in ``base_link`` (REP-105 twist) at every frame, m/s:
+        central differences of the true poses over ±``h`` (one-sided at the ends)."""
+        out = np.zeros((len(self.stamps), 3))
+        for k, (t, pose) in enumerate(zip(self.stamps, self.poses, strict=True)):
+            t0, t1 = max(t - h, 0.0), min(t + h, self.trajectory.duration)
+            if t1 > t0:
+                v_world = (self.trajectory.pose_at(t1).t - self.trajectory.pose_at(t0).t) / (t1 - t0)
+                out[k] = RIG_TO_BASE @ pose.R.T @ v_world
+        return out
 
     def frames(self) -> Iterator[Frame]:
         gt = self.ground_truth()

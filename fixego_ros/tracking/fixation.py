@@ -88,11 +88,36 @@ class FixationTracker:
     def reset(self) -> None:
         self._prev, self._track, self._request = None, None, None
 
+    def select_at(self, gray: np.ndarray, pixel: tuple[float, float], stamp: float,
+                  reason: str = 'external') -> FixationState:
+        """Start a new fixation (new id) at ``pixel`` of this frame instead of :meth:`update` for it, e.g. at a
+        point matched in the other camera (start-up vergence). Invalid (no change of id) when the pixel is
+        too close to the border for its template."""
+        gray = self._gray(gray)
+        px = np.asarray(pixel, dtype=np.float64).reshape(2)
+        template = self._patch(gray, px) if np.all(np.isfinite(px)) and not self._near_border(px) else None
+        self._request = None
+        if template is None:
+            self._track = None
+            state = FixationState(None, self.fixation_id, 0.0, False, 'outside', float(stamp))
+        else:
+            fid = self._next_id
+            self._next_id += 1
+            self._track = _Track(px, template, fid, float(stamp))
+            self.reselections.append(Reselection(float(stamp), fid, reason, (float(px[0]), float(px[1]))))
+            state = FixationState((float(px[0]), float(px[1])), fid, 1.0, True, reason, float(stamp), 0.0)
+        self._prev = gray
+        self.last = state
+        return state
+
     # ------------------------------------------------------------------------------------------------
-    def update(self, gray: np.ndarray, stamp: float) -> FixationState:
+    @staticmethod
+    def _gray(gray: np.ndarray) -> np.ndarray:
         gray = np.ascontiguousarray(gray if gray.ndim == 2 else cv2.cvtColor(gray, cv2.COLOR_BGR2GRAY))
-        if gray.dtype != np.uint8:
-            gray = np.clip(gray, 0, 255).astype(np.uint8)
+        return gray if gray.dtype == np.uint8 else np.clip(gray, 0, 255).astype(np.uint8)
+
+    def update(self, gray: np.ndarray, stamp: float) -> FixationState:
+        gray = self._gray(gray)
         state = self._update(gray, float(stamp))
         self._prev = gray
         self.last = state

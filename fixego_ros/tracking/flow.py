@@ -15,6 +15,12 @@ Lucas-Kanade, and kept only if
   specular change) LK settles in a local minimum of the new texture, and tracking back from there
   settles in the mirror minimum, so ~10 % of such tracks pass it with errors of several pixels.
 
+One way to track points: :func:`track_points` runs the checks above on given points, optionally from
+predicted positions (``OPTFLOW_USE_INITIAL_FLOW``: LK starts at the guess instead of at the point, and
+the backward pass starts at the point plus the same error, so the forward-backward check keeps its
+meaning). :func:`track_flow` detects corners in a window and tracks them (two-frame flow); the stereo
+front end keeps persistent tracks and calls :func:`track_points` frame to frame.
+
 Presets: ``window`` (default) takes as many good corners as the ``window_px`` square offers, which the
 Cramér-Rao analysis of DESIGN.md §5 shows the translation needs; ``paper`` takes the papers'
 ``paper_points`` strongest corners in the central ``paper_region_px`` square; ``full`` takes corners over
@@ -54,6 +60,8 @@ class FlowParams:
     ncc_min: float = 0.8            # patch correlation bound between the two ends (<= -1 disables)
     ncc_half: int = 5               # correlation patch is (2h+1)^2 px
     border_px: int = 8              # points must stay this far inside the image
+    ransac_px: float = 1.0          # front end: epipolar RANSAC inlier bound (px at the focal length; <= 0: off)
+    ransac_min_parallax_px: float = 0.5  # front end: skip RANSAC below this median rotation-compensated parallax
 
     def __post_init__(self) -> None:
         if self.preset not in PRESETS:
@@ -85,6 +93,8 @@ class FlowParams:
             raise ValueError(f'FlowParams.fb_max_px must be > 0, got {self.fb_max_px}')
         if self.ncc_min > 1.0:
             raise ValueError(f'FlowParams.ncc_min must be <= 1, got {self.ncc_min}')
+        if self.ransac_min_parallax_px < 0.0:
+            raise ValueError(f'FlowParams.ransac_min_parallax_px must be >= 0, got {self.ransac_min_parallax_px}')
 
     @property
     def lk_margin_px(self) -> int:
@@ -94,18 +104,27 @@ class FlowParams:
 
 @dataclass(frozen=True)
 class FlowCounts:
-    """Where the detected corners went: ``detected = lost + min_eig + outside + fb + ncc + kept``."""
+    """Where the tracked points went: ``detected = lost + min_eig + outside + fb + ncc + epipolar + kept``.
+
+    ``detected`` is the number of points tracked into frame t: the corners detected at t-1 for
+    :func:`track_flow`, the live tracks of t-1 for the stereo front end (whose corners newly detected at t
+    are counted in ``new``, outside the sum: they are tracked from the next frame on)."""
 
     detected: int = 0
-    lost: int = 0        # LK did not converge (forward or backward)
+    lost: int = 0        # LK did not converge (forward or backward), or the point has no finite ray
     min_eig: int = 0     # patch too flat (forward at t-1 or backward at t)
-    outside: int = 0     # landed outside the image minus the border
+    outside: int = 0     # landed outside the image minus the border (front end: or left the track region)
     fb: int = 0          # forward-backward error above the bound
     ncc: int = 0         # patches at t-1 and t do not correlate
+    epipolar: int = 0    # front end: outlier of the camera's epipolar (essential) model keyframe -> t
     kept: int = 0
+    new: int = 0         # front end: corners detected at t that start new tracks (not in the sum)
 
     def as_dict(self) -> dict[str, int]:
         return {f.name: int(getattr(self, f.name)) for f in fields(self)}
+
+    def __add__(self, other: FlowCounts) -> FlowCounts:
+        return FlowCounts(**{f.name: getattr(self, f.name) + getattr(other, f.name) for f in fields(self)})
 
 
 Box = tuple[int, int, int, int]  # x0, y0, x1, y1 (half-open pixel ranges)
@@ -138,7 +157,7 @@ def _image_problem(img: object, name: str) -> str:
     return ''
 
 
-def _square(cx: float, cy: float, side: int, limits: Box) -> Box:
+def square_box(cx: float, cy: float, side: int, limits: Box) -> Box:
     """Square of ``side`` px centred on (cx, cy), clipped to ``limits``."""
     x0 = math.floor(cx - side / 2.0 + 0.5)
     y0 = math.floor(cy - side / 2.0 + 0.5)
@@ -151,20 +170,32 @@ def _grow(box: Box, margin: int, w: int, h: int) -> Box:
     return max(x0 - margin, 0), max(y0 - margin, 0), min(x1 + margin, w), min(y1 + margin, h)
 
 
-def detect_corners(gray: np.ndarray, box: Box, max_corners: int, params: FlowParams) -> np.ndarray:
+def detect_corners(gray: np.ndarray, box: Box, max_corners: int, params: FlowParams,
+                   exclude: np.ndarray | None = None) -> np.ndarray:
     """Strongest min-eigenvalue corners (N, 2) inside ``box``, strongest first, at least
-    ``min_distance_px`` apart. Only a crop of the box (plus a few px of context) is processed."""
+    ``min_distance_px`` apart (and that far from every point of ``exclude``, (M, 2)). Only a crop of the
+    box (plus a few px of context) is processed."""
     h, w = gray.shape
     cx0, cy0, cx1, cy1 = _grow(box, _PAD, w, h)
     roi = gray[cy0:cy1, cx0:cx1]
     mask = np.zeros(roi.shape, np.uint8)
     x0, y0, x1, y1 = box
     mask[y0 - cy0:y1 - cy0, x0 - cx0:x1 - cx0] = 255
-    c = cv2.goodFeaturesToTrack(roi, int(max_corners), float(params.corner_quality), float(params.min_distance_px),
-                                mask=mask, blockSize=_CORNER_BLOCK)
+    near = np.zeros((0, 2))
+    if exclude is not None and len(exclude):
+        near = np.asarray(exclude, np.float64).reshape(-1, 2)
+        r = params.min_distance_px
+        near = near[(near[:, 0] > x0 - r) & (near[:, 0] < x1 + r) & (near[:, 1] > y0 - r) & (near[:, 1] < y1 + r)]
+    # ask for enough to drop those too close to an excluded point (goodFeaturesToTrack keeps them apart)
+    c = cv2.goodFeaturesToTrack(roi, int(max_corners) + len(near), float(params.corner_quality),
+                                float(params.min_distance_px), mask=mask, blockSize=_CORNER_BLOCK)
     if c is None:
         return np.zeros((0, 2))
-    return c.reshape(-1, 2).astype(np.float64) + (cx0, cy0)
+    pts = c.reshape(-1, 2).astype(np.float64) + (cx0, cy0)
+    if len(near):
+        d2 = ((pts[:, None, :] - near[None, :, :]) ** 2).sum(axis=2).min(axis=1)
+        pts = pts[d2 >= params.min_distance_px**2]
+    return pts[:int(max_corners)]
 
 
 def track_flow(prev_gray: np.ndarray, curr_gray: np.ndarray, center_px: tuple[float, float] | None = None,
@@ -197,8 +228,8 @@ def track_flow(prev_gray: np.ndarray, curr_gray: np.ndarray, center_px: tuple[fl
                 cx = cy = math.nan
             if not (math.isfinite(cx) and math.isfinite(cy)):
                 return FlowTracks(reason=f'window centre is not a finite pixel: {center_px!r}')
-        box = _square(cx, cy, p.window_px, valid)
-        region = _square(cx, cy, p.paper_region_px, box) if p.preset == 'paper' else box
+        box = square_box(cx, cy, p.window_px, valid)
+        region = square_box(cx, cy, p.paper_region_px, box) if p.preset == 'paper' else box
         if region[2] - region[0] < 1 or region[3] - region[1] < 1:
             return FlowTracks(reason=f'flow window around ({cx:.1f}, {cy:.1f}) is outside the image',
                               window=box, center_px=(cx, cy))
@@ -206,21 +237,51 @@ def track_flow(prev_gray: np.ndarray, curr_gray: np.ndarray, center_px: tuple[fl
         pts = detect_corners(prev_gray, region, p.paper_points if p.preset == 'paper' else p.max_corners, p)
     if len(pts) == 0:
         return FlowTracks(reason='no corners in the flow window', window=box, center_px=(cx, cy))
-    tracks = _track(prev_gray, curr_gray, pts, crop, valid, p)
-    return FlowTracks(*tracks, window=box, center_px=(cx, cy))
+    tracked = track_points(prev_gray, curr_gray, pts, p, crop=crop)
+    return FlowTracks(pts[tracked.ok], tracked.curr_px[tracked.ok], tracked.counts, window=box, center_px=(cx, cy))
 
 
-def _track(prev: np.ndarray, curr: np.ndarray, pts: np.ndarray, crop: Box, valid: Box,
-           p: FlowParams) -> tuple[np.ndarray, np.ndarray, FlowCounts]:
-    """Forward LK, border check, backward LK with the forward-backward bound, then patch correlation;
-    LK runs on the same crop of both images (pyramids of the crop only)."""
+@dataclass(frozen=True)
+class PointFlow:
+    """Result of :func:`track_points`: where each input point went (``curr_px[i]``, meaningful where
+    ``ok[i]``), and the counts of the checks."""
+
+    curr_px: np.ndarray    # (N, 2) float64
+    ok: np.ndarray         # (N,) bool: passed every check
+    counts: FlowCounts
+
+
+def valid_box(shape: tuple[int, ...], border_px: int) -> Box:
+    """Where tracked points must land: the image minus the border."""
+    h, w = shape[:2]
+    return border_px, border_px, w - border_px, h - border_px
+
+
+def track_points(prev: np.ndarray, curr: np.ndarray, pts: np.ndarray, p: FlowParams,
+                 guess: np.ndarray | None = None, crop: Box | None = None) -> PointFlow:
+    """Track ``pts`` (N, 2) from ``prev`` into ``curr`` (same-size uint8 images): forward LK (from ``guess``,
+    the predicted positions in ``curr``, when given), border check, backward LK with the forward-backward
+    bound, then patch correlation. LK runs on the same crop of both images (pyramids of the crop only):
+    ``crop`` (None = the points' and guesses' bounding box grown by the LK margin)."""
+    pts = np.asarray(pts, np.float64).reshape(-1, 2)
+    n = len(pts)
+    if n == 0:
+        return PointFlow(np.zeros((0, 2)), np.zeros(0, bool), FlowCounts())
+    h, w = prev.shape
+    valid = valid_box(prev.shape, p.border_px)
+    g = pts if guess is None else np.where(np.isfinite(guess), guess, pts).reshape(-1, 2)
+    if crop is None:
+        both = np.concatenate([pts, g])
+        lo, hi = np.floor(both.min(axis=0)), np.ceil(both.max(axis=0)) + 1
+        crop = _grow((int(lo[0]), int(lo[1]), int(hi[0]), int(hi[1])), p.lk_margin_px, w, h)
     x0, y0, x1, y1 = crop
     A, B = prev[y0:y1, x0:x1], curr[y0:y1, x0:x1]
     off = np.array([x0, y0], dtype=np.float64)
     lk = {'winSize': (p.lk_win, p.lk_win), 'maxLevel': p.lk_levels, 'criteria': _CRITERIA,
-          'flags': cv2.OPTFLOW_LK_GET_MIN_EIGENVALS, 'minEigThreshold': float(p.min_eig)}
+          'flags': cv2.OPTFLOW_LK_GET_MIN_EIGENVALS | cv2.OPTFLOW_USE_INITIAL_FLOW, 'minEigThreshold': float(p.min_eig)}
     p0 = (pts - off).astype(np.float32).reshape(-1, 1, 2)
-    p1, st, err = cv2.calcOpticalFlowPyrLK(A, B, p0, None, **lk)
+    g0 = (g - off).astype(np.float32).reshape(-1, 1, 2)
+    p1, st, err = cv2.calcOpticalFlowPyrLK(A, B, p0, g0.copy(), **lk)
     st, err = st.ravel().astype(bool), err.ravel()
     q1 = p1.reshape(-1, 2).astype(np.float64) + off
     finite = np.all(np.isfinite(q1), axis=1)
@@ -232,10 +293,12 @@ def _track(prev: np.ndarray, curr: np.ndarray, pts: np.ndarray, crop: Box, valid
         & (q1[:, 0] <= valid[2] - 1) & (q1[:, 1] <= valid[3] - 1)
     outside = ok & ~inside
     n_lost, n_weak = int(lost.sum()), int(weak.sum())
-    n_fb, n_ncc, kept = 0, 0, np.zeros(len(pts), bool)
+    n_fb, n_ncc, kept = 0, 0, np.zeros(n, bool)
     idx = np.flatnonzero(inside)
     if len(idx):
-        back, st2, err2 = cv2.calcOpticalFlowPyrLK(B, A, p1[idx], None, **lk)
+        # backward from where the point landed, offset by the prediction (start = point + forward error)
+        back0 = (p1[idx] - (g0[idx] - p0[idx])).astype(np.float32)
+        back, st2, err2 = cv2.calcOpticalFlowPyrLK(B, A, p1[idx], back0, **lk)
         st2, err2 = st2.ravel().astype(bool), err2.ravel()
         fb = np.linalg.norm(back.reshape(-1, 2).astype(np.float64) - p0[idx].reshape(-1, 2), axis=1)
         weak2 = ~st2 & (err2 < p.min_eig)
@@ -249,8 +312,9 @@ def _track(prev: np.ndarray, curr: np.ndarray, pts: np.ndarray, crop: Box, valid
             n_ncc = int((~similar).sum())
             idx = idx[similar]
         kept[idx] = True
-    counts = FlowCounts(len(pts), n_lost, n_weak, int(outside.sum()), n_fb, n_ncc, int(kept.sum()))
-    return pts[kept].astype(np.float64), q1[kept], counts
+    counts = FlowCounts(detected=n, lost=n_lost, min_eig=n_weak, outside=int(outside.sum()), fb=n_fb, ncc=n_ncc,
+                        kept=int(kept.sum()))
+    return PointFlow(q1, kept, counts)
 
 
 def _patches(img: np.ndarray, pts: np.ndarray, half: int) -> np.ndarray:

@@ -1,0 +1,157 @@
+"""External speed aid: a nav_msgs/Odometry twist (e.g. wheel odometry) as a rig-frame velocity sample.
+
+ROS-free (messages are read by attribute, so rclpy messages and rosbags' decoded ones both work). REP-105
+puts an Odometry twist in its child frame; the only child frame accepted is the rig body ``base_link``
+(x forward, y left, z up; DESIGN.md §2), or an empty one, taken to mean ``base_link``. The linear part
+becomes the velocity of the rig origin in the rig frame (x right, y down, z forward) with
+``RIG_TO_BASE``, its 3x3 covariance block rotated the same way; the angular part is not used.
+
+A sample is rejected whole, with an :class:`OdometryError` whose ``kind`` names the check, when its
+stamp is not finite, goes backwards (or repeats), is older than ``max_age_s`` relative to the newest
+frame, when the velocity is not finite, when the covariance is not 36 finite numbers, has a negative
+variance or is not positive semi-definite, or when the child frame is another frame. An all-zero linear
+covariance means "unknown" in ROS: it becomes ``default_std``² on each axis. Nothing non-finite is ever
+passed on.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from fixego_ros.geometry.rotation import RIG_TO_BASE
+from fixego_ros.pipeline.messages import stamp_to_sec
+
+ODOMETRY_TYPE = 'nav_msgs/msg/Odometry'
+MIN_STD = 1e-4   # m/s: variances are floored at MIN_STD² so the estimator can always invert the covariance
+
+# estimator_node parameters of the speed aid (name -> (default, description)); fixego replay uses the defaults
+SPEED_PARAMS: dict[str, tuple[object, str]] = {
+    'speed_topic': ('', "nav_msgs/Odometry of an external speed source (e.g. wheel odometry; twist in base_frame) "
+                        "used as a scale aid; '' = off"),
+    'speed_default_std': (0.1, 'm/s; std of each velocity axis when the Odometry twist covariance is all zeros '
+                               '(unknown)'),
+    'speed_max_age_s': (0.2, 's; a speed sample older than this relative to the newest frame is not used '
+                             '(dropped and counted)'),
+}
+
+
+class OdometryError(ValueError):
+    """An Odometry sample we cannot use; ``kind`` says which check failed: stamp, order, stale, frame,
+    velocity, covariance."""
+
+    def __init__(self, message: str, kind: str) -> None:
+        super().__init__(message)
+        self.kind = kind
+
+
+@dataclass(frozen=True)
+class VelocitySample:
+    """Velocity of the rig origin in the rig frame at ``stamp`` (m/s) and its 3x3 covariance ((m/s)²)."""
+
+    stamp: float
+    v_rig: np.ndarray
+    cov_rig: np.ndarray
+
+
+def twist_to_rig(linear: Any, covariance: Any, default_std: float) -> tuple[np.ndarray, np.ndarray]:
+    """(v_rig, cov_rig) of a ``base_link`` linear twist (x, y, z or a Vector3) and the row-major 6x6 twist
+    covariance; :class:`OdometryError` (kind ``velocity`` / ``covariance``) when they are unusable."""
+    if hasattr(linear, 'x'):
+        linear = (linear.x, linear.y, linear.z)
+    try:
+        v_base = np.asarray(linear, dtype=float).reshape(3)
+        cov6 = np.asarray(covariance, dtype=float)
+    except (TypeError, ValueError) as e:
+        raise OdometryError(f'twist not numeric: {e}', 'velocity') from None
+    if not np.all(np.isfinite(v_base)):
+        raise OdometryError(f'non-finite linear velocity {v_base.tolist()}', 'velocity')
+    if cov6.size != 36:
+        raise OdometryError(f'twist covariance has {cov6.size} entries, expected 36 (6x6 row-major)',
+                            'covariance')
+    c = cov6.reshape(6, 6)[:3, :3]
+    if not np.all(np.isfinite(c)):
+        raise OdometryError('non-finite twist covariance', 'covariance')
+    if not math.isfinite(default_std) or default_std <= 0:
+        raise ValueError(f'speed_default_std must be a positive number of m/s, got {default_std}')
+    if not np.any(c):
+        c = np.eye(3) * default_std ** 2          # all zeros: "unknown" (REP-105 practice)
+    else:
+        if np.any(np.diag(c) < 0):
+            raise OdometryError(f'negative velocity variance {np.diag(c).tolist()}', 'covariance')
+        c = 0.5 * (c + c.T)
+        w, V = np.linalg.eigh(c)
+        if w[0] < -1e-9 * max(1.0, w[-1]):
+            raise OdometryError(f'twist covariance not positive semi-definite (eigenvalues {w.tolist()})',
+                                'covariance')
+        if w[0] < MIN_STD ** 2:
+            c = (V * np.maximum(w, MIN_STD ** 2)) @ V.T
+    v_rig = RIG_TO_BASE.T @ v_base
+    cov_rig = RIG_TO_BASE.T @ c @ RIG_TO_BASE
+    return v_rig, 0.5 * (cov_rig + cov_rig.T)
+
+
+@dataclass(frozen=True)
+class SpeedSettings:
+    """The speed aid's parameters (:data:`SPEED_PARAMS`); ``topic`` '' = off."""
+
+    topic: str = str(SPEED_PARAMS['speed_topic'][0])
+    default_std: float = float(SPEED_PARAMS['speed_default_std'][0])
+    max_age_s: float = float(SPEED_PARAMS['speed_max_age_s'][0])
+    base_frame: str = 'base_link'
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.default_std) and self.default_std > 0):
+            raise ValueError(f'speed_default_std must be a positive number of m/s, got {self.default_std}')
+        if not self.max_age_s > 0:
+            raise ValueError(f'speed_max_age_s must be > 0 s, got {self.max_age_s}')
+
+    @classmethod
+    def from_getter(cls, g: Callable[[str], object], base_frame: str = 'base_link') -> SpeedSettings:
+        return cls(str(g('speed_topic')), float(g('speed_default_std')), float(g('speed_max_age_s')), base_frame)
+
+
+class SpeedInput:
+    """Turns a stream of Odometry messages into :class:`VelocitySample` s, in stamp order.
+
+    ``frame_stamp`` (the newest frame the estimator has) drops samples older than ``max_age_s`` relative to
+    it. ``assumed_frame`` is set when a sample had no child frame and was taken as ``base_frame``.
+    """
+
+    def __init__(self, settings: SpeedSettings = SpeedSettings()) -> None:
+        self.settings = settings
+        self.base_frame, self.default_std, self.max_age_s = (settings.base_frame, settings.default_std,
+                                                             settings.max_age_s)
+        self.last_stamp: float | None = None
+        self.assumed_frame = False
+
+    def reset(self) -> None:
+        self.last_stamp = None
+
+    def convert(self, stamp: float, child_frame_id: str, linear: Any, covariance: Any,
+                frame_stamp: float | None = None) -> VelocitySample:
+        if not math.isfinite(stamp):
+            raise OdometryError(f'non-finite stamp {stamp}', 'stamp')
+        if child_frame_id and child_frame_id != self.base_frame:
+            raise OdometryError(f"twist in frame '{child_frame_id}', expected '{self.base_frame}' (REP-105: the "
+                                'twist is in child_frame_id; transform it to the rig body first)', 'frame')
+        if self.last_stamp is not None and stamp <= self.last_stamp:
+            raise OdometryError(f'stamp {stamp:.6f} s not after the previous sample ({self.last_stamp:.6f} s)',
+                                'order')
+        if frame_stamp is not None and stamp < frame_stamp - self.max_age_s:
+            raise OdometryError(f'sample at {stamp:.3f} s is {frame_stamp - stamp:.3f} s older than the newest '
+                                f'frame (speed_max_age_s {self.max_age_s:g})', 'stale')
+        v, cov = twist_to_rig(linear, covariance, self.default_std)
+        self.last_stamp = stamp
+        if not child_frame_id:
+            self.assumed_frame = True
+        return VelocitySample(float(stamp), v, cov)
+
+    def from_msg(self, msg: Any, frame_stamp: float | None = None) -> VelocitySample:
+        """Sample of a nav_msgs/Odometry message (rclpy or rosbags)."""
+        return self.convert(stamp_to_sec(msg.header.stamp), str(msg.child_frame_id), msg.twist.twist.linear,
+                            msg.twist.covariance, frame_stamp)
