@@ -238,6 +238,7 @@ class Estimator:
         self._pending_points: list[tuple[float, int, np.ndarray, np.ndarray]] = []
         self._rotation_seen = 0.0          # rad of rig rotation between keyframes so far
         self._aids: set[str] = set()       # scale aids that have been used
+        self._prior_scale_pending = False   # a vergence distance arrived: rescale once the window has placed it
         self._history: dict[float, Pose] = {}   # refined keyframe poses by stamp (the smoothed trajectory)
 
     # ------------------------------------------------------------------------------------ scale aids
@@ -451,6 +452,12 @@ class Estimator:
             factor = StepFactor(f.step_meas, f.step_cov, *(f.speed if f.speed is not None else (None, None)))
             self._sliding.hold_open = not self.scale_observed
             pose = self._sliding.add(f.stamp, f.pose, *f.landmarks, factor).normalized()
+            if self._prior_scale_pending:
+                s = self._sliding.prior_scale()
+                if s is not None and math.isfinite(s) and s > 0:
+                    self._rescale(s)
+                    pose = Pose(pose.R, pose.t * s)
+                    self._prior_scale_pending = False
             for stamp, p in self._sliding.poses():
                 if stamp in self._history:
                     self._history[stamp] = p
@@ -461,6 +468,19 @@ class Estimator:
         self._key_stamp, self._key_pose, self._key_pose_raw, self._key_cov = f.stamp, pose, f.pose_raw, f.pose_cov
         self._latest = None
         self._attach_points()
+
+    def _rescale(self, s: float) -> None:
+        """Apply a scale found late (a vergence distance) to everything built with the unobserved one."""
+        assert self._sliding is not None
+        self._sliding.rescale(s)
+        for stamp, p in self._history.items():
+            self._history[stamp] = Pose(p.R, p.t * s)
+        self._key_pose = Pose(self._key_pose.R, self._key_pose.t * s)
+        self._key_cov = self._key_cov.copy()
+        self._key_cov[3:, 3:] *= s * s
+        if self._velocity is not None:
+            v, v_raw = self._velocity
+            self._velocity = (np.concatenate([v[:3], v[3:] * s]), v_raw)
 
     def _history_step(self, key_stamp: float, motion: Pose) -> Pose:
         """Refined motion from the keyframe at ``key_stamp`` to the newest keyframe."""
@@ -480,7 +500,9 @@ class Estimator:
                     kept.append((stamp, side_index, point, cov))      # its keyframe is still to come
                 continue                                             # not a keyframe, or gone: dropped
             fix = f.keys[(f.keys % 2 == FIXATION) & ((f.keys // 2) % 2 == side_index)]
+            was_observed = self.scale_observed
             if len(fix) and self._sliding.add_prior(stamp, int(fix[0]), point, cov):
+                self._prior_scale_pending = self._prior_scale_pending or not was_observed
                 self._aids.add('the vergence step')
         self._pending_points = kept
 

@@ -204,10 +204,30 @@ class SlidingWindow:
                 if not (np.all(np.isfinite(point)) and np.all(np.isfinite(info))):
                     return False
                 self.priors.append(_Prior(f.stamp, int(key), point, info))
-                if int(key) not in self.landmarks:                 # its position is known right away
-                    self.landmarks[int(key)] = f.R @ point + f.p
                 return True
         return False
+
+    def prior_scale(self) -> float | None:
+        """Ratio of the measured to the estimated distance of the landmarks with a position prior (median),
+        once the window has placed them; None before."""
+        frames = {f.stamp: f for f in self.frames}
+        ratios = []
+        for pr in self.priors:
+            f, X = frames.get(pr.stamp), self.landmarks.get(pr.key)
+            if f is None or X is None:
+                continue
+            est = float(np.linalg.norm(f.R.T @ (X - f.p)))
+            if est > 1e-9:
+                ratios.append(float(np.linalg.norm(pr.point)) / est)
+        return float(np.median(ratios)) if ratios else None
+
+    def rescale(self, s: float) -> None:
+        """Scale every position (keyframes and landmarks) about the world origin: a scale found late (a
+        vergence distance) applied to what was built with an unobserved one."""
+        for f in self.frames:
+            f.p = f.p * s
+        for key in self.landmarks:
+            self.landmarks[key] = self.landmarks[key] * s
 
     def poses(self) -> list[tuple[float, Pose]]:
         """Stamp and current pose of every kept keyframe, oldest first."""
@@ -249,7 +269,7 @@ class SlidingWindow:
             kept.remove(fixed.pop(0))
         self.frames = kept
         stamps = {f.stamp for f in self.frames}
-        self.priors = [p for p in self.priors if p.stamp in stamps and p.key in self.landmarks]
+        self.priors = [p for p in self.priors if p.stamp in stamps and (p.key in self.landmarks or p.key in newest)]
 
     def _triangulate(self) -> None:
         """Give a position to every landmark whose rays now span ``min_parallax_deg`` (midpoint of all

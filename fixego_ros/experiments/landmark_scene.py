@@ -65,6 +65,7 @@ class LandmarkRun:
     poses: list[Pose]                  # true rig poses, rig frame at the first frame = world
     observations: list[FrameObservation]
     reselections: int
+    fixation_points: list[dict[str, np.ndarray]]   # true fixation point of each camera, rig frame at the frame
 
 
 class LandmarkScene:
@@ -84,12 +85,10 @@ class LandmarkScene:
         return uv
 
     def _pick(self, side: str, pose: Pose, pan_deg: float) -> int:
-        """Index of the point nearest the direction of a head at ``pan_deg`` (tilt 0)."""
+        """Index of the point nearest the optical axis of a head at ``pan_deg`` (tilt 0) from ``pose``."""
         C = self.rig.cam_to_rig(side, math.radians(pan_deg), 0.0)
-        axis = C[:, 2]
-        rel = pose.inverse().apply(self.points) - self.rig.center(side)
-        cos = rel @ axis / np.linalg.norm(rel, axis=1)
-        return int(np.argmax(cos))
+        rel = pose.inverse().apply(self.points_rel) - self.rig.center(side)
+        return int(np.argmax(rel @ C[:, 2] / np.linalg.norm(rel, axis=1)))
 
     def run(self, traj: Trajectory, duration: float | None = None) -> LandmarkRun:
         cfg, rig = self.cfg, self.rig
@@ -98,17 +97,17 @@ class LandmarkScene:
             keep = stamps <= duration + 1e-9
             stamps, world = stamps[keep], [p for p, k in zip(world, keep, strict=True) if k]
         poses = relative_poses(world)
-        to_first = world[0]
-        self.points_rel = to_first.inverse().apply(self.points)
+        self.points_rel = world[0].inverse().apply(self.points)
         X = self.points_rel
         half = cfg.window_px / 2.0
         limit = math.radians(cfg.pan_limit_deg - cfg.limit_margin_deg)
-        fix = {s: self._pick_rel(s, poses[0], (1 if s == 'right' else -1) * cfg.initial_pan_deg) for s in SIDES}
+        fix = {s: self._pick(s, poses[0], (1 if s == 'right' else -1) * cfg.initial_pan_deg) for s in SIDES}
         fix_id = dict.fromkeys(SIDES, 0)
         tracks: dict[str, dict[int, int]] = {s: {} for s in SIDES}     # point index -> track id
         next_id = dict.fromkeys(SIDES, 0)
         prev: dict[str, tuple[dict[int, np.ndarray], tuple[float, float]] | None] = dict.fromkeys(SIDES)
         out: list[FrameObservation] = []
+        fixation_points: list[dict[str, np.ndarray]] = []
         reselections = 0
         for k, (t, pose) in enumerate(zip(stamps, poses, strict=True)):
             cams = {}
@@ -116,13 +115,13 @@ class LandmarkScene:
                 reading = rig.aim_readings(s, pose.inverse().apply(X[fix[s]]))
                 if abs(reading[0]) > limit:
                     side_sign = -1.0 if reading[0] > 0 else 1.0
-                    fix[s] = self._pick_rel(s, pose, side_sign * cfg.reselect_pan_deg)
+                    fix[s] = self._pick(s, pose, side_sign * cfg.reselect_pan_deg)
                     fix_id[s] += 1
                     reselections += 1
                     tracks[s] = {}
                     reading = rig.aim_readings(s, pose.inverse().apply(X[fix[s]]))
                 cam = rig.camera(s)
-                uv = self._pixels_rel(s, X, pose, reading)
+                uv = self._pixels(s, X, pose, reading)
                 centre = cam.center
                 inside = np.all(np.abs(uv - centre) <= half, axis=1)
                 inside[fix[s]] = False
@@ -155,15 +154,7 @@ class LandmarkScene:
                         frame.flow_curr = np.array([now[i] for i in common])
                 prev[s] = (now, reading)
                 cams[s] = frame
+            fixation_points.append({s: pose.inverse().apply(X[fix[s]]) for s in SIDES})
             out.append(FrameObservation(float(t), cams['right'], cams['left'],
                                         float(stamps[k - 1]) if k else None, True))
-        return LandmarkRun(stamps, poses, out, reselections)
-
-    def _pick_rel(self, side: str, pose: Pose, pan_deg: float) -> int:
-        C = self.rig.cam_to_rig(side, math.radians(pan_deg), 0.0)
-        rel = pose.inverse().apply(self.points_rel) - self.rig.center(side)
-        cos = rel @ C[:, 2] / np.linalg.norm(rel, axis=1)
-        return int(np.argmax(cos))
-
-    def _pixels_rel(self, side: str, X: np.ndarray, pose: Pose, reading: tuple[float, float]) -> np.ndarray:
-        return self._pixels(side, X, pose, reading)
+        return LandmarkRun(stamps, poses, out, reselections, fixation_points)

@@ -26,13 +26,13 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PointStamped, PoseWithCovarianceStamped
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, QoSProfile
 from sensor_msgs.msg import Image, JointState
 from std_srvs.srv import Trigger
 
 from fixego_ros.geometry.rig import default_rig_path, load_rig
 from fixego_ros.nodes.common import (
     ERROR,
+    LATCHED_QOS,
     OK,
     RELIABLE_QOS,
     SENSOR_QOS,
@@ -90,7 +90,6 @@ PARAMS: dict[str, tuple[object, str]] = {
     'vergence_joint_sigma_deg': (0.033, 'joint reading noise used for the covariance (EVI-D30 unit / sqrt 12)'),
 }
 
-VERGENCE_QOS = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 class CameraNode(Node):
@@ -324,7 +323,7 @@ class CameraNode(Node):
                            joint_sigma_deg=float(g('vergence_joint_sigma_deg')),
                            settle_px=float(g('vergence_settle_px')), timeout_s=float(g('vergence_timeout_s')))
         self.vergence = VergenceStep(self.rig, self.history, p)
-        self.pub_vergence = self.create_publisher(PoseWithCovarianceStamped, '/fixego/vergence', VERGENCE_QOS)
+        self.pub_vergence = self.create_publisher(PoseWithCovarianceStamped, '/fixego/vergence', LATCHED_QOS)
         self._vergence_subs = [
             self.create_subscription(Image, '/fixego/right/image_raw', self._on_right_image, SENSOR_QOS),
             self.create_subscription(PointStamped, '/fixego/right/fixation', self._on_right_fixation, RELIABLE_QOS),

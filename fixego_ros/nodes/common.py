@@ -16,7 +16,7 @@ from geometry_msgs.msg import Pose as PoseMsg
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, qos_profile_sensor_data
+from rclpy.qos import DurabilityPolicy, QoSProfile, qos_profile_sensor_data
 from sensor_msgs.msg import Image, PointCloud2, PointField
 
 from fixego_ros.geometry.rotation import Pose, quat_xyzw
@@ -30,6 +30,8 @@ from fixego_ros.pipeline.messages import (  # noqa: F401 - re-exported: nodes im
 
 SENSOR_QOS: QoSProfile = qos_profile_sensor_data
 RELIABLE_QOS = QoSProfile(depth=50)
+# latched: a one-off measurement (the vergence step) that a node started later must still get
+LATCHED_QOS = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 OK, WARN, ERROR, STALE = (DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR,
                           DiagnosticStatus.STALE)

@@ -28,7 +28,7 @@ from collections import Counter, deque
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import PoseStamped
+from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry, Path
 from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
@@ -40,6 +40,7 @@ from fixego_ros.geometry.rig import default_rig_path, load_rig
 from fixego_ros.geometry.rotation import RIG_TO_BASE, Pose, rig_pose_to_base_link
 from fixego_ros.nodes.common import (
     ERROR,
+    LATCHED_QOS,
     OK,
     RELIABLE_QOS,
     WARN,
@@ -66,6 +67,8 @@ PARAMS: dict[str, tuple[object, str]] = {
                        'are always solved: the trajectory continues through them)'),
     'max_keyframe_lag_s': (0.5, 'even keyframes are skipped this far behind (the estimator then bridges the gap '
                                 'at constant velocity): bounds the latency when the machine is overloaded'),
+    'vergence_topic': ('', "start-up vergence distances (geometry_msgs/PoseWithCovarianceStamped from camera_node's "
+                           "vergence step, usually /fixego/vergence); '' = off"),
     'odom_frame': ('odom', 'frame of the published trajectory'),
     'base_frame': ('base_link', 'frame of the rig body (x forward, y left, z up)'),
     'path_max_length': (20000, 'poses kept in /fixego/path and /fixego/path_raw (oldest dropped)'),
@@ -113,6 +116,9 @@ class EstimatorNode(Node):
         self.speed_rejected_recent, self.speed_error = 0, ''
         if self.speed_topic:
             self.create_subscription(Odometry, self.speed_topic, self._on_speed, RELIABLE_QOS)
+        self.vergence_topic = str(g('vergence_topic'))
+        if self.vergence_topic:
+            self.create_subscription(PoseWithCovarianceStamped, self.vergence_topic, self._on_vergence, LATCHED_QOS)
         self.create_service(Trigger, '~/reset', self._srv_reset)
         self.create_timer(float(g('diagnostics_period_s')), self._publish_diagnostics)
         self.status_counts: Counter[str] = Counter()
@@ -186,6 +192,20 @@ class EstimatorNode(Node):
         self.speed_last = sample.stamp
 
     # -------------------------------------------------------------------------------------- output
+    def _on_vergence(self, msg: PoseWithCovarianceStamped) -> None:
+        """The right fixation point measured by the vergence step: a position prior on that landmark."""
+        try:
+            p = msg.pose.pose.position
+            cov = np.asarray(msg.pose.covariance, float).reshape(6, 6)[:3, :3]
+            self.estimator.add_fixation_point(stamp_to_sec(msg.header.stamp), 'right', np.array([p.x, p.y, p.z]), cov)
+        except ValueError as e:
+            self.stats['vergence_rejected'] = self.stats.get('vergence_rejected', 0) + 1
+            self.once.warn('vergence', f'vergence measurement on {self.vergence_topic} dropped: {e}')
+            return
+        self.stats['vergence'] = self.stats.get('vergence', 0) + 1
+        self.get_logger().info(f'vergence: right fixation point at {float(np.linalg.norm([p.x, p.y, p.z])):.3f} m '
+                               'used as a scale anchor')
+
     def _publish(self, stamp, res: FrameResult) -> None:
         pose = rig_pose_to_base_link(res.pose)
         pose_raw = rig_pose_to_base_link(res.pose_raw)

@@ -15,6 +15,7 @@ from pathlib import Path
 import yaml
 
 from fixego_ros.estimation.estimator import EstimatorConfig
+from fixego_ros.estimation.sliding_window import WindowConfig
 from fixego_ros.estimation.twoframe import SolverConfig
 from fixego_ros.geometry.rig import Rig
 from fixego_ros.pipeline.frontend import KeyframePolicy
@@ -60,6 +61,8 @@ FLOW_PARAMS: Table = {
 
 # estimator_node: two-frame solve and local bundle adjustment
 ESTIMATOR_PARAMS: Table = {
+    'refinement': ('local', "'local': the papers' local BA of the latest step over `window` frames; 'sliding': "
+                            "the last `sliding_frames` keyframe poses refined with persistent landmarks"),
     'window': (3, 'n: frames in the local bundle adjustment (3..10; 0 disables it)'),
     'mode': ('paper', "local BA: 'paper' (BA cost alone, Powell, as in the papers) or 'joint' (+ two-frame terms)"),
     'fixation_weight': (1.0, 'weight of the fixation constraints relative to one flow point'),
@@ -78,6 +81,14 @@ ESTIMATOR_PARAMS: Table = {
     'max_speed': (1.5, 'm/s; a step implying a faster rig is rejected as a jump and predicted instead'),
     'max_step_rotation_deg': (20.0, 'deg; a larger step rotation is rejected as a jump'),
     'reject_translation_std': (1e6, 'm; a step whose translation std exceeds this is rejected (1e6: never)'),
+    'sliding_frames': (4, 'sliding refinement: keyframe poses refined together (older ones stay fixed)'),
+    'sliding_max_unobserved_frames': (40, 'sliding refinement: while the scale is unobserved the window grows up '
+                                          'to this, so the first turn can fix the scale of the start'),
+    'sliding_iterations': (4, 'sliding refinement: Levenberg-Marquardt iterations per keyframe'),
+    'sliding_step_weight': (0.5, 'sliding refinement: weight of the two-frame step factors (0 = landmarks only)'),
+    'sliding_min_parallax_deg': (1.0, 'sliding refinement: a landmark is placed once its rays span this angle'),
+    'scale_min_rotation_deg': (15.0, 'the metric scale counts as observed after this much rig rotation (or once '
+                                     'a scale aid was used); before, /fixego/odom carries a large covariance'),
 }
 
 
@@ -116,7 +127,13 @@ def estimator_config(g: Getter, rig: Rig) -> EstimatorConfig:
         reject_translation_std=float(g('reject_translation_std')), velocity_prior=bool(g('velocity_prior')),
         prior_sigma_rel=float(g('prior_sigma_rel')), prior_sigma_min=float(g('prior_sigma_min')),
         solver=SolverConfig(sigma=float(g('pixel_sigma')) / f, loss=str(g('loss')), max_nfev=int(g('max_nfev')),
-                            min_parallax=float(g('stationary_parallax_px')) / f, backend=str(g('solver_backend'))))
+                            min_parallax=float(g('stationary_parallax_px')) / f, backend=str(g('solver_backend'))),
+        refinement=str(g('refinement')), scale_min_rotation_deg=float(g('scale_min_rotation_deg')),
+        sliding=WindowConfig(frames=int(g('sliding_frames')),
+                             max_unobserved_frames=int(g('sliding_max_unobserved_frames')),
+                             iterations=int(g('sliding_iterations')), sigma=float(g('pixel_sigma')) / f,
+                             step_weight=float(g('sliding_step_weight')),
+                             min_parallax_deg=float(g('sliding_min_parallax_deg'))))
 
 
 class ParamsError(ValueError):
