@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 MODULES = ['fixego_ros.bench.core', 'fixego_ros.bench.flow', 'fixego_ros.bench.render', 'fixego_ros.bench.servo',
-           'fixego_ros.bench.replay', 'fixego_ros.bench.live']
+           'fixego_ros.bench.replay', 'fixego_ros.bench.accuracy', 'fixego_ros.bench.live']
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -28,6 +28,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     only = {s.strip() for s in args.only.split(',') if s.strip()}
     runs: dict[str, list[float]] = {}
+    reports = []
     for mod in MODULES:
         if only and mod.rsplit('.', 1)[-1] not in only:
             continue
@@ -36,6 +37,8 @@ def main(argv: list[str] | None = None) -> int:
         except ImportError as e:
             print(f'skip {mod}: {e}')
             continue
+        if hasattr(m, 'report'):
+            reports.append(m)
         for _ in range(args.repeat):
             for k, v in m.run().items():
                 if isinstance(v, (int, float)) and not isinstance(v, bool):   # labels are not figures
@@ -44,6 +47,8 @@ def main(argv: list[str] | None = None) -> int:
                for k, v in runs.items()}
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    for m in reports:
+        m.report(out)       # modules with tables and plots of their own (accuracy)
     meta = {'when': time.strftime('%Y-%m-%d %H:%M:%S'), 'machine': platform.platform(),
             'cpus': os.cpu_count(), 'repeat': args.repeat}
     (out / 'results.json').write_text(json.dumps({'meta': meta, 'results': results}, indent=1))

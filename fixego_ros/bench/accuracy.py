@@ -1,0 +1,164 @@
+"""Long-trajectory accuracy per flow preset, per refinement mode and with the scale aids (issue 7).
+
+Runs ``fixego replay``'s pipeline over
+
+* the shipped ``paper`` loop and ``walk`` bags (``bags/``),
+* a rotation-poor straight run (2 m north, 320x240 at 10 Hz) and the paper loop again, both written
+  here by the simulator *with* simulated wheel odometry (5 cm/s noise) so the speed aid can be measured,
+
+for every flow preset (``paper``, ``window``, ``full``) and refinement (``local``: the papers' 3-frame
+local BA; ``sliding``: keyframe poses with persistent landmarks), and reports the papers' unaligned
+position error (mean, terminal), ATE after SE(3) and Sim(3) alignment, the estimated/true path length,
+and the estimator's median ms per frame. The two-frame-only ("raw") trajectory is the same for both
+refinements and is reported once per preset. Everything is deterministic, so the results are computed
+once per process (``make bench`` repeats are free) and written with a plot of the paper loop to
+``bench/accuracy.md`` and ``bench/accuracy_paper.png``.
+
+    python -m fixego_ros.bench.accuracy [--out bench]
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+PRESETS = ('paper', 'window', 'full')
+REFINEMENTS = ('local', 'sliding')
+WHEEL_STD = 0.05
+_results: dict[str, float] | None = None
+_tracks: dict[str, np.ndarray] = {}
+_tmp: tempfile.TemporaryDirectory | None = None
+
+
+def _aided_bags() -> dict[str, Path]:
+    """Straight run and paper loop with simulated wheel odometry, written once per process."""
+    global _tmp
+    from fixego_ros.bags.shipped import ShippedBag, by_name, generate
+    from fixego_ros.sim.run import SimSettings
+    _tmp = tempfile.TemporaryDirectory(prefix='fixego-accuracy-')
+    out = {}
+    specs = {'straight': ShippedBag('straight', SimSettings(trajectory='straight', seed=0, fps=10.0), 320, 240, ''),
+             'paper+wheel': by_name('paper')}
+    for name, spec in specs.items():
+        path = Path(_tmp.name) / name.replace('+', '_')
+        generate(spec, path, wheel_odom_std=WHEEL_STD)
+        out[name] = path
+    return out
+
+
+def _replay(path: Path, preset: str, refinement: str, speed: bool):
+    from fixego_ros.bags.reader import Bag
+    from fixego_ros.geometry.rig import load_rig
+    from fixego_ros.pipeline.odometry import SpeedSettings
+    from fixego_ros.pipeline.params import ESTIMATOR_PARAMS, FLOW_PARAMS, params_getter
+    from fixego_ros.replay.run import ReplaySettings, replay
+    from fixego_ros.sim.bag_writer import WHEEL_ODOM_TOPIC
+    rig = load_rig(path / 'rig.yaml')
+    flow = params_getter(FLOW_PARAMS, {'preset': preset})
+    est = params_getter(ESTIMATOR_PARAMS, {'refinement': refinement})
+    settings = ReplaySettings.from_getters(rig, flow=flow, estimator=est,
+                                           speed=SpeedSettings(topic=WHEEL_ODOM_TOPIC) if speed else None)
+    return replay(Bag(path), rig, settings, workers=1)
+
+
+def _measure(out: dict[str, float], key: str, stamps, poses, res) -> None:
+    from fixego_ros.evaluation.metrics import evaluate
+    s = evaluate(stamps, poses, res.gt_stamps, res.gt_poses, anchor_first=True).summary
+    pe, ape, pl = s['position_error_m'], s['ape_translation_m'], s['path_length_m']
+    out[f'{key}.mean_error_cm'] = 100 * pe['mean']
+    out[f'{key}.terminal_error_cm'] = 100 * pe['terminal']
+    out[f'{key}.ate_se3_cm'] = 100 * (ape['se3'].get('rmse') or float('nan'))
+    out[f'{key}.ate_sim3_cm'] = 100 * (ape['sim3'].get('rmse') or float('nan'))
+    out[f'{key}.path_length_ratio'] = pl['ratio'] if pl['ratio'] is not None else float('nan')
+
+
+def run() -> dict[str, float]:
+    global _results
+    if _results is not None:
+        return dict(_results)
+    from fixego_ros.bags.shipped import BAGS_DIR
+    bags: list[tuple[str, Path, bool]] = [('paper', BAGS_DIR / 'paper', False), ('walk', BAGS_DIR / 'walk', False)]
+    aided = _aided_bags()
+    bags += [('straight', aided['straight'], False), ('straight+speed', aided['straight'], True),
+             ('paper+speed', aided['paper+wheel'], True)]
+    out: dict[str, float] = {}
+    for name, path, speed in bags:
+        for preset in PRESETS:
+            for refinement in REFINEMENTS:
+                res = _replay(path, preset, refinement, speed)
+                key = f'{name}.{preset}.{refinement}'
+                _measure(out, key, res.stamps, res.poses, res)
+                out[f'{key}.estimate_ms_median'] = float(np.median(res.stage_ms.get('estimate', [np.nan])))
+                if refinement == REFINEMENTS[0]:
+                    _measure(out, f'{name}.{preset}.raw', res.stamps, res.poses_raw, res)
+                if (name, preset) in (('paper', 'window'), ('paper+speed', 'full')):
+                    _tracks.setdefault('truth', np.array([p.t for p in res.gt_poses]))
+                    _tracks[f'{name}, {preset}, {refinement}'] = np.array([p.t for p in res.poses])
+                    _tracks.setdefault(f'{name}, {preset}, raw', np.array([p.t for p in res.poses_raw]))
+    _results = out
+    return dict(out)
+
+
+def table(results: dict[str, float]) -> str:
+    """Markdown: one row per bag / preset / refinement."""
+    rows = ['| bag | preset | refinement | mean (cm) | terminal (cm) | ATE SE(3) (cm) | ATE Sim(3) (cm) '
+            '| path est/true | estimator ms (median) |', '|---|---|---|---:|---:|---:|---:|---:|---:|']
+    keys = sorted({k.rsplit('.', 1)[0] for k in results})
+    order = {'paper': 0, 'walk': 1, 'straight': 2, 'straight+speed': 3, 'paper+speed': 4}
+    keys.sort(key=lambda k: (order.get(k.split('.')[0], 9), PRESETS.index(k.split('.')[1]),
+                             ('raw', *REFINEMENTS).index(k.split('.')[2])))
+    for k in keys:
+        bag, preset, ref = k.split('.')
+        r = {m: results.get(f'{k}.{m}', float('nan')) for m in ('mean_error_cm', 'terminal_error_cm', 'ate_se3_cm',
+                                                               'ate_sim3_cm', 'path_length_ratio',
+                                                               'estimate_ms_median')}
+        ms = '' if ref == 'raw' else f'{r["estimate_ms_median"]:.1f}'
+        rows.append(f'| {bag} | {preset} | {ref} | {r["mean_error_cm"]:.1f} | {r["terminal_error_cm"]:.1f} | '
+                    f'{r["ate_se3_cm"]:.1f} | {r["ate_sim3_cm"]:.1f} | {r["path_length_ratio"]:.3f} | {ms} |')
+    return '\n'.join(rows) + '\n'
+
+
+def plot(path: Path) -> None:
+    """Top view of the paper loop: truth, the default (window) preset's estimates, and the best aided run."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(figsize=(7, 6))
+    for label, xyz in _tracks.items():
+        if len(xyz):
+            ax.plot(xyz[:, 0], xyz[:, 1], 'k-' if label == 'truth' else '-', lw=2 if label == 'truth' else 1,
+                    label=label)
+    ax.set_aspect('equal')
+    ax.set_xlabel('x (m, odom)')
+    ax.set_ylabel('y (m, odom)')
+    ax.set_title('paper loop, no alignment')
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def report(out: Path) -> None:
+    """Write ``accuracy.md`` and ``accuracy_paper.png`` into ``out`` (``make bench`` calls this)."""
+    res = run()
+    out.mkdir(parents=True, exist_ok=True)
+    (out / 'accuracy.md').write_text('# Accuracy per preset and refinement (deterministic replays)\n\n'
+                                     'Produced by `python -m fixego_ros.bench.accuracy`; see the module docstring.\n\n'
+                                     + table(res))
+    plot(out / 'accuracy_paper.png')
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog='python -m fixego_ros.bench.accuracy')
+    ap.add_argument('--out', default='bench')
+    args = ap.parse_args(argv)
+    report(Path(args.out))
+    print(table(run()))
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())
