@@ -172,7 +172,7 @@ def test_left_node_vergence_on_start_measures_the_right_fixation_distance(ros_co
     from geometry_msgs.msg import PoseWithCovarianceStamped
 
     from fixego_ros.geometry.rig import default_rig_path, load_rig
-    from fixego_ros.nodes.camera_node import VERGENCE_QOS
+    from fixego_ros.nodes.common import LATCHED_QOS
     from fixego_ros.nodes.sim_rig_node import SimRigNode
     from fixego_ros.sim.run import resize_rig
 
@@ -196,7 +196,7 @@ def test_left_node_vergence_on_start_measures_the_right_fixation_distance(ros_co
     got: list[PoseWithCovarianceStamped] = []
     diags: list[DiagnosticArray] = []
     lfix: list[PointStamped] = []
-    probe.create_subscription(PoseWithCovarianceStamped, '/fixego/vergence', got.append, VERGENCE_QOS)
+    probe.create_subscription(PoseWithCovarianceStamped, '/fixego/vergence', got.append, LATCHED_QOS)
     probe.create_subscription(DiagnosticArray, '/diagnostics', diags.append, RELIABLE_QOS)
     probe.create_subscription(PointStamped, '/fixego/left/fixation', lfix.append, RELIABLE_QOS)
     t0 = time.monotonic()

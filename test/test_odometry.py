@@ -301,3 +301,47 @@ def test_estimator_node_without_speed_topic_has_no_subscription(ros_context, tmp
         assert not any(s.topic_name.endswith('odom') for s in node.subscriptions)
     finally:
         node.destroy_node()
+
+
+def test_estimator_node_takes_a_latched_vergence_distance(ros_context, monkeypatch):
+    """A vergence measurement published before the estimator starts (latched) reaches the estimator as a
+    fixation point of the right camera; a NaN one is dropped and counted."""
+    rclpy = pytest.importorskip('rclpy')
+    from conftest import executor_for, spin_until
+    from geometry_msgs.msg import PoseWithCovarianceStamped
+    from rclpy.parameter import Parameter
+
+    from fixego_ros.nodes.common import LATCHED_QOS, sec_to_stamp
+    from fixego_ros.nodes.estimator_node import EstimatorNode
+
+    probe = rclpy.create_node('probe', context=ros_context)
+    pub = probe.create_publisher(PoseWithCovarianceStamped, '/fixego/vergence', LATCHED_QOS)
+    msg = PoseWithCovarianceStamped()
+    msg.header.stamp = sec_to_stamp(12.5)
+    msg.header.frame_id = 'rig'
+    msg.pose.pose.position.x, msg.pose.pose.position.z = 0.3, 3.0
+    msg.pose.covariance = cov6(np.eye(3) * 1e-4)
+    pub.publish(msg)                                   # before the estimator exists: latched
+    node = EstimatorNode(context=ros_context,
+                         parameter_overrides=[Parameter('vergence_topic', value='/fixego/vergence')])
+    got = []
+    add = node.estimator.add_fixation_point
+
+    def spy(stamp, side, point, cov):
+        got.append((stamp, side, np.asarray(point), np.asarray(cov)))
+        add(stamp, side, point, cov)
+    monkeypatch.setattr(node.estimator, 'add_fixation_point', spy)
+    ex = executor_for(ros_context, node, probe)
+    try:
+        assert spin_until(ex, lambda: len(got) == 1, 10.0)
+        stamp, side, point, cov = got[0]
+        assert stamp == pytest.approx(12.5) and side == 'right'
+        assert np.allclose(point, [0.3, 0.0, 3.0]) and np.allclose(cov, np.eye(3) * 1e-4)
+        msg.pose.pose.position.z = float('nan')
+        pub.publish(msg)
+        assert spin_until(ex, lambda: node.stats.get('vergence_rejected', 0) == 1, 10.0)
+        assert node.stats['vergence'] == 1
+    finally:
+        ex.shutdown()
+        node.destroy_node()
+        probe.destroy_node()
