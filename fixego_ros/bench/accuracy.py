@@ -25,6 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
+from fixego_ros.bench.replay import trajectory_figures
+
 PRESETS = ('paper', 'window', 'full')
 REFINEMENTS = ('local', 'sliding')
 WHEEL_STD = 0.05
@@ -64,17 +66,6 @@ def _replay(path: Path, preset: str, refinement: str, speed: bool):
     return replay(Bag(path), rig, settings, workers=1)
 
 
-def _measure(out: dict[str, float], key: str, stamps, poses, res) -> None:
-    from fixego_ros.evaluation.metrics import evaluate
-    s = evaluate(stamps, poses, res.gt_stamps, res.gt_poses, anchor_first=True).summary
-    pe, ape, pl = s['position_error_m'], s['ape_translation_m'], s['path_length_m']
-    out[f'{key}.mean_error_cm'] = 100 * pe['mean']
-    out[f'{key}.terminal_error_cm'] = 100 * pe['terminal']
-    out[f'{key}.ate_se3_cm'] = 100 * (ape['se3'].get('rmse') or float('nan'))
-    out[f'{key}.ate_sim3_cm'] = 100 * (ape['sim3'].get('rmse') or float('nan'))
-    out[f'{key}.path_length_ratio'] = pl['ratio'] if pl['ratio'] is not None else float('nan')
-
-
 def run() -> dict[str, float]:
     global _results
     if _results is not None:
@@ -90,10 +81,10 @@ def run() -> dict[str, float]:
             for refinement in REFINEMENTS:
                 res = _replay(path, preset, refinement, speed)
                 key = f'{name}.{preset}.{refinement}'
-                _measure(out, key, res.stamps, res.poses, res)
+                trajectory_figures(out, key, res.stamps, res.poses, res)
                 out[f'{key}.estimate_ms_median'] = float(np.median(res.stage_ms.get('estimate', [np.nan])))
                 if refinement == REFINEMENTS[0]:
-                    _measure(out, f'{name}.{preset}.raw', res.stamps, res.poses_raw, res)
+                    trajectory_figures(out, f'{name}.{preset}.raw', res.stamps, res.poses_raw, res)
                 if (name, preset) in (('paper', 'window'), ('paper+speed', 'full')):
                     _tracks.setdefault('truth', np.array([p.t for p in res.gt_poses]))
                     _tracks[f'{name}, {preset}, {refinement}'] = np.array([p.t for p in res.poses])

@@ -46,9 +46,21 @@ def _replay(path: Path, workers: int):
     return replay(Bag(path), rig, ReplaySettings.from_getters(rig), workers=workers)
 
 
+def trajectory_figures(out: dict[str, float], key: str, stamps, poses, res) -> None:
+    """The papers' unaligned position error (mean, terminal), ATE after SE(3)/Sim(3) and the path-length
+    ratio of one estimated trajectory against the replay's ground truth, as ``out[f'{key}.<figure>']``."""
+    from fixego_ros.evaluation.metrics import evaluate
+    s = evaluate(stamps, poses, res.gt_stamps, res.gt_poses, anchor_first=True).summary
+    pe, ape, pl = s['position_error_m'], s['ape_translation_m'], s['path_length_m']
+    out[f'{key}.mean_error_cm'] = 100 * pe['mean']
+    out[f'{key}.terminal_error_cm'] = 100 * pe['terminal']
+    out[f'{key}.ate_se3_cm'] = 100 * (ape['se3'].get('rmse') or float('nan'))
+    out[f'{key}.ate_sim3_cm'] = 100 * (ape['sim3'].get('rmse') or float('nan'))
+    out[f'{key}.path_length_ratio'] = pl['ratio'] if pl['ratio'] is not None else float('nan')
+
+
 def run() -> dict[str, float]:
     from fixego_ros.bags.shipped import BAGS_DIR, SHIPPED
-    from fixego_ros.evaluation.metrics import evaluate
 
     out: dict[str, float] = {}
     big = _big_bag()
@@ -66,14 +78,7 @@ def run() -> dict[str, float]:
         res = _replay(BAGS_DIR / spec.name, 2)
         out[f'{spec.name}.realtime_factor'] = res.realtime_factor
         for label, poses in (('refined', res.poses), ('raw', res.poses_raw)):
-            s = evaluate(res.stamps, poses, res.gt_stamps, res.gt_poses, anchor_first=True).summary
-            pe, ape, pl = s['position_error_m'], s['ape_translation_m'], s['path_length_m']
-            k = f'{spec.name}.{label}'
-            out[f'{k}.mean_error_cm'] = 100 * pe['mean']
-            out[f'{k}.terminal_error_cm'] = 100 * pe['terminal']
-            out[f'{k}.ate_se3_cm'] = 100 * (ape['se3'].get('rmse') or float('nan'))
-            out[f'{k}.ate_sim3_cm'] = 100 * (ape['sim3'].get('rmse') or float('nan'))
-            out[f'{k}.path_length_ratio'] = pl['ratio'] if pl['ratio'] is not None else float('nan')
+            trajectory_figures(out, f'{spec.name}.{label}', res.stamps, poses, res)
     return out
 
 

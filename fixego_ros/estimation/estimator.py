@@ -25,6 +25,7 @@ from fixego_ros.estimation.sliding_window import (
     StepFactor,
     WindowConfig,
     landmark_key,
+    landmark_kind_side,
 )
 from fixego_ros.estimation.status import StepStatus
 from fixego_ros.estimation.twoframe import SolverConfig, TwoFrameResult, TwoFrameSolver
@@ -191,8 +192,7 @@ class _Latest:
     pose: Pose
     pose_raw: Pose
     pose_cov: np.ndarray
-    step_cov: np.ndarray = field(default_factory=lambda: np.diag([1e-2] * 3 + [VAR_MAX] * 3))
-    step_meas: Pose = field(default_factory=Pose.identity)   # the measured (two-frame or predicted) motion
+    step_cov: np.ndarray = field(default_factory=lambda: np.diag([1e-2] * 3 + [VAR_MAX] * 3))  # of ``motion``
     speed: tuple[np.ndarray, np.ndarray] | None = None       # external-speed translation over the step
     landmarks: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
@@ -209,7 +209,7 @@ class Estimator:
     ``prev_stamp`` always the previous frame, every frame is a keyframe (the papers' scheme).
 
     Refinement (``config.refinement``): ``'local'`` is the papers' local BA of the latest step over the
-    last n keyframes; ``'sliding'`` (default) refines the recent keyframe poses together with the
+    last n keyframes (the default); ``'sliding'`` refines the recent keyframe poses together with the
     persistent landmarks (:mod:`.sliding_window`). Either way the metric scale is reported unobserved
     (``FrameResult.scale_observed``, large position covariance) until the rig has turned by
     ``scale_min_rotation_deg`` or a scale aid (:meth:`add_velocity`, :meth:`add_fixation_point`) was used.
@@ -239,7 +239,6 @@ class Estimator:
         self._rotation_seen = 0.0          # rad of rig rotation between keyframes so far
         self._aids: set[str] = set()       # scale aids that have been used
         self._prior_scale_pending = False   # a vergence distance arrived: rescale once the window has placed it
-        self._history: dict[float, Pose] = {}   # refined keyframe poses by stamp (the smoothed trajectory)
 
     # ------------------------------------------------------------------------------------ scale aids
     def add_velocity(self, stamp: float, v_rig: np.ndarray, cov_rig: np.ndarray) -> None:
@@ -278,14 +277,6 @@ class Estimator:
         if seen >= need:
             return f'scale observed: {seen:.0f} deg of rotation seen'
         return f'scale unobserved: {seen:.1f} of {need:.0f} deg rotation seen, no scale aid'
-
-    def trajectory(self) -> list[tuple[float, Pose]]:
-        """Refined keyframe poses so far (revised as the sliding window refines them), oldest first, and
-        the newest frame's pose when it is not a keyframe: what a path display should show."""
-        out = sorted(self._history.items())
-        if self._latest is not None:
-            out.append((self._latest.stamp, self._latest.pose))
-        return out
 
     @property
     def last_stamp(self) -> float | None:
@@ -371,7 +362,6 @@ class Estimator:
         if self._key_stamp is None:
             self._key_stamp = obs.stamp
             self._window.append(_Slot(fix, Pose.identity()))
-            self._history[obs.stamp] = Pose.identity()
             if self._sliding is not None:
                 self._sliding.add(obs.stamp, Pose.identity(), *landmark_observations(self.rig, obs), None)
             return FrameResult(self._index, obs.stamp, StepStatus.INIT, self._key_pose, self._key_pose_raw,
@@ -424,14 +414,14 @@ class Estimator:
         pose_cov = self._propagate(self._key_pose, self._key_cov, motion, cov)
         pose = (self._key_pose @ motion).normalized()
         pose_raw = (self._key_pose_raw @ motion_raw).normalized()
-        self._latest = _Latest(obs.stamp, fix, motion, motion_raw, pose, pose_raw, pose_cov, cov, motion, speed,
+        self._latest = _Latest(obs.stamp, fix, motion, motion_raw, pose, pose_raw, pose_cov, cov, speed,
                                landmark_observations(self.rig, obs) if self._sliding is not None else None)
         if speed is not None:
             self._aids.add('the speed source')
         key_stamp = self._key_stamp
         if obs.keyframe:
             self._promote()
-            pose, motion = self._key_pose, self._history_step(key_stamp, motion)
+            pose, motion = self._key_pose, self._window[-1].step.normalized()
         if gap:
             message = f'{gap}; {message}' if message else gap
         observed = self.scale_observed
@@ -449,7 +439,7 @@ class Estimator:
         prev_pose = self._key_pose
         pose = f.pose
         if self._sliding is not None and f.landmarks is not None:
-            factor = StepFactor(f.step_meas, f.step_cov, *(f.speed if f.speed is not None else (None, None)))
+            factor = StepFactor(f.motion, f.step_cov, *(f.speed if f.speed is not None else (None, None)))
             self._sliding.hold_open = not self.scale_observed
             pose = self._sliding.add(f.stamp, f.pose, *f.landmarks, factor).normalized()
             if self._prior_scale_pending:
@@ -458,13 +448,10 @@ class Estimator:
                     self._rescale(s)
                     pose = Pose(pose.R, pose.t * s)
                     self._prior_scale_pending = False
-            for stamp, p in self._sliding.poses():
-                if stamp in self._history:
-                    self._history[stamp] = p
-            prev_pose = self._history.get(self._key_stamp, prev_pose)
+            prev_pose = dict(self._sliding.poses()).get(self._key_stamp, prev_pose)   # as refined now
         self._rotation_seen += rotation_angle(prev_pose.R.T @ pose.R)
         self._window.append(_Slot(f.fixation, prev_pose.inverse() @ pose))
-        self._history[f.stamp] = pose
+        self._speed.forget_before(self._key_stamp)     # later steps start at this keyframe or after
         self._key_stamp, self._key_pose, self._key_pose_raw, self._key_cov = f.stamp, pose, f.pose_raw, f.pose_cov
         self._latest = None
         self._attach_points()
@@ -473,19 +460,12 @@ class Estimator:
         """Apply a scale found late (a vergence distance) to everything built with the unobserved one."""
         assert self._sliding is not None
         self._sliding.rescale(s)
-        for stamp, p in self._history.items():
-            self._history[stamp] = Pose(p.R, p.t * s)
         self._key_pose = Pose(self._key_pose.R, self._key_pose.t * s)
         self._key_cov = self._key_cov.copy()
         self._key_cov[3:, 3:] *= s * s
         if self._velocity is not None:
             v, v_raw = self._velocity
             self._velocity = (np.concatenate([v[:3], v[3:] * s]), v_raw)
-
-    def _history_step(self, key_stamp: float, motion: Pose) -> Pose:
-        """Refined motion from the keyframe at ``key_stamp`` to the newest keyframe."""
-        ref = self._history.get(key_stamp)
-        return motion if ref is None else (ref.inverse() @ self._key_pose).normalized()
 
     def _attach_points(self) -> None:
         """Give pending vergence points to the sliding window once their frame is a keyframe in it."""
@@ -499,7 +479,8 @@ class Estimator:
                 if self._key_stamp is None or stamp > self._key_stamp:
                     kept.append((stamp, side_index, point, cov))      # its keyframe is still to come
                 continue                                             # not a keyframe, or gone: dropped
-            fix = f.keys[(f.keys % 2 == FIXATION) & ((f.keys // 2) % 2 == side_index)]
+            kind, side_of = landmark_kind_side(f.keys)
+            fix = f.keys[(kind == FIXATION) & (side_of == side_index)]
             was_observed = self.scale_observed
             if len(fix) and self._sliding.add_prior(stamp, int(fix[0]), point, cov):
                 self._prior_scale_pending = self._prior_scale_pending or not was_observed
@@ -531,7 +512,6 @@ class Estimator:
             empty = (np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)))
             self._sliding.hold_open = not self.scale_observed
             self._key_pose = self._sliding.add(ref, self._key_pose, *empty, StepFactor(step, cov)).normalized()
-        self._history[ref] = self._key_pose
         self._key_stamp = ref
         # the missed frames' fixations are unknown: no fixation pair or BA term may span the gap
         self._window.append(_Slot({side: None for side in SIDES}, step))

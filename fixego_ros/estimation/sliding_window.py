@@ -41,6 +41,12 @@ def landmark_key(kind: int, side_index: int, ident: np.ndarray | int) -> np.ndar
     return (np.asarray(ident, dtype=np.int64) * 2 + side_index) * 2 + kind
 
 
+def landmark_kind_side(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Kind (TRACK / FIXATION) and camera index of landmark keys (the inverse of :func:`landmark_key`)."""
+    keys = np.asarray(keys, dtype=np.int64)
+    return keys % 2, (keys // 2) % 2
+
+
 @dataclass(frozen=True)
 class WindowConfig:
     """Options of the sliding window (defaults suit ~5-30 keyframes/s and ~80 tracks per camera)."""
@@ -137,6 +143,17 @@ def _skew_batch(v: np.ndarray) -> np.ndarray:
     out[:, 1, 0], out[:, 1, 2] = v[:, 2], -v[:, 0]
     out[:, 2, 0], out[:, 2, 1] = -v[:, 1], v[:, 0]
     return out
+
+
+def _lookup(lm_keys: np.ndarray, keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Index into the sorted ``lm_keys`` of each of ``keys`` and whether it is there."""
+    pos = np.minimum(np.searchsorted(lm_keys, keys), len(lm_keys) - 1)
+    return pos, lm_keys[pos] == keys
+
+
+def _point_jacobian(R: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """(3, 6) derivative of ``z = R^T (X - p)`` over the pose [rotation (right perturbation), position]."""
+    return np.hstack([_skew_batch(z[None])[0], -R.T])
 
 
 def _information(cov: np.ndarray, weight: float = 1.0) -> np.ndarray:
@@ -323,25 +340,17 @@ class SlidingWindow:
         if not self.landmarks or not len(f.keys):
             return
         lm_keys = np.array(sorted(self.landmarks), np.int64)
-        pos = np.minimum(np.searchsorted(lm_keys, f.keys), len(lm_keys) - 1)
-        m = lm_keys[pos] == f.keys
+        pos, m = _lookup(lm_keys, f.keys)
         if int(m.sum()) < min_points:
             return
         X = np.array([self.landmarks[int(k)] for k in lm_keys[pos[m]]])
         n = len(X)
         prob = {'fr': np.zeros(n, int), 'li': np.arange(n), 'rays': f.rays[m], 'cs': f.centers[m], 'bs': f.basis[m]}
         R, p = f.R[None].copy(), f.p[None].copy()
-        k = self.config.huber
         for _ in range(self.config.iterations + 2):
-            r, z, depth, front = self._obs_residuals(prob, R, p, X)
-            s = np.linalg.norm(r, axis=1)
-            w = np.where(s <= k, 1.0, k / np.maximum(s, 1e-12)) * front
-            A = (prob['bs'] - r[:, :, None] * self.config.sigma * prob['rays'][:, None, :]) / depth[:, None, None]
-            A /= self.config.sigma
-            Jl = np.einsum('nki,ji->nkj', A, R[0])
-            J = np.concatenate([np.cross(A, z[:, None, :]), -Jl], axis=2) * np.sqrt(w)[:, None, None]
+            rw, J, _ = self._obs_jacobians(prob, R, p, X)
             H = np.einsum('nki,nkj->ij', J, J)
-            g = np.einsum('nki,nk->i', J, r * np.sqrt(w)[:, None])
+            g = np.einsum('nki,nk->i', J, rw)
             try:
                 d = np.linalg.solve(H + 1e-6 * np.diag(np.diag(H)) + 1e-12 * np.eye(6), -g)
             except np.linalg.LinAlgError:
@@ -366,9 +375,7 @@ class SlidingWindow:
         for i, f in enumerate(self.frames):
             if not len(f.keys) or not len(lm_keys):
                 continue
-            pos = np.searchsorted(lm_keys, f.keys)
-            pos = np.minimum(pos, len(lm_keys) - 1)
-            m = lm_keys[pos] == f.keys
+            pos, m = _lookup(lm_keys, f.keys)
             if not np.any(m):
                 continue
             F.append(np.full(int(m.sum()), i))
@@ -416,12 +423,12 @@ class SlidingWindow:
         s = np.linalg.norm(r, axis=1)
         k = self.config.huber
         cost = float(np.sum(np.where(s <= k, s * s, 2 * k * s - k * k)))
-        for res, _, _, W in self._factors(prob, R, p, X, jacobians=False):
+        for res, _, W in self._factors(prob, R, p, X, jacobians=False):
             cost += float(res @ W @ res)
         return 0.5 * cost
 
     def _factors(self, prob: dict, R: np.ndarray, p: np.ndarray, X: np.ndarray, jacobians: bool = True):
-        """(residual, {frame index or ('l', landmark index): Jacobian}, nothing, information) per factor."""
+        """(residual, {frame index or ('l', landmark index): Jacobian}, information) per factor."""
         for b in range(1, len(self.frames)):
             fa, fb = self.frames[b - 1], self.frames[b]
             st = fb.step
@@ -436,20 +443,19 @@ class SlidingWindow:
             if jacobians:
                 Ja = np.zeros((6, 6))
                 Ja[:3, :3] = -RD.T
-                Ja[3:, :3] = _skew_batch(tD[None])[0]
-                Ja[3:, 3:] = -Ra.T
+                Ja[3:] = _point_jacobian(Ra, tD)
                 Jb = np.zeros((6, 6))
                 Jb[:3, :3] = np.eye(3)
                 Jb[3:, 3:] = Ra.T
                 J = {b - 1: Ja, b: Jb}
-            yield res, J, None, W
+            yield res, J, W
             if st.speed_t is not None and st.speed_cov is not None:
                 res = tD - st.speed_t
                 W = _information(st.speed_cov)
                 J = {}
                 if jacobians:
-                    J = {b - 1: np.hstack([_skew_batch(tD[None])[0], -Ra.T]), b: np.hstack([np.zeros((3, 3)), Ra.T])}
-                yield res, J, None, W
+                    J = {b - 1: _point_jacobian(Ra, tD), b: np.hstack([np.zeros((3, 3)), Ra.T])}
+                yield res, J, W
         if not self.priors:
             return
         index = {f.stamp: i for i, f in enumerate(self.frames)}
@@ -462,25 +468,28 @@ class SlidingWindow:
             res = z - pr.point
             J = {}
             if jacobians:
-                J = {i: np.hstack([_skew_batch(z[None])[0], -R[i].T]), ('l', j): R[i].T}
-            yield res, J, None, pr.information
+                J = {i: _point_jacobian(R[i], z), ('l', j): R[i].T}
+            yield res, J, pr.information
+
+    def _obs_jacobians(self, prob: dict, R: np.ndarray, p: np.ndarray, X: np.ndarray):
+        """Huber-weighted (IRLS) residuals (n, 2) and their Jacobians over each observation's pose (n, 2, 6)
+        and landmark (n, 2, 3)."""
+        r, z, depth, front = self._obs_residuals(prob, R, p, X)
+        s = np.linalg.norm(r, axis=1)
+        k = self.config.huber
+        sw = np.sqrt(np.where(s <= k, 1.0, k / np.maximum(s, 1e-12)) * front)
+        A = (prob['bs'] - r[:, :, None] * self.config.sigma * prob['rays'][:, None, :]) / depth[:, None, None]
+        A /= self.config.sigma
+        Jl = np.einsum('nki,nji->nkj', A, R[prob['fr']]) * sw[:, None, None]    # d r / d X = A R^T
+        Jt = np.cross(A, z[:, None, :]) * sw[:, None, None]                     # d r / d theta = A [z]x
+        return r * sw[:, None], np.concatenate([Jt, -Jl], axis=2), Jl
 
     def _linearise(self, prob: dict, R: np.ndarray, p: np.ndarray, X: np.ndarray):
         """Normal equations: dense pose block (6V x 6V), landmark blocks (L,3,3), coupling (V,L,6,3)."""
         V, L = len(prob['var']), len(X)
         fpos = prob['fpos']
-        r, z, depth, front = self._obs_residuals(prob, R, p, X)
         fr, li = prob['fr'], prob['li']
-        s = np.linalg.norm(r, axis=1)
-        k = self.config.huber
-        w = np.where(s <= k, 1.0, k / np.maximum(s, 1e-12)) * front
-        A = (prob['bs'] - r[:, :, None] * self.config.sigma * prob['rays'][:, None, :]) / depth[:, None, None]
-        A /= self.config.sigma
-        sw = np.sqrt(w)[:, None, None]
-        Jl = np.einsum('nki,nji->nkj', A, R[fr]) * sw               # d r / d X = A R^T
-        Jt = np.cross(A, z[:, None, :]) * sw                        # d r / d theta = A [z]x
-        Jp = np.concatenate([Jt, -Jl], axis=2)                       # (n, 2, 6)
-        rw = r * np.sqrt(w)[:, None]
+        rw, Jp, Jl = self._obs_jacobians(prob, R, p, X)
         Hpp = np.zeros((V * 6, V * 6))
         gp = np.zeros(V * 6)
         Hll = np.zeros((L, 3, 3))
@@ -499,7 +508,7 @@ class SlidingWindow:
             np.add.at(g, vf[on], np.einsum('nki,nk->ni', Jp[on], rw[on]))
             gp += g.reshape(-1)
             Hpl[vf[on], li[on]] = np.einsum('nki,nkj->nij', Jp[on], Jl[on])
-        for res, J, _, W in self._factors(prob, R, p, X):
+        for res, J, W in self._factors(prob, R, p, X):
             items = [(key, Jk) for key, Jk in J.items() if not isinstance(key, int) or fpos[key] >= 0]
             for ka, Ja in items:
                 WJa = W @ Ja
