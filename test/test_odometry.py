@@ -17,6 +17,7 @@ from fixego_ros.pipeline.odometry import (
     SpeedInput,
     SpeedSettings,
     twist_to_rig,
+    vergence_from_msg,
 )
 
 CONFIG = Path(__file__).resolve().parents[1] / 'config'
@@ -116,6 +117,41 @@ def test_from_an_rclpy_odometry_message():
     assert s.stamp == 12.5
     np.testing.assert_allclose(s.v_rig, [-0.1, 0.0, 0.4])
     np.testing.assert_allclose(np.diag(s.cov_rig), [0.04, 0.09, 0.01])
+
+
+def vergence_msg(point=(0.3, 0.0, 3.0), cov=None, stamp: float = 12.5, frame_id: str = 'rig'):
+    """PoseWithCovarianceStamped as camera_node publishes a vergence measurement."""
+    pytest.importorskip('rclpy')
+    from geometry_msgs.msg import PoseWithCovarianceStamped
+
+    from fixego_ros.nodes.common import sec_to_stamp
+    msg = PoseWithCovarianceStamped()
+    msg.header.stamp = sec_to_stamp(stamp)
+    msg.header.frame_id = frame_id
+    msg.pose.pose.position.x, msg.pose.pose.position.y, msg.pose.pose.position.z = point
+    msg.pose.pose.orientation.w = 1.0
+    msg.pose.covariance = cov6(np.diag([1e-6, 1e-6, 0.0036]) if cov is None else cov)
+    return msg
+
+
+def test_vergence_message_gives_the_point_and_its_position_covariance():
+    stamp, point, cov = vergence_from_msg(vergence_msg())
+    assert stamp == 12.5 and point.shape == (3,) and cov.shape == (3, 3)
+    np.testing.assert_allclose(point, [0.3, 0.0, 3.0])
+    np.testing.assert_allclose(cov, np.diag([1e-6, 1e-6, 0.0036]))      # the orientation block (1e6) is dropped
+    assert vergence_from_msg(vergence_msg(stamp=0.0, frame_id=''))[0] == 0.0   # zero stamp, empty frame: fine
+
+
+@pytest.mark.parametrize('kwargs, match', [
+    ({'point': (0.3, math.nan, 3.0)}, 'point not finite'),
+    ({'point': (math.inf, 0.0, 3.0)}, 'point not finite'),
+    ({'cov': np.diag([1e-6, math.nan, 1e-2])}, 'covariance not finite'),
+    ({'cov': np.diag([1e-6, -1e-2, 1e-2])}, 'not positive semi-definite'),
+    ({'frame_id': 'right_optical_frame'}, "expected 'rig'"),
+])
+def test_unusable_vergence_messages_are_rejected_with_the_reason(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        vergence_from_msg(vergence_msg(**kwargs))
 
 
 def test_config_file_lists_the_speed_parameters_with_their_defaults():

@@ -375,3 +375,121 @@ def test_bad_wheel_odometry_is_skipped_and_said_once(wheel_bag, tmp_path, monkey
     for topic, match in (('/nope', 'no speed topic /nope'), ('/fixego/ground_truth/pose', 'expected nav_msgs')):
         with pytest.raises(ReplayError, match=match):
             replay(Bag(src), rig, ReplaySettings.from_getters(rig, speed=SpeedSettings(topic)))
+
+
+# ------------------------------------------------------------------------------------------ vergence
+class VergenceCheckingEstimator(Estimator):
+    """The replay's estimator recording (in process) the fixation points it is given and its scale note."""
+
+    seen: ClassVar[list[tuple[float, str, np.ndarray, np.ndarray]]] = []
+    notes: ClassVar[list[str]] = []
+
+    def add_fixation_point(self, stamp: float, side: str, point_rig: np.ndarray, cov_rig: np.ndarray) -> None:
+        VergenceCheckingEstimator.seen.append((stamp, side, np.asarray(point_rig), np.asarray(cov_rig)))
+        super().add_fixation_point(stamp, side, point_rig, cov_rig)
+
+    def update(self, obs):
+        r = super().update(obs)
+        VergenceCheckingEstimator.notes.append(self.scale_note())
+        return r
+
+
+class RefusingEstimator(Estimator):
+    """An estimator that refuses every fixation point (module level: ``workers=2`` builds it too)."""
+
+    def add_fixation_point(self, stamp: float, side: str, point_rig: np.ndarray, cov_rig: np.ndarray) -> None:
+        raise ValueError('not now')
+
+
+@pytest.fixture(scope='module')
+def vergence_bag(tmp_path_factory) -> Path:
+    """1.5 s of the walk at 320x240, 10 Hz, with a simulated start-up vergence measurement (2 %)."""
+    from fixego_ros.cli import main as fixego
+    out = tmp_path_factory.mktemp('vergence') / 'walk_vergence'
+    assert fixego(['sim', '--trajectory', 'walk', '--duration', '1.5', '--width', '320', '--height', '240',
+                   '--fps', '10', '--vergence-std', '0.02', '--no-progress', '--out', str(out)]) == 0
+    return out
+
+
+def test_replay_feeds_the_vergence_measurement_and_is_same_with_two_workers(vergence_bag, tmp_path, monkeypatch,
+                                                                            capsys):
+    import yaml
+
+    from fixego_ros.cli import main as fixego
+    from fixego_ros.replay import run as replay_run
+
+    monkeypatch.setattr(replay_run, 'Estimator', VergenceCheckingEstimator)   # a spy: the real estimator underneath
+    meta = yaml.safe_load((vergence_bag / 'sim.yaml').read_text())['vergence']
+    common = ['--no-progress', '-p', 'refinement:=sliding']        # the sliding window uses fixation points
+    outs = []
+    for workers in ('1', '2'):
+        VergenceCheckingEstimator.seen, VergenceCheckingEstimator.notes = [], []
+        out = tmp_path / f'w{workers}' / 'est.tum'
+        assert fixego(['replay', str(vergence_bag), '--out', str(out), '--workers', workers, *common,
+                       '--vergence-topic', '/fixego/vergence']) == 0
+        outs.append(out.read_bytes())
+        assert 'vergence /fixego/vergence: 1 measurement(s) given to the estimator' in capsys.readouterr().out
+        if workers == '1':
+            seen, notes = VergenceCheckingEstimator.seen, VergenceCheckingEstimator.notes
+    assert outs[0] == outs[1]
+    # in-process run: the right fixation point at the first frame, in the rig frame, as written
+    assert len(seen) == 1
+    stamp, side, point, cov = seen[0]
+    assert side == 'right' and stamp == pytest.approx(meta['stamp_s'], abs=1e-6)
+    assert np.linalg.norm(point) == pytest.approx(meta['distance_m'])
+    assert np.allclose(cov, cov.T) and np.all(np.linalg.eigvalsh(cov) > 0)
+    assert 'vergence' in notes[-1]                                  # the window took it as the scale anchor
+    # without the option the topic is ignored, and the trajectory is another one
+    VergenceCheckingEstimator.seen = []
+    out = tmp_path / 'off' / 'est.tum'
+    assert fixego(['replay', str(vergence_bag), '--out', str(out), '--workers', '1', *common, '--quiet']) == 0
+    assert VergenceCheckingEstimator.seen == [] and out.read_bytes() != outs[0]
+    rig = load_rig(vergence_bag / 'rig.yaml')
+    res = replay(Bag(vergence_bag), rig, ReplaySettings.from_getters(rig, vergence_topic='/fixego/vergence'))
+    assert res.counts['vergence'] == 1 and not res.notes
+
+
+def test_constant_speed_replay_is_rescaled_by_the_vergence_step(vergence_bag):
+    """Local BA with the constant-speed prior: nominal speed until the vergence point has been followed long enough,
+    then the trajectory written so far is rescaled once (a note says so) and comes out near metric."""
+    from fixego_ros.pipeline.params import ESTIMATOR_PARAMS, params_getter
+
+    rig = load_rig(vergence_bag / 'rig.yaml')
+    est = params_getter(ESTIMATOR_PARAMS, {'constant_speed': True})
+    ratio = {}
+    for topic in ('', '/fixego/vergence'):
+        res = replay(Bag(vergence_bag), rig, ReplaySettings.from_getters(rig, estimator=est, vergence_topic=topic))
+        assert res.counts['prefix_rescaled'] == (1 if topic else 0), res.notes
+        est_xyz = np.array([p.t for p in res.poses])
+        true_xyz = np.array([p.t for p in res.gt_poses])
+        ratio[topic] = (np.sum(np.linalg.norm(np.diff(est_xyz, axis=0), axis=1))
+                        / np.sum(np.linalg.norm(np.diff(true_xyz, axis=0), axis=1)))
+    assert abs(ratio['/fixego/vergence'] - 1.0) < 0.3 and abs(ratio[''] - 1.0) > 0.3
+
+
+def test_bad_or_refused_vergence_is_skipped_and_noted(vergence_bag, tmp_path, monkeypatch):
+    from fixego_ros.replay import run as replay_run
+
+    def damage(topic, msgtype, msg, t):
+        if topic == '/fixego/vergence':
+            msg.pose.pose.position.z = np.nan
+        return [(topic, msgtype, msg, t)]
+
+    rig = load_rig(vergence_bag / 'rig.yaml')
+    settings = ReplaySettings.from_getters(rig, vergence_topic='/fixego/vergence')
+    src = rewrite(vergence_bag, tmp_path / 'damaged', damage, frames=8)
+    res = replay(Bag(src), rig, settings, workers=1)
+    assert res.counts['vergence'] == 0 and res.counts['bad_vergence'] == 1
+    assert len(res.notes) == 1 and 'not finite' in res.notes[0] and len(res.stamps) == 8
+    # refused by the estimator: the same note in process and from the estimator process
+    monkeypatch.setattr(replay_run, 'Estimator', RefusingEstimator)
+    for workers in (1, 2):
+        res = replay(Bag(vergence_bag), rig, settings, workers=workers)
+        assert res.counts['vergence'] == 0 and res.counts['bad_vergence'] == 1, workers
+        assert len(res.notes) == 1 and 'refused by the estimator (not now)' in res.notes[0]
+        assert len(res.stamps) == 16
+    # asking for a vergence topic the bag does not have, or one of another type, says so
+    for topic, match in (('/nope', 'no vergence topic /nope'),
+                         ('/fixego/ground_truth/pose', 'expected geometry_msgs/msg/PoseWithCovarianceStamped')):
+        with pytest.raises(ReplayError, match=match):
+            replay(Bag(vergence_bag), rig, ReplaySettings.from_getters(rig, vergence_topic=topic))

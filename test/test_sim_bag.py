@@ -143,3 +143,52 @@ def test_same_seed_same_bytes_other_seed_other_images(bag, tmp_path):
     imgs = [(x[3], y[3]) for x, y in zip(a, c, strict=True) if x[0].endswith('image_raw')]
     assert all(x != y for x, y in imgs)
     assert fixego(['sim', *ARGS, '--out', str(bag)]) == 2  # never overwrites
+
+
+def test_vergence_std_adds_one_noisy_right_fixation_point(bag, tmp_path):
+    """``--vergence-std`` writes a single start-up vergence measurement: the right camera's true fixation point
+    at the first frame (rig frame), its distance off by a small relative error; nothing else changes."""
+    from rclpy.serialization import deserialize_message
+
+    from fixego_ros.sim.bag_writer import VERGENCE_TOPIC, write_bag
+    from fixego_ros.sim.run import Simulation
+
+    std = 0.01
+    verg = _write(tmp_path, 'verg', '--vergence-std', str(std))
+    a, b = _read_rosbags(bag), _read_rosbags(verg)
+    assert VERGENCE_TOPIC not in {m[0] for m in a}                   # off by default
+    assert [m for m in b if m[0] != VERGENCE_TOPIC] == a           # its own noise stream: the rest byte-identical
+    assert set(topics(vergence=True)) == {m[0] for m in b}
+    ours = [m for m in b if m[0] == VERGENCE_TOPIC]
+    assert len(ours) == 1 and b[0][0] == VERGENCE_TOPIC               # one message, before the first images
+    _, msgtype, t_ns, raw = ours[0]
+    msg = deserialize_message(raw, _msg_class(msgtype))
+    assert msgtype == 'geometry_msgs/msg/PoseWithCovarianceStamped' and msg.header.frame_id == 'rig'
+    assert t_ns == round(EPOCH * 1e9) == msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
+    # the truth, independently: the same simulation's first frame
+    rig = load_rig(verg / 'rig.yaml')
+    meta = yaml.safe_load((verg / 'sim.yaml').read_text())
+    frame = next(Simulation(rig, SimSettings(**meta['simulator'])).frames())
+    true_pt = frame.rig_pose.inverse().apply(frame.states['right'].point) - rig.center('right')
+    p = msg.pose.pose.position
+    got = np.array([p.x, p.y, p.z]) - rig.center('right')
+    d_true, d = np.linalg.norm(true_pt), np.linalg.norm(got)
+    assert 0.5 < d_true < 20 and 0 < abs(d / d_true - 1) < 4 * std              # noisy, by a few %
+    assert np.linalg.norm(np.cross(got / d, true_pt / d_true)) < 1e-9           # on the true ray
+    cov6 = np.array(msg.pose.covariance).reshape(6, 6)
+    u = got / d
+    assert u @ cov6[:3, :3] @ u == pytest.approx((std * d) ** 2)               # relative std along the ray
+    assert np.allclose(np.sort(np.linalg.eigvalsh(cov6[:3, :3]))[:2], 1e-6)    # 1 mm across it
+    assert np.all(np.diag(cov6)[3:] >= 1e6)                                     # orientation unused
+    assert meta['vergence']['topic'] == VERGENCE_TOPIC and meta['vergence']['std_rel'] == std
+    assert meta['vergence']['distance_true_m'] == pytest.approx(d_true)
+    info = yaml.safe_load((verg / 'metadata.yaml').read_text())['rosbag2_bagfile_information']
+    assert info['custom_data']['fixego_sim_vergence_std'] == str(std)
+    qos = {t['topic_metadata']['name']: t['topic_metadata']['offered_qos_profiles'][0]
+           for t in info['topics_with_message_count']}
+    assert qos[VERGENCE_TOPIC]['durability'] == 'transient_local'              # latched, as camera_node's
+    # invalid values are refused, by the CLI and by write_bag
+    assert fixego(['sim', *ARGS, '--out', str(tmp_path / 'bad'), '--vergence-std', '-0.1']) == 2
+    with pytest.raises(ValueError, match='vergence std'):
+        write_bag(tmp_path / 'bad', rig, vergence_std=float('nan'))
+    assert not (tmp_path / 'bad').exists()

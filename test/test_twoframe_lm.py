@@ -13,6 +13,7 @@ from fixego_ros.estimation.status import StepStatus
 from fixego_ros.estimation.twoframe import (
     BACKENDS,
     LOSSES,
+    MotionPrior,
     SolverConfig,
     TwoFrameSolver,
     levenberg_marquardt,
@@ -117,6 +118,34 @@ def test_prior_rows_fix_the_unobserved_scale(seed):
         assert res.status is StepStatus.WEAK
         out[backend] = res.pose.t
     assert np.allclose(out['lm'], out['scipy'], atol=1e-4)
+
+
+@pytest.mark.parametrize('seed', [0, 1])
+def test_length_prior_sets_only_the_length(seed):
+    """A prior on |T| alone: the length follows it, the direction stays the rays' (both backends agree)."""
+    truth, pairs, sigma = problem(seed, 0.1)
+    no_lever = RayPairs(pairs.a, pairs.b, np.zeros_like(pairs.centers), pairs.weights)
+    length = 3 * float(np.linalg.norm(truth.t))
+    out = {}
+    for backend, solver in solvers(sigma, max_nfev=200).items():
+        res = solver.solve(no_lever, perturbed(truth), prior_length=(length, 0.01 * length))
+        assert res.status.usable, res.message
+        direction = res.pose.t @ truth.t / np.linalg.norm(res.pose.t) / np.linalg.norm(truth.t)
+        assert direction > np.cos(np.radians(10.0))
+        assert np.linalg.norm(res.pose.t) == pytest.approx(length, rel=0.05)
+        out[backend] = res.pose.t
+    assert np.allclose(out['lm'], out['scipy'], atol=1e-4)
+
+
+def test_motion_prior_rows_have_the_right_jacobian():
+    prior = MotionPrior.build(np.array([0.1, 0.0, 0.0]), 0.02, (0.3, 0.05))
+    T = np.array([0.2, -0.1, 0.4])
+    r, J = prior.rows(T)
+    assert r.shape == (4,) and J.shape == (4, 6) and np.all(J[:, :3] == 0)
+    h = 1e-7
+    numeric = np.stack([(prior.rows(T + h * e)[0] - r) / h for e in np.eye(3)], axis=1)
+    assert np.allclose(J[:, 3:], numeric, atol=1e-5)
+    assert MotionPrior.build(None, 0.0, (np.nan, 0.1)) is None and MotionPrior.build(None, 0.0, None) is None
 
 
 @pytest.mark.parametrize('backend', BACKENDS)

@@ -50,9 +50,11 @@ def by_name(name: str) -> ShippedBag:
     raise KeyError(f'no shipped bag {name!r} (have {", ".join(b.name for b in SHIPPED)})')
 
 
-def generate(spec: ShippedBag, out_dir: Path, progress: bool = False, wheel_odom_std: float | None = None):
+def generate(spec: ShippedBag, out_dir: Path, progress: bool = False, wheel_odom_std: float | None = None,
+             vergence_std: float | None = None):
     """Write ``spec`` to ``out_dir`` (must not exist) with its ground truth as TUM; returns the summary.
-    ``wheel_odom_std`` adds simulated wheel odometry (the shipped bags have none)."""
+    ``wheel_odom_std`` adds simulated wheel odometry, ``vergence_std`` a start-up vergence measurement (the
+    shipped bags have neither)."""
     from fixego_ros.evaluation.tum import write_tum
     from fixego_ros.geometry.rig import default_rig_path, load_rig
     from fixego_ros.sim.bag_writer import write_bag
@@ -60,7 +62,8 @@ def generate(spec: ShippedBag, out_dir: Path, progress: bool = False, wheel_odom
 
     rig = resize_rig(load_rig(default_rig_path()), spec.width, spec.height)
     sim = Simulation(rig, spec.settings)
-    summary = write_bag(out_dir, rig, spec.settings, progress=progress, sim=sim, wheel_odom_std=wheel_odom_std)
+    summary = write_bag(out_dir, rig, spec.settings, progress=progress, sim=sim, wheel_odom_std=wheel_odom_std,
+                        vergence_std=vergence_std)
     write_tum(out_dir / 'ground_truth.tum', [spec.settings.epoch + t for t in sim.stamps], sim.ground_truth())
     return summary
 

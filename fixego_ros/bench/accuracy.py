@@ -3,11 +3,14 @@
 Runs ``fixego replay``'s pipeline over
 
 * the shipped ``paper`` loop and ``walk`` bags (``bags/``),
-* a rotation-poor straight run (2 m north, 320x240 at 10 Hz) and the paper loop again, both written
-  here by the simulator *with* simulated wheel odometry (5 cm/s noise) so the speed aid can be measured,
+* a rotation-poor straight run (2 m north, 320x240 at 10 Hz) and the paper loop and walk again, written
+  here by the simulator *with* simulated wheel odometry (5 cm/s noise) and a simulated start-up vergence
+  measurement (0.5 % distance noise, what the vergence step reaches in the simulator) so the scale aids
+  can be measured,
 
 for every flow preset (``paper``, ``window``, ``full``) and refinement (``local``: the papers' 3-frame
-local BA; ``sliding``: keyframe poses with persistent landmarks), and reports the papers' unaligned
+local BA; ``sliding``: keyframe poses with persistent landmarks; ``constant``: local BA with the
+constant-speed prior, nominal 0.5 m/s until the vergence step measures the speed), and reports the papers' unaligned
 position error (mean, terminal), ATE after SE(3) and Sim(3) alignment, the estimated/true path length,
 and the estimator's median ms per frame. The two-frame-only ("raw") trajectory is the same for both
 refinements and is reported once per preset. Everything is deterministic, so the results are computed
@@ -28,41 +31,46 @@ import numpy as np
 from fixego_ros.bench.replay import trajectory_figures
 
 PRESETS = ('paper', 'window', 'full')
-REFINEMENTS = ('local', 'sliding')
+REFINEMENTS = ('local', 'sliding', 'constant')
+# estimator parameters of each refinement row ('constant' is the local BA with the constant-speed prior)
+REFINEMENT_PARAMS = {'local': {'refinement': 'local'}, 'sliding': {'refinement': 'sliding'},
+                     'constant': {'refinement': 'local', 'constant_speed': True}}
 WHEEL_STD = 0.05
+VERGENCE_STD = 0.005
 _results: dict[str, float] | None = None
 _tracks: dict[str, np.ndarray] = {}
 _tmp: tempfile.TemporaryDirectory | None = None
 
 
 def _aided_bags() -> dict[str, Path]:
-    """Straight run and paper loop with simulated wheel odometry, written once per process."""
+    """Straight run, paper loop and walk with simulated wheel odometry and vergence, written once per process."""
     global _tmp
     from fixego_ros.bags.shipped import ShippedBag, by_name, generate
     from fixego_ros.sim.run import SimSettings
     _tmp = tempfile.TemporaryDirectory(prefix='fixego-accuracy-')
     out = {}
     specs = {'straight': ShippedBag('straight', SimSettings(trajectory='straight', seed=0, fps=10.0), 320, 240, ''),
-             'paper+wheel': by_name('paper')}
+             'paper+aids': by_name('paper'), 'walk+aids': by_name('walk')}
     for name, spec in specs.items():
         path = Path(_tmp.name) / name.replace('+', '_')
-        generate(spec, path, wheel_odom_std=WHEEL_STD)
+        generate(spec, path, wheel_odom_std=WHEEL_STD, vergence_std=VERGENCE_STD)
         out[name] = path
     return out
 
 
-def _replay(path: Path, preset: str, refinement: str, speed: bool):
+def _replay(path: Path, preset: str, refinement: str, aid: str):
     from fixego_ros.bags.reader import Bag
     from fixego_ros.geometry.rig import load_rig
     from fixego_ros.pipeline.odometry import SpeedSettings
     from fixego_ros.pipeline.params import ESTIMATOR_PARAMS, FLOW_PARAMS, params_getter
     from fixego_ros.replay.run import ReplaySettings, replay
-    from fixego_ros.sim.bag_writer import WHEEL_ODOM_TOPIC
+    from fixego_ros.sim.bag_writer import VERGENCE_TOPIC, WHEEL_ODOM_TOPIC
     rig = load_rig(path / 'rig.yaml')
     flow = params_getter(FLOW_PARAMS, {'preset': preset})
-    est = params_getter(ESTIMATOR_PARAMS, {'refinement': refinement})
+    est = params_getter(ESTIMATOR_PARAMS, REFINEMENT_PARAMS[refinement])
     settings = ReplaySettings.from_getters(rig, flow=flow, estimator=est,
-                                           speed=SpeedSettings(topic=WHEEL_ODOM_TOPIC) if speed else None)
+                                           speed=SpeedSettings(topic=WHEEL_ODOM_TOPIC) if aid == 'speed' else None,
+                                           vergence_topic=VERGENCE_TOPIC if aid == 'vergence' else '')
     return replay(Bag(path), rig, settings, workers=1)
 
 
@@ -71,24 +79,29 @@ def run() -> dict[str, float]:
     if _results is not None:
         return dict(_results)
     from fixego_ros.bags.shipped import BAGS_DIR
-    bags: list[tuple[str, Path, bool]] = [('paper', BAGS_DIR / 'paper', False), ('walk', BAGS_DIR / 'walk', False)]
+    bags: list[tuple[str, Path, str]] = [('paper', BAGS_DIR / 'paper', ''), ('walk', BAGS_DIR / 'walk', '')]
     aided = _aided_bags()
-    bags += [('straight', aided['straight'], False), ('straight+speed', aided['straight'], True),
-             ('paper+speed', aided['paper+wheel'], True)]
+    bags += [('straight', aided['straight'], ''), ('straight+speed', aided['straight'], 'speed'),
+             ('paper+speed', aided['paper+aids'], 'speed')]
+    bags += [(f'{name}+vergence', aided[key], 'vergence')
+             for name, key in (('paper', 'paper+aids'), ('walk', 'walk+aids'), ('straight', 'straight'))]
     out: dict[str, float] = {}
-    for name, path, speed in bags:
+    for name, path, aid in bags:
         for preset in PRESETS:
             for refinement in REFINEMENTS:
-                res = _replay(path, preset, refinement, speed)
+                if aid == 'vergence' and refinement == 'local':
+                    continue                       # the local BA does not use the vergence point
+                res = _replay(path, preset, refinement, aid)
                 key = f'{name}.{preset}.{refinement}'
                 trajectory_figures(out, key, res.stamps, res.poses, res)
                 out[f'{key}.estimate_ms_median'] = float(np.median(res.stage_ms.get('estimate', [np.nan])))
-                if refinement == REFINEMENTS[0]:
+                if refinement == 'local':
                     trajectory_figures(out, f'{name}.{preset}.raw', res.stamps, res.poses_raw, res)
-                if (name, preset) in (('paper', 'window'), ('paper+speed', 'full')):
+                if (name, preset, refinement) in (('paper', 'window', 'local'), ('paper', 'window', 'sliding'),
+                                                  ('paper', 'full', 'constant'), ('paper+speed', 'full', 'sliding'),
+                                                  ('paper+vergence', 'full', 'constant')):
                     _tracks.setdefault('truth', np.array([p.t for p in res.gt_poses]))
                     _tracks[f'{name}, {preset}, {refinement}'] = np.array([p.t for p in res.poses])
-                    _tracks.setdefault(f'{name}, {preset}, raw', np.array([p.t for p in res.poses_raw]))
     _results = out
     return dict(out)
 
@@ -98,7 +111,8 @@ def table(results: dict[str, float]) -> str:
     rows = ['| bag | preset | refinement | mean (cm) | terminal (cm) | ATE SE(3) (cm) | ATE Sim(3) (cm) '
             '| path est/true | estimator ms (median) |', '|---|---|---|---:|---:|---:|---:|---:|---:|']
     keys = sorted({k.rsplit('.', 1)[0] for k in results})
-    order = {'paper': 0, 'walk': 1, 'straight': 2, 'straight+speed': 3, 'paper+speed': 4}
+    order = {'paper': 0, 'walk': 1, 'straight': 2, 'straight+speed': 3, 'paper+speed': 4, 'paper+vergence': 5,
+             'walk+vergence': 6, 'straight+vergence': 7}
     keys.sort(key=lambda k: (order.get(k.split('.')[0], 9), PRESETS.index(k.split('.')[1]),
                              ('raw', *REFINEMENTS).index(k.split('.')[2])))
     for k in keys:
@@ -113,7 +127,8 @@ def table(results: dict[str, float]) -> str:
 
 
 def plot(path: Path) -> None:
-    """Top view of the paper loop: truth, the default (window) preset's estimates, and the best aided run."""
+    """Top view of the paper loop: truth, the default (window) preset's estimates, the constant-speed prior
+    unaided and with the vergence step, and the best speed-aided run."""
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt

@@ -14,9 +14,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from fixego_ros.estimation.constant_speed import ConstantSpeed
 from fixego_ros.estimation.coplanarity import RayPairs
 from fixego_ros.estimation.covariance import VAR_MAX
 from fixego_ros.estimation.local_ba import MODES, BAProblem, BAResult, BATerm, refine_latest
+from fixego_ros.estimation.scale_anchor import ScaleAnchor
 from fixego_ros.estimation.sliding_window import (
     FIXATION,
     TRACK,
@@ -141,6 +143,10 @@ class EstimatorConfig:
     refinement: str = 'local'
     sliding: WindowConfig = field(default_factory=WindowConfig)
     scale_min_rotation_deg: float = 15.0   # the metric scale counts as observed after this much rig rotation
+    # constant-speed prior (:mod:`.constant_speed`): every step at one speed, nominal until the vergence step
+    # (:meth:`Estimator.add_fixation_point`) measures it; off = the papers' free two-frame lengths
+    constant_speed: bool = False
+    speed_nominal: float = 0.5        # m/s
 
     def __post_init__(self) -> None:
         if self.refinement not in REFINEMENTS:
@@ -149,6 +155,9 @@ class EstimatorConfig:
             raise ValueError(f'scale_min_rotation_deg must be finite and >= 0, got {self.scale_min_rotation_deg}')
         if self.mode not in MODES:
             raise ValueError(f'mode must be one of {MODES}, got {self.mode!r}')
+        if self.constant_speed and self.refinement != 'local':
+            raise ValueError("constant_speed works with refinement 'local' (the sliding window carries the scale "
+                             'with its landmarks instead)')
         if self.window not in (0, 1) and not 3 <= self.window <= 10:
             raise ValueError(f'window must be 3..10 (or 0 to disable the local BA), got {self.window}')
 
@@ -171,6 +180,9 @@ class FrameResult:
     placed: bool = True             # False: the frame was ignored (out of order, unknown reference)
     scale_observed: bool = False    # False until enough rotation (or a scale aid) has fixed the metric scale
     scale_note: str = ''            # why / how (one line, for diagnostics)
+    # the scale was just measured: every earlier pose's position should be multiplied by this to be metric
+    # (the path so far was built at a nominal speed; a trajectory kept by the caller can be rewritten)
+    prefix_scale: float = 1.0
 
 
 @dataclass
@@ -196,6 +208,9 @@ class _Latest:
     speed: tuple[np.ndarray, np.ndarray] | None = None       # external-speed translation over the step
     landmarks: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
+
+# frames kept for a vergence measurement that arrives after its frame (~10 s at 10 Hz)
+ANCHOR_HISTORY = 100
 
 class Estimator:
     """Stateful incremental estimator (one instance per trajectory; :meth:`reset` restarts).
@@ -239,6 +254,18 @@ class Estimator:
         self._rotation_seen = 0.0          # rad of rig rotation between keyframes so far
         self._aids: set[str] = set()       # scale aids that have been used
         self._prior_scale_pending = False   # a vergence distance arrived: rescale once the window has placed it
+        cfg = self.config
+        self._speed_prior = ConstantSpeed(cfg.speed_nominal) if cfg.constant_speed else None
+        # key positions (refined, raw) when the speed was measured: the path up to them was built at the nominal
+        # speed and is rescaled at the next keyframe
+        self._prefix_anchor: tuple[np.ndarray, np.ndarray] | None = None
+        self._prefix_rescaled = False
+        self._prefix_scale_out = 1.0        # reported with the next result
+        # with the constant-speed prior, a vergence point fixes the scale (:mod:`.scale_anchor`); recent frames are kept
+        # (bounded) because the measurement arrives after the frame it was made at
+        self._anchor: ScaleAnchor | None = None
+        self._recent: deque[tuple[float, Pose, dict[str, Fixation | None]]] = deque(maxlen=ANCHOR_HISTORY)
+        self._anchor_note = ''
 
     # ------------------------------------------------------------------------------------ scale aids
     def add_velocity(self, stamp: float, v_rig: np.ndarray, cov_rig: np.ndarray) -> None:
@@ -262,18 +289,74 @@ class Estimator:
         cov = np.asarray(cov_rig, float).reshape(3, 3)
         if not (math.isfinite(stamp) and np.all(np.isfinite(point)) and np.all(np.isfinite(cov))):
             raise ValueError('fixation point with non-finite stamp, position or covariance')
+        if self._speed_prior is not None:
+            self._start_anchor(float(stamp), side, point, cov)
+            return
         self._pending_points.append((float(stamp), SIDES.index(side), point, cov))
         self._attach_points()
 
+    def _start_anchor(self, stamp: float, side: str, point: np.ndarray, cov: np.ndarray) -> None:
+        """Constant-speed prior: the vergence point becomes a scale anchor, fed with the frames since its stamp."""
+        if self._speed_prior is None or self._speed_prior.measured or self._anchor is not None:
+            self._anchor_note = 'vergence measurement ignored: the speed is already measured or being anchored'
+            return
+        anchor = ScaleAnchor(stamp, side, point, cov, self.rig.center(side), self.config.solver.sigma)
+        recent = list(self._recent)
+        if recent and stamp < recent[0][0] - self.GAP_TOLERANCE_S:
+            self._anchor_note = f'vergence measurement at {stamp:.3f} s is older than the frames kept: ignored'
+            return
+        self._anchor = anchor
+        for f_stamp, pose, fix in recent:
+            self._feed_anchor(f_stamp, pose, fix)
+
+    def _feed_anchor(self, stamp: float, pose: Pose, fix: dict[str, Fixation | None]) -> None:
+        """One placed frame for the scale anchor; calibrates the speed once the fit has settled."""
+        a = self._anchor
+        if a is None or self._speed_prior is None:
+            return
+        tol = self.GAP_TOLERANCE_S
+        f = fix.get(a.side)
+        if a.base is None:
+            if abs(stamp - a.stamp) <= tol and f is not None:
+                a.start(pose, f[1])
+            elif stamp > a.stamp - tol:
+                self._anchor, self._anchor_note = None, (f'vergence measurement at {a.stamp:.3f} s matches no frame '
+                                                         f'with a {a.side} fixation: ignored')
+            return
+        if stamp <= a.stamp + tol:
+            return
+        a.add(pose, f[1] if f is not None else None, f[0] if f is not None else None)
+        fit = a.settled()
+        if fit is not None:
+            k, std = fit
+            self._speed_prior.calibrate(k, std / k)
+            self._aids.add('the vergence step')
+            self._prefix_anchor = (self._key_pose.t.copy(), self._key_pose_raw.t.copy())
+            self._prefix_rescaled = False
+            self._anchor = None
+            self._anchor_note = f'vergence: speed x{k:.3f} (std {std:.3f}) over {len(a.views)} frames'
+        elif a.ended:
+            self._anchor, self._anchor_note = None, (f'vergence: the {a.side} camera left the point after '
+                                                     f'{len(a.views)} frames, before the scale settled')
+
     @property
     def scale_observed(self) -> bool:
-        return bool(self._aids) or self._rotation_seen >= math.radians(self.config.scale_min_rotation_deg)
+        if self._aids:
+            return True
+        if self._speed_prior is not None:
+            return False                # every step has the nominal speed: turns do not change that
+        return self._rotation_seen >= math.radians(self.config.scale_min_rotation_deg)
 
     def scale_note(self) -> str:
         if self._aids:
-            return 'scale from ' + ' and '.join(sorted(self._aids))
+            note = 'scale from ' + ' and '.join(sorted(self._aids))
+            return f'{note} ({self._anchor_note})' if self._anchor_note else note
         need = self.config.scale_min_rotation_deg
         seen = math.degrees(self._rotation_seen)
+        if self._speed_prior is not None:
+            note = (f'scale unobserved: every step at the nominal {self._speed_prior.nominal:g} m/s '
+                    '(constant-speed prior)')
+            return f'{note}; {self._anchor_note}' if self._anchor_note else note
         if seen >= need:
             return f'scale observed: {seen:.0f} deg of rotation seen'
         return f'scale unobserved: {seen:.1f} of {need:.0f} deg rotation seen, no scale aid'
@@ -364,6 +447,9 @@ class Estimator:
             self._window.append(_Slot(fix, Pose.identity()))
             if self._sliding is not None:
                 self._sliding.add(obs.stamp, Pose.identity(), *landmark_observations(self.rig, obs), None)
+            if self._speed_prior is not None:
+                self._recent.append((obs.stamp, self._key_pose, fix))
+                self._feed_anchor(obs.stamp, self._key_pose, fix)
             return FrameResult(self._index, obs.stamp, StepStatus.INIT, self._key_pose, self._key_pose_raw,
                                Pose.identity(), Pose.identity(), np.zeros((6, 6)), self._key_cov.copy(),
                                'first frame', scale_observed=self.scale_observed, scale_note=self.scale_note())
@@ -376,6 +462,8 @@ class Estimator:
         if speed is not None:
             sigma = math.sqrt(max(float(np.max(np.linalg.eigvalsh(speed[1]))), 1e-12))
             tf = self.solver.solve(pairs, initial=start, prior_t=speed[0], prior_sigma_t=sigma)
+        elif self._speed_prior is not None:
+            tf = self.solver.solve(pairs, initial=start, prior_length=self._speed_prior.prior(dt))
         elif cfg.velocity_prior and prediction is not None:
             t_pred = prediction[1].t
             sigma = max(cfg.prior_sigma_min, cfg.prior_sigma_rel * float(np.linalg.norm(t_pred)))
@@ -415,7 +503,7 @@ class Estimator:
         pose = (self._key_pose @ motion).normalized()
         pose_raw = (self._key_pose_raw @ motion_raw).normalized()
         self._latest = _Latest(obs.stamp, fix, motion, motion_raw, pose, pose_raw, pose_cov, cov, speed,
-                               landmark_observations(self.rig, obs) if self._sliding is not None else None)
+                               landmarks=landmark_observations(self.rig, obs) if self._sliding is not None else None)
         if speed is not None:
             self._aids.add('the speed source')
         key_stamp = self._key_stamp
@@ -424,13 +512,17 @@ class Estimator:
             pose, motion = self._key_pose, self._window[-1].step.normalized()
         if gap:
             message = f'{gap}; {message}' if message else gap
+        if self._speed_prior is not None:
+            self._recent.append((obs.stamp, pose, fix))
+            self._feed_anchor(obs.stamp, pose, fix)
         observed = self.scale_observed
         if not observed:      # the position is known only up to an unobserved scale: say so
             pose_cov = pose_cov.copy()
             pose_cov[3:, 3:] += np.eye(3) * (1.0 + float(np.linalg.norm(pose.t))) ** 2
+        prefix_scale, self._prefix_scale_out = self._prefix_scale_out, 1.0
         return FrameResult(self._index, obs.stamp, status, pose, pose_raw, motion, motion_raw, cov,
                            pose_cov.copy(), message, tf, ba, key_stamp, scale_observed=observed,
-                           scale_note=self.scale_note())
+                           scale_note=self.scale_note(), prefix_scale=prefix_scale)
 
     def _promote(self) -> None:
         """The newest frame becomes the keyframe later flow starts from (refined by the sliding window)."""
@@ -452,9 +544,22 @@ class Estimator:
         self._rotation_seen += rotation_angle(prev_pose.R.T @ pose.R)
         self._window.append(_Slot(f.fixation, prev_pose.inverse() @ pose))
         self._speed.forget_before(self._key_stamp)     # later steps start at this keyframe or after
-        self._key_stamp, self._key_pose, self._key_pose_raw, self._key_cov = f.stamp, pose, f.pose_raw, f.pose_cov
+        pose_raw = f.pose_raw
+        if self._prefix_anchor is not None and not self._prefix_rescaled:
+            pose, pose_raw = self._rescale_prefix(pose, pose_raw)
+        self._key_stamp, self._key_pose, self._key_pose_raw, self._key_cov = f.stamp, pose, pose_raw, f.pose_cov
         self._latest = None
         self._attach_points()
+
+    def _rescale_prefix(self, pose: Pose, pose_raw: Pose) -> tuple[Pose, Pose]:
+        """The speed was measured: the path up to the measurement was built at the nominal speed, so stretch it
+        to the measured one (once; later steps are made at the measured speed)."""
+        assert self._speed_prior is not None and self._prefix_anchor is not None
+        k = self._speed_prior.prefix_factor()
+        self._prefix_rescaled = True
+        self._prefix_scale_out = k
+        anchor, anchor_raw = self._prefix_anchor
+        return Pose(pose.R, pose.t + (k - 1.0) * anchor), Pose(pose_raw.R, pose_raw.t + (k - 1.0) * anchor_raw)
 
     def _rescale(self, s: float) -> None:
         """Apply a scale found late (a vergence distance) to everything built with the unobserved one."""

@@ -334,6 +334,41 @@ def levenberg_marquardt(fun: ResidualFn, R0: np.ndarray, T0: np.ndarray, x_scale
     return LMResult(R, T, r, J, cost, nfev, success, message)
 
 
+@dataclass(frozen=True)
+class MotionPrior:
+    """Gaussian priors of one step: on T (``t``, isotropic ``sigma_t``) and/or on its length |T|."""
+
+    t: np.ndarray | None = None
+    sigma_t: float = 0.0
+    length: float | None = None
+    sigma_length: float = 0.0
+
+    @staticmethod
+    def build(t: np.ndarray | None, sigma_t: float,
+              length: tuple[float, float] | None) -> MotionPrior | None:
+        """The usable parts (finite, positive sigma) of the given priors, or None when there are none."""
+        use_t = t is not None and sigma_t > 0 and bool(np.all(np.isfinite(t)))
+        use_len = (length is not None and all(math.isfinite(v) for v in length) and length[0] >= 0
+                   and length[1] > 0)
+        if not (use_t or use_len):
+            return None
+        return MotionPrior(np.asarray(t, dtype=float) if use_t else None, float(sigma_t) if use_t else 0.0,
+                           float(length[0]) if use_len else None, float(length[1]) if use_len else 0.0)
+
+    def rows(self, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Whitened residuals and their Jacobian over ``[rotation, T]`` at ``T``."""
+        r, J = [], []
+        if self.t is not None:
+            r.append((T - self.t) / self.sigma_t)
+            J.append(np.hstack([np.zeros((3, 3)), np.eye(3) / self.sigma_t]))
+        if self.length is not None:
+            n = math.sqrt(float(T @ T))
+            u = T / n if n > 1e-12 else np.zeros(3)
+            r.append(np.array([(n - self.length) / self.sigma_length]))
+            J.append(np.concatenate([np.zeros(3), u / self.sigma_length])[None, :])
+        return np.concatenate(r), np.vstack(J)
+
+
 # end pose, converged, message, and the rays' residuals and Jacobian there when the minimiser has them
 _Minimum = tuple[Pose, bool, str, tuple[np.ndarray, np.ndarray] | None]
 
@@ -345,13 +380,14 @@ class TwoFrameSolver:
         self.config = config or SolverConfig()
 
     def solve(self, pairs: RayPairs, initial: Pose | None = None, prior_t: np.ndarray | None = None,
-              prior_sigma_t: float = 0.0) -> TwoFrameResult:
+              prior_sigma_t: float = 0.0, prior_length: tuple[float, float] | None = None) -> TwoFrameResult:
         """Solve one step. With ``prior_t`` and ``prior_sigma_t`` > 0 a weak Gaussian prior on T (e.g. a
         constant-velocity prediction) keeps directions the rays do not observe (the scale under pure
-        translation) where the prediction puts them instead of letting the optimiser wander; the
-        covariance returned is the rays' alone, so those directions still show as unobserved."""
-        prior = (None if prior_t is None or not prior_sigma_t > 0 or not np.all(np.isfinite(prior_t))
-                 else (np.asarray(prior_t, dtype=float), float(prior_sigma_t)))
+        translation) where the prediction puts them instead of letting the optimiser wander; with
+        ``prior_length = (length, sigma)`` a prior on |T| alone does that for the scale only (the direction
+        stays the rays'). The covariance returned is the rays' alone, so those directions still show as
+        unobserved."""
+        prior = MotionPrior.build(prior_t, prior_sigma_t, prior_length)
         cfg = self.config
         m = len(pairs)
         if m < 6:
@@ -382,7 +418,7 @@ class TwoFrameSolver:
         return essential_start(pairs) + [Pose(R_rot, p.t) for p in canonical_starts(self.config.prior_step)]
 
     def _best(self, pairs: RayPairs, starts: list[Pose],
-              prior: tuple[np.ndarray, float] | None = None) -> TwoFrameResult | None:
+              prior: MotionPrior | None = None) -> TwoFrameResult | None:
         """Refine every start; prefer solutions in front of the cameras, then the lowest cost."""
         best: TwoFrameResult | None = None
         for start in starts:
@@ -394,7 +430,7 @@ class TwoFrameSolver:
         return best
 
     def _refine(self, pairs: RayPairs, start: Pose,
-                prior: tuple[np.ndarray, float] | None = None) -> TwoFrameResult | None:
+                prior: MotionPrior | None = None) -> TwoFrameResult | None:
         cfg = self.config
         # fixed variable scaling (not 'jac': that inflates steps along the weakly observed scale)
         x_scale = np.concatenate([np.full(3, 1e-2), np.full(3, max(np.linalg.norm(start.t), cfg.prior_step))])
@@ -415,7 +451,7 @@ class TwoFrameSolver:
         return TwoFrameResult(pose, status, r, cov, float(0.5 * np.sum(np.square(r / cfg.sigma))), len(pairs), msg,
                               cheirality(pose.R, pose.t, pairs))
 
-    def _minimise_lm(self, pairs: RayPairs, start: Pose, prior: tuple[np.ndarray, float] | None,
+    def _minimise_lm(self, pairs: RayPairs, start: Pose, prior: MotionPrior | None,
                      x_scale: np.ndarray) -> _Minimum | None:
         """:func:`levenberg_marquardt` on the rays (and prior rows); also returns the rays' residuals and
         Jacobian at the end point, which the covariance needs."""
@@ -425,12 +461,10 @@ class TwoFrameSolver:
             def fun(R: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
                 return sampson_residuals_jacobian(R, T, scaled)
         else:
-            t_prior, s_prior = prior
-            J_prior = np.hstack([np.zeros((3, 3)), np.eye(3) / s_prior])
-
             def fun(R: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
                 r, J = sampson_residuals_jacobian(R, T, scaled)
-                return np.concatenate([r, (T - t_prior) / s_prior]), np.vstack([J, J_prior])
+                r_p, J_p = prior.rows(T)
+                return np.concatenate([r, r_p]), np.vstack([J, J_p])
 
         sol = levenberg_marquardt(fun, start.R, start.t, x_scale, cfg.loss, cfg.loss_scale, cfg.tol, cfg.max_nfev)
         if sol is None or not (np.all(np.isfinite(sol.R)) and np.all(np.isfinite(sol.T))):
@@ -439,7 +473,7 @@ class TwoFrameSolver:
         return Pose(project_to_so3(sol.R), sol.T.copy()), sol.success, sol.message, (sol.r[:m] * cfg.sigma,
                                                                                      sol.J[:m] * cfg.sigma)
 
-    def _minimise_scipy(self, pairs: RayPairs, start: Pose, prior: tuple[np.ndarray, float] | None,
+    def _minimise_scipy(self, pairs: RayPairs, start: Pose, prior: MotionPrior | None,
                         x_scale: np.ndarray) -> _Minimum | None:
         """The original path: scipy's trust-region reflective over ``x = [rotvec of R R0^T, T]``."""
         cfg = self.config
@@ -453,15 +487,12 @@ class TwoFrameSolver:
             def jac(x: np.ndarray) -> np.ndarray:
                 return numeric_jacobian(R0, x, pairs)[1] / scale
         else:
-            t_prior, s_prior = prior
-            J_prior = np.hstack([np.zeros((3, 3)), np.eye(3) / s_prior])
-
             def fun(x: np.ndarray) -> np.ndarray:
                 r = sampson_residuals(exp_so3(x[:3]) @ R0, x[3:], pairs) / scale
-                return np.concatenate([r, (x[3:] - t_prior) / s_prior])
+                return np.concatenate([r, prior.rows(x[3:])[0]])
 
             def jac(x: np.ndarray) -> np.ndarray:
-                return np.vstack([numeric_jacobian(R0, x, pairs)[1] / scale, J_prior])
+                return np.vstack([numeric_jacobian(R0, x, pairs)[1] / scale, prior.rows(x[3:])[1]])
 
         x0 = np.concatenate([np.zeros(3), start.t])
         try:

@@ -23,6 +23,7 @@ nothing non-finite is ever published.
 
 from __future__ import annotations
 
+import math
 import time
 from collections import Counter, deque
 
@@ -55,7 +56,13 @@ from fixego_ros.nodes.common import (
     stamp_to_sec,
 )
 from fixego_ros.pipeline.observation import ROW_DTYPE, ObservationError, rows_to_observation
-from fixego_ros.pipeline.odometry import SPEED_PARAMS, OdometryError, SpeedInput, SpeedSettings
+from fixego_ros.pipeline.odometry import (
+    SPEED_PARAMS,
+    OdometryError,
+    SpeedInput,
+    SpeedSettings,
+    vergence_from_msg,
+)
 from fixego_ros.pipeline.params import ESTIMATOR_PARAMS, estimator_config
 
 PARAMS: dict[str, tuple[object, str]] = {
@@ -195,16 +202,24 @@ class EstimatorNode(Node):
     def _on_vergence(self, msg: PoseWithCovarianceStamped) -> None:
         """The right fixation point measured by the vergence step: a position prior on that landmark."""
         try:
-            p = msg.pose.pose.position
-            cov = np.asarray(msg.pose.covariance, float).reshape(6, 6)[:3, :3]
-            self.estimator.add_fixation_point(stamp_to_sec(msg.header.stamp), 'right', np.array([p.x, p.y, p.z]), cov)
-        except ValueError as e:
+            stamp, point, cov = vergence_from_msg(msg)
+            self.estimator.add_fixation_point(stamp, 'right', point, cov)
+        except ValueError as e:      # a bad message, or the estimator refused it
             self.stats['vergence_rejected'] = self.stats.get('vergence_rejected', 0) + 1
             self.once.warn('vergence', f'vergence measurement on {self.vergence_topic} dropped: {e}')
             return
         self.stats['vergence'] = self.stats.get('vergence', 0) + 1
-        self.get_logger().info(f'vergence: right fixation point at {float(np.linalg.norm([p.x, p.y, p.z])):.3f} m '
+        self.get_logger().info(f'vergence: right fixation point at {float(np.linalg.norm(point)):.3f} m '
                                'used as a scale anchor')
+
+    def _rescale_paths(self, k: float) -> None:
+        """The scale was just measured (constant-speed prior + vergence step): the published paths so far were
+        built at the nominal speed, so their positions get the metric scale (the next Path messages show it)."""
+        for path in (self.path, self.path_raw):
+            for ps in path:
+                p = ps.pose.position
+                p.x, p.y, p.z = p.x * k, p.y * k, p.z * k
+        self.get_logger().info(f'scale measured: the {len(self.path)} path poses so far rescaled by {k:.3f}')
 
     def _publish(self, stamp, res: FrameResult) -> None:
         pose = rig_pose_to_base_link(res.pose)
@@ -212,6 +227,8 @@ class EstimatorNode(Node):
         if not (pose.is_finite() and pose_raw.is_finite() and np.all(np.isfinite(res.pose_covariance))):
             self.once.error('nan', 'estimator produced a non-finite pose: not published (please report)')
             return
+        if res.prefix_scale != 1.0 and math.isfinite(res.prefix_scale):
+            self._rescale_paths(res.prefix_scale)
         ps = self._stamped(stamp, pose)
         self.pub_pose.publish(ps)
         self.path.append(ps)

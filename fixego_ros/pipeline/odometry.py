@@ -12,6 +12,11 @@ frame, when the velocity is not finite, when the covariance is not 36 finite num
 variance or is not positive semi-definite, or when the child frame is another frame. An all-zero linear
 covariance means "unknown" in ROS: it becomes ``default_std``² on each axis. Nothing non-finite is ever
 passed on.
+
+Start-up vergence (:func:`vergence_from_msg`): the right camera's fixation point measured by the vergence
+step (camera_node, or ``fixego sim --vergence-std``) as a geometry_msgs/PoseWithCovarianceStamped in the
+rig frame; the position and its 3x3 covariance block go to ``Estimator.add_fixation_point``, the
+orientation is not used. estimator_node and ``fixego replay`` share this one conversion.
 """
 
 from __future__ import annotations
@@ -27,6 +32,8 @@ from fixego_ros.geometry.rotation import RIG_TO_BASE
 from fixego_ros.pipeline.messages import stamp_to_sec
 
 ODOMETRY_TYPE = 'nav_msgs/msg/Odometry'
+VERGENCE_TYPE = 'geometry_msgs/msg/PoseWithCovarianceStamped'
+VERGENCE_FRAMES = ('rig', '')   # the vergence point is in the rig frame ('' taken to mean it)
 MIN_STD = 1e-4   # m/s: variances are floored at MIN_STD² so the estimator can always invert the covariance
 
 # estimator_node parameters of the speed aid (name -> (default, description)); fixego replay uses the defaults
@@ -155,3 +162,33 @@ class SpeedInput:
         """Sample of a nav_msgs/Odometry message (rclpy or rosbags)."""
         return self.convert(stamp_to_sec(msg.header.stamp), str(msg.child_frame_id), msg.twist.twist.linear,
                             msg.twist.covariance, frame_stamp)
+
+
+def vergence_from_msg(msg: Any) -> tuple[float, np.ndarray, np.ndarray]:
+    """(stamp s, point (3,) m, covariance 3x3 m²) of a vergence PoseWithCovarianceStamped (rclpy or rosbags):
+    the position block of the 6x6 pose covariance. ValueError, saying why, for a message the estimator must
+    not get (it would anchor the scale on it): another frame, a non-finite value, a covariance that is not
+    36 numbers or not positive semi-definite. A zero stamp is accepted (it still names a frame)."""
+    frame_id = str(msg.header.frame_id)
+    if frame_id not in VERGENCE_FRAMES:
+        raise ValueError(f"vergence point in frame '{frame_id}', expected 'rig'")
+    stamp = stamp_to_sec(msg.header.stamp)
+    p = msg.pose.pose.position
+    try:
+        point = np.array([p.x, p.y, p.z], dtype=float)
+        cov6 = np.asarray(msg.pose.covariance, dtype=float)
+    except (TypeError, ValueError) as e:
+        raise ValueError(f'vergence message not numeric: {e}') from None
+    if not math.isfinite(stamp):
+        raise ValueError(f'vergence message with non-finite stamp {stamp}')
+    if not np.all(np.isfinite(point)):
+        raise ValueError(f'vergence point not finite: {point.tolist()}')
+    if cov6.size != 36:
+        raise ValueError(f'vergence covariance has {cov6.size} entries, expected 36 (6x6 row-major)')
+    cov = cov6.reshape(6, 6)[:3, :3].copy()
+    if not np.all(np.isfinite(cov)):
+        raise ValueError('vergence point covariance not finite')
+    w = np.linalg.eigvalsh(0.5 * (cov + cov.T))
+    if w[0] < -1e-9 * max(1.0, w[-1]):
+        raise ValueError(f'vergence point covariance not positive semi-definite (eigenvalues {w.tolist()})')
+    return stamp, point, cov

@@ -87,6 +87,10 @@ ESTIMATOR_PARAMS: Table = {
     'sliding_iterations': (4, 'sliding refinement: Levenberg-Marquardt iterations per keyframe'),
     'sliding_step_weight': (0.5, 'sliding refinement: weight of the two-frame step factors (0 = landmarks only)'),
     'sliding_min_parallax_deg': (1.0, 'sliding refinement: a landmark is placed once its rays span this angle'),
+    'constant_speed': (False, "every step at one speed (refinement 'local'): the trajectory's shape without the "
+                              "lever arm's unreliable lengths; the scale stays unobserved (nominal speed) until a "
+                              'vergence measurement (vergence_topic) calibrates it. false = the papers\' method'),
+    'speed_nominal': (0.5, 'constant-speed prior: m/s assumed until the vergence step measures the speed'),
     'scale_min_rotation_deg': (15.0, 'the metric scale counts as observed after this much rig rotation (or once '
                                      'a scale aid was used); before, /fixego/odom carries a large covariance'),
 }
@@ -129,6 +133,7 @@ def estimator_config(g: Getter, rig: Rig) -> EstimatorConfig:
         solver=SolverConfig(sigma=float(g('pixel_sigma')) / f, loss=str(g('loss')), max_nfev=int(g('max_nfev')),
                             min_parallax=float(g('stationary_parallax_px')) / f, backend=str(g('solver_backend'))),
         refinement=str(g('refinement')), scale_min_rotation_deg=float(g('scale_min_rotation_deg')),
+        constant_speed=bool(g('constant_speed')), speed_nominal=float(g('speed_nominal')),
         sliding=WindowConfig(frames=int(g('sliding_frames')),
                              max_unobserved_frames=int(g('sliding_max_unobserved_frames')),
                              iterations=int(g('sliding_iterations')), sigma=float(g('pixel_sigma')) / f,

@@ -4,8 +4,9 @@ Writes ``EST.tum`` (refined) and ``EST.raw.tum`` (two-frame only): TUM lines ``s
 qw``, the pose of ``base_link`` in ``odom`` (DESIGN.md §6). Prints what was skipped and why, the speed
 against real time, and the ATE when the bag holds ``ground_truth/pose``. ``--speed-topic`` (off by
 default) feeds a nav_msgs/Odometry speed source recorded in the bag (e.g. ``fixego sim --wheel-odom-std``)
-to the estimator as a scale aid. Exit codes: 0 done (possibly with documented degradations, printed), 2
-the bag or the options cannot be used.
+to the estimator as a scale aid; ``--vergence-topic`` (off by default) does the same with a start-up
+vergence measurement (e.g. ``fixego sim --vergence-std``). Exit codes: 0 done (possibly with documented
+degradations, printed), 2 the bag or the options cannot be used.
 """
 
 from __future__ import annotations
@@ -47,6 +48,11 @@ def register(subparsers) -> None:
     p.add_argument('--speed-default-std', type=float, metavar='M_S',
                    help='std (m/s) of a speed sample whose covariance is all zeros (estimator_node '
                         'speed_default_std)')
+    p.add_argument('--vergence-topic', metavar='TOPIC',
+                   help='scale aid: feed the start-up vergence measurement on this geometry_msgs/'
+                        'PoseWithCovarianceStamped topic of the bag (the right fixation point in the rig frame, '
+                        'e.g. /fixego/vergence written by `fixego sim --vergence-std`) to the estimator '
+                        '(estimator_node vergence_topic; default: off)')
     p.add_argument('--eval-out', type=Path, metavar='DIR',
                    help='with ground truth: also write DIR/ground_truth.tum, DIR/eval.json and DIR/eval.png')
     p.add_argument('--workers', type=int, choices=(1, 2), default=2 if (os.cpu_count() or 1) > 1 else 1,
@@ -101,7 +107,8 @@ def settings_from_args(args: argparse.Namespace, rig):
             values[n][name] = yaml.safe_load(text)
     getters = {n: params_getter(table, values[n]) for n, table in nodes.items()}
     return ReplaySettings.from_getters(rig, getters['camera_node'], getters['flow_node'], getters['estimator_node'],
-                                       SpeedSettings.from_getter(getters['estimator_node']))
+                                       SpeedSettings.from_getter(getters['estimator_node']),
+                                       vergence_topic=args.vergence_topic or '')
 
 
 def run(args: argparse.Namespace) -> int:
@@ -163,6 +170,8 @@ def run(args: argparse.Namespace) -> int:
         f'left {c["reselections:left"]}')
     if settings.speed.topic:
         say(f'speed aid {settings.speed.topic}: {c["speed_samples"]} samples given to the estimator')
+    if settings.vergence_topic:
+        say(f'vergence {settings.vergence_topic}: {c["vergence"]} measurement(s) given to the estimator')
     say(f'wrote {out} and {raw_out}')
     if res.gt_stamps:
         return _evaluate(args, res, say, fail)

@@ -19,6 +19,12 @@ Scale aid (off by default, :attr:`ReplaySettings.speed`): nav_msgs/Odometry mess
 are converted (:mod:`fixego_ros.pipeline.odometry`) and fed to ``Estimator.add_velocity`` in bag order,
 through the same queue as the frames (so ``workers=2`` sees the same interleaving); they do not drive the
 synchroniser's clock. Unusable ones are skipped and noted once per cause.
+
+Start-up vergence (off by default, :attr:`ReplaySettings.vergence_topic`): geometry_msgs/PoseWithCovarianceStamped
+messages on that topic (camera_node's vergence step, or ``fixego sim --vergence-std``) are converted with
+:func:`~fixego_ros.pipeline.odometry.vergence_from_msg` and given to ``Estimator.add_fixation_point`` as the
+right camera's fixation point, through the same queue and without driving the clock, like speed samples.
+A message that cannot be converted or that the estimator refuses is skipped and noted.
 """
 
 from __future__ import annotations
@@ -37,7 +43,15 @@ from fixego_ros.geometry.rig import SIDES, Rig
 from fixego_ros.geometry.rotation import Pose, rig_pose_to_base_link
 from fixego_ros.pipeline.frontend import CameraSample, KeyframePolicy, StereoFrontEnd
 from fixego_ros.pipeline.messages import ImageError, gray_for_camera, msg_to_pose, pan_tilt, stamp_to_sec
-from fixego_ros.pipeline.odometry import ODOMETRY_TYPE, OdometryError, SpeedInput, SpeedSettings, VelocitySample
+from fixego_ros.pipeline.odometry import (
+    ODOMETRY_TYPE,
+    VERGENCE_TYPE,
+    OdometryError,
+    SpeedInput,
+    SpeedSettings,
+    VelocitySample,
+    vergence_from_msg,
+)
 from fixego_ros.pipeline.params import (
     ESTIMATOR_PARAMS,
     FIXATION_PARAMS,
@@ -90,16 +104,18 @@ class ReplaySettings:
     sync: SyncParams
     estimator: EstimatorConfig
     speed: SpeedSettings = field(default_factory=SpeedSettings)      # scale aid; topic '' = off
+    vergence_topic: str = ''                                          # start-up vergence measurement; '' = off
 
     @classmethod
     def from_getters(cls, rig: Rig, camera: Getter | None = None, flow: Getter | None = None,
-                     estimator: Getter | None = None, speed: SpeedSettings | None = None) -> ReplaySettings:
+                     estimator: Getter | None = None, speed: SpeedSettings | None = None,
+                     vergence_topic: str = '') -> ReplaySettings:
         """The nodes' parameters (defaults of :mod:`~fixego_ros.pipeline.params` unless a getter is given)."""
         camera = camera or params_getter(FIXATION_PARAMS)
         flow = flow or params_getter(FLOW_PARAMS)
         estimator = estimator or params_getter(ESTIMATOR_PARAMS)
         return cls(fixation_params(camera), flow_params(flow), keyframe_policy(flow), sync_params(flow),
-                   estimator_config(estimator, rig), speed or SpeedSettings())
+                   estimator_config(estimator, rig), speed or SpeedSettings(), vergence_topic)
 
 
 @dataclass
@@ -138,23 +154,55 @@ class _Estimate:
     pose: Pose
     pose_raw: Pose
     ms: float
+    prefix_scale: float = 1.0       # the scale was measured here: earlier positions are multiplied by it
+
+
+@dataclass
+class _FixationPoint:
+    """A vergence measurement on its way to ``Estimator.add_fixation_point`` (crosses the process boundary)."""
+
+    stamp: float
+    side: str
+    point: np.ndarray
+    cov: np.ndarray
+
+
+@dataclass
+class _Refused:
+    """The estimator refused a fixation point (ValueError): reported by the pipeline, not fatal."""
+
+    stamp: float
+    message: str
+
+
+def _add_point(estimator: Estimator, p: _FixationPoint) -> _Refused | None:
+    try:
+        estimator.add_fixation_point(p.stamp, p.side, p.point, p.cov)
+    except ValueError as e:
+        return _Refused(p.stamp, str(e))
+    return None
 
 
 def _update(estimator: Estimator, stamp: float, obs) -> _Estimate:
     t0 = time.perf_counter()
     r = estimator.update(obs)
     return _Estimate(stamp, r.placed, r.status.value, r.message, rig_pose_to_base_link(r.pose),
-                     rig_pose_to_base_link(r.pose_raw), (time.perf_counter() - t0) * 1e3)
+                     rig_pose_to_base_link(r.pose_raw), (time.perf_counter() - t0) * 1e3, r.prefix_scale)
 
 
 def _estimator_worker(factory: type[Estimator], rig: Rig, config: EstimatorConfig, inbox, outbox) -> None:
-    """Second process: estimate observations (and take velocity samples) from ``inbox`` in order until None,
-    results to ``outbox``. ``factory`` is the parent's estimator class, so both processes run the same one."""
+    """Second process: estimate observations (and take velocity samples and fixation points) from ``inbox`` in
+    order until None, results (and refused points) to ``outbox``. ``factory`` is the parent's estimator class,
+    so both processes run the same one."""
     estimator = factory(rig, config)
-    batch: list[_Estimate] = []
+    batch: list[_Estimate | _Refused] = []
     while (item := inbox.get()) is not None:
         if isinstance(item, VelocitySample):
             estimator.add_velocity(item.stamp, item.v_rig, item.cov_rig)
+            continue
+        if isinstance(item, _FixationPoint):
+            if (refused := _add_point(estimator, item)) is not None:
+                batch.append(refused)
             continue
         batch.append(_update(estimator, *item))
         if len(batch) >= 16:
@@ -168,12 +216,17 @@ class _InProcess:
     def __init__(self, rig: Rig, config: EstimatorConfig) -> None:
         self.estimator = Estimator(rig, config)
         self.done: list[_Estimate] = []
+        self.refused: list[_Refused] = []     # fixation points the estimator did not take
 
     def submit(self, stamp: float, obs) -> None:
         self.done.append(_update(self.estimator, stamp, obs))
 
     def submit_velocity(self, s: VelocitySample) -> None:
         self.estimator.add_velocity(s.stamp, s.v_rig, s.cov_rig)
+
+    def submit_fixation_point(self, stamp: float, side: str, point: np.ndarray, cov: np.ndarray) -> None:
+        if (refused := _add_point(self.estimator, _FixationPoint(stamp, side, point, cov))) is not None:
+            self.refused.append(refused)
 
     def finish(self) -> list[_Estimate]:
         return self.done
@@ -194,12 +247,16 @@ class _Subprocess:
         self.proc.start()
         self.timeout_s = timeout_s
         self.done: list[_Estimate] = []
+        self.refused: list[_Refused] = []     # known once finished
 
     def submit(self, stamp: float, obs) -> None:
         self.inbox.put((stamp, obs))
 
     def submit_velocity(self, s: VelocitySample) -> None:
         self.inbox.put(s)
+
+    def submit_fixation_point(self, stamp: float, side: str, point: np.ndarray, cov: np.ndarray) -> None:
+        self.inbox.put(_FixationPoint(stamp, side, point, cov))
 
     def finish(self) -> list[_Estimate]:
         import queue
@@ -213,7 +270,8 @@ class _Subprocess:
                                       f'(alive: {self.proc.is_alive()})') from None
                 if batch is None:
                     break
-                self.done.extend(batch)
+                self.done.extend(e for e in batch if isinstance(e, _Estimate))
+                self.refused.extend(e for e in batch if isinstance(e, _Refused))
         finally:
             self.proc.join(timeout=5.0)
             if self.proc.is_alive():
@@ -237,18 +295,20 @@ class _Timer:
         return t1
 
 
-def check_topics(bag: Bag, topics: ReplayTopics, speed_topic: str = '') -> None:
+def check_topics(bag: Bag, topics: ReplayTopics, speed_topic: str = '', vergence_topic: str = '') -> None:
     """Fail early when the bag lists its topics and a required one is missing or of the wrong type."""
     if not bag.topics:
         return          # a cut file without summary or metadata: topics are only known while reading
     listed = ', '.join(sorted(bag.topics)) or 'none'
-    if speed_topic:
-        t = bag.topics.get(speed_topic)
+    for what, name, msgtype in (('speed', speed_topic, ODOMETRY_TYPE), ('vergence', vergence_topic, VERGENCE_TYPE)):
+        if not name:
+            continue
+        t = bag.topics.get(name)
         if t is None:
-            raise ReplayError(f'{bag.path}: no speed topic {speed_topic} (topics in the bag: {listed})')
-        if t.msgtype != ODOMETRY_TYPE:
-            raise ReplayError(f'{bag.path}: speed topic {speed_topic} is {t.msgtype or "of unknown type"}, '
-                              f'expected {ODOMETRY_TYPE}')
+            raise ReplayError(f'{bag.path}: no {what} topic {name} (topics in the bag: {listed})')
+        if t.msgtype != msgtype:
+            raise ReplayError(f'{bag.path}: {what} topic {name} is {t.msgtype or "of unknown type"}, '
+                              f'expected {msgtype}')
     for side in SIDES:
         for suffix, types in ((f'{side}/image_raw', IMAGE_TYPES), (f'{side}/joint_states', (JOINTS_TYPE,))):
             name = topics.name(suffix)
@@ -266,10 +326,12 @@ def replay(bag: Bag, rig: Rig, settings: ReplaySettings, topics: ReplayTopics = 
     """Run the pipeline over ``bag``; ``progress(images_done)`` is called as it goes. ``workers=2`` runs
     the estimator in a second process (same output, faster on two cores)."""
     speed_topic = settings.speed.topic
-    check_topics(bag, topics, speed_topic)
+    check_topics(bag, topics, speed_topic, settings.vergence_topic)
     routes = topics.routes()
     if speed_topic:
         routes[speed_topic] = ('speed', '')
+    if settings.vergence_topic:
+        routes[settings.vergence_topic] = ('vergence', '')
     speed = SpeedInput(settings.speed)
     last_frame: float | None = None      # stamp of the newest frame given to the estimator
     res = ReplayResult()
@@ -315,6 +377,15 @@ def replay(bag: Bag, rig: Rig, settings: ReplaySettings, topics: ReplayTopics = 
                                                     f'{settings.speed.base_frame}')
                 estimator.submit_velocity(sample)
                 res.counts['speed_samples'] += 1
+                continue
+            if kind == 'vergence':       # a one-off measurement: does not drive the clock either
+                try:
+                    v_stamp, point, cov = vergence_from_msg(msg)
+                except ValueError as e:
+                    res.note('bad_vergence', f'vergence measurement on {m.topic} unusable ({e}): skipped')
+                    continue
+                estimator.submit_fixation_point(v_stamp, 'right', point, cov)
+                res.counts['vergence'] += 1
                 continue
             if kind == 'image':
                 res.counts['images'] += 1
@@ -365,12 +436,23 @@ def replay(bag: Bag, rig: Rig, settings: ReplaySettings, topics: ReplayTopics = 
     except BaseException:
         estimator.abort()
         raise
+    for r in estimator.refused:     # known only now with workers=2: reported the same way for both
+        res.counts['vergence'] -= 1
+        res.note('bad_vergence', f'vergence measurement at {r.stamp:.3f} s refused by the estimator ({r.message}): '
+                                 'skipped')
     for e in estimates:
         res.stage_ms.setdefault('estimate', []).append(e.ms)
         if not e.placed:
             res.note('frames_not_placed', f'frame at {e.stamp:.3f} s not placed: {e.message}')
             continue
         res.steps[e.status] += 1
+        if e.prefix_scale != 1.0:
+            # the path so far was built at a nominal speed (constant-speed prior) and the vergence step has just
+            # measured the real one: the written trajectory is the estimator's best, so it gets the metric scale
+            res.note('prefix_rescaled', f'scale measured at {e.stamp:.3f} s: the {len(res.poses)} poses before it '
+                                        f'rescaled by {e.prefix_scale:.3f}')
+            res.poses = [Pose(p.R, p.t * e.prefix_scale) for p in res.poses]
+            res.poses_raw = [Pose(p.R, p.t * e.prefix_scale) for p in res.poses_raw]
         if not (e.pose.is_finite() and e.pose_raw.is_finite()):
             res.note('non_finite_pose', f'frame at {e.stamp:.3f} s: non-finite pose left out')
             continue

@@ -19,6 +19,15 @@ true poses, :meth:`~fixego_ros.sim.run.Simulation.base_velocities`) plus seeded 
 ``wheel_odom_std`` m/s per axis, with covariance diag(std²) on the linear part (at least (1e-4 m/s)², so
 it never reads as "unknown"). The angular part is not measured: zero with variance 1e6. The pose is left
 at identity with variance 1e6 (a speed source only).
+
+Optional (``vergence_std``, off by default, output otherwise unchanged byte for byte): ``vergence``
+(geometry_msgs/PoseWithCovarianceStamped, frame ``rig``, offered as transient local like camera_node's
+latched one), a single message with the first frame's stamp, written before that frame's images: the
+simulated start-up vergence measurement, i.e. the right camera's true fixation point at the first frame
+in the rig frame there, its distance D from the right projection centre scaled by (1 + e) with seeded
+e ~ N(0, ``vergence_std``) (relative; 1 + e floored at 0.1). Covariance: (``vergence_std`` D)² along
+the ray from the right centre (at least (1 mm)², so it stays invertible), (1 mm)² across it; the
+orientation is not measured (identity, variance 1e6).
 """
 
 from __future__ import annotations
@@ -41,9 +50,12 @@ SIDES = ('right', 'left')
 WHEEL_ODOM_TOPIC = f'{NS}/wheel/odom'
 UNKNOWN_VARIANCE = 1e6
 _WHEEL_NOISE_STREAM = 0x0D0   # second seed word of the wheel odometry noise (its own stream: images unchanged)
+VERGENCE_TOPIC = f'{NS}/vergence'
+VERGENCE_CROSS_STD = 1e-3     # m; vergence point std across the right fixation ray (and floor along it)
+_VERGENCE_NOISE_STREAM = 0x5E7  # second seed word of the vergence distance error (its own stream, as above)
 
 
-def topics(wheel_odom: bool = False) -> dict[str, str]:
+def topics(wheel_odom: bool = False, vergence: bool = False) -> dict[str, str]:
     """Topic -> message type of a simulated bag, in writing order (connections in this order)."""
     out = {f'{NS}/ground_truth/pose': 'geometry_msgs/msg/PoseStamped'}
     for side in SIDES:
@@ -53,6 +65,8 @@ def topics(wheel_odom: bool = False) -> dict[str, str]:
         out[f'{NS}/ground_truth/{side}/fixation'] = 'geometry_msgs/msg/PointStamped'
     if wheel_odom:
         out[WHEEL_ODOM_TOPIC] = 'nav_msgs/msg/Odometry'
+    if vergence:
+        out[VERGENCE_TOPIC] = 'geometry_msgs/msg/PoseWithCovarianceStamped'
     return out
 
 
@@ -73,6 +87,42 @@ def wheel_odom_msg(t: float, v_base: np.ndarray, std: float):
     msg.twist.covariance = [float(x) for x in twist_cov.ravel()]
     lin = msg.twist.twist.linear
     lin.x, lin.y, lin.z = (float(x) for x in v_base)
+    return msg
+
+
+def vergence_point(rig: Rig, frame: Frame, rel_error: float, std: float) -> tuple[np.ndarray, np.ndarray, float]:
+    """(point, 3x3 covariance, true distance) in the rig frame at ``frame`` of the simulated vergence measurement:
+    the right fixation point with its distance from the right centre scaled by ``1 + rel_error`` (module
+    docstring)."""
+    point_world = np.asarray(frame.states['right'].point, dtype=float)
+    c = rig.center('right')
+    ray = frame.rig_pose.inverse().apply(point_world) - c
+    d_true = float(np.linalg.norm(ray))
+    if not (np.all(np.isfinite(ray)) and d_true > 0):
+        raise ValueError(f'no right fixation point at the first frame ({point_world.tolist()}): no vergence')
+    u = ray / d_true
+    d = d_true * max(1.0 + rel_error, 0.1)     # a huge std must not put the point behind the camera
+    along = max(std * d, VERGENCE_CROSS_STD) ** 2
+    cov = along * np.outer(u, u) + VERGENCE_CROSS_STD ** 2 * (np.eye(3) - np.outer(u, u))
+    return c + d * u, cov, d_true
+
+
+def vergence_msg(t: float, point: np.ndarray, cov: np.ndarray):
+    """PoseWithCovarianceStamped as camera_node publishes it: ``point`` in ``rig``, covariance in the position
+    block, the orientation unused (identity, variance 1e6)."""
+    from geometry_msgs.msg import PoseWithCovarianceStamped
+
+    from fixego_ros.nodes.common import sec_to_stamp
+    msg = PoseWithCovarianceStamped()
+    msg.header.stamp = sec_to_stamp(t)
+    msg.header.frame_id = 'rig'
+    pos = msg.pose.pose.position
+    pos.x, pos.y, pos.z = (float(x) for x in point)
+    msg.pose.pose.orientation.w = 1.0
+    cov6 = np.zeros((6, 6))
+    cov6[:3, :3] = cov
+    cov6[3:, 3:] = np.eye(3) * UNKNOWN_VARIANCE
+    msg.pose.covariance = [float(x) for x in cov6.ravel()]
     return msg
 
 
@@ -133,12 +183,14 @@ def frame_messages(frame: Frame, rig: Rig, epoch: float, encoding: str) -> list[
     return out
 
 
-def _qos(sensor: bool):
+def _qos(sensor: bool, latched: bool = False):
+    """Offered QoS of a topic: sensor data, reliable, or latched (depth 1, transient local, as LATCHED_QOS)."""
     from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
     infinite = QosTime(9223372036, 854775807)
-    return Qos(QosHistory.KEEP_LAST, 5 if sensor else 10,
+    return Qos(QosHistory.KEEP_LAST, 1 if latched else 5 if sensor else 10,
                QosReliability.BEST_EFFORT if sensor else QosReliability.RELIABLE,
-               QosDurability.VOLATILE, infinite, infinite, QosLiveliness.AUTOMATIC, infinite, False)
+               QosDurability.TRANSIENT_LOCAL if latched else QosDurability.VOLATILE,
+               infinite, infinite, QosLiveliness.AUTOMATIC, infinite, False)
 
 
 def canonical_cdr(msg, msgtype: str, typestore) -> bytes:
@@ -174,12 +226,16 @@ class BagSummary:
 
 
 def write_bag(out_dir: str | Path, rig: Rig, settings: SimSettings | None = None, progress: bool = True,
-              sim: Simulation | None = None, wheel_odom_std: float | None = None) -> BagSummary:
+              sim: Simulation | None = None, wheel_odom_std: float | None = None,
+              vergence_std: float | None = None) -> BagSummary:
     """Simulate ``settings`` on ``rig`` and write the bag directory ``out_dir`` (must not exist);
-    ``wheel_odom_std`` (m/s) adds the simulated wheel odometry topic (module docstring)."""
+    ``wheel_odom_std`` (m/s) adds the simulated wheel odometry topic, ``vergence_std`` (relative) the
+    start-up vergence measurement (module docstring)."""
     settings = settings or (sim.s if sim is not None else SimSettings())
     if wheel_odom_std is not None and not (np.isfinite(wheel_odom_std) and wheel_odom_std >= 0):
         raise ValueError(f'wheel odometry std must be a finite number >= 0 m/s, got {wheel_odom_std}')
+    if vergence_std is not None and not (np.isfinite(vergence_std) and vergence_std >= 0):
+        raise ValueError(f'vergence std must be a finite relative error >= 0, got {vergence_std}')
     from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
     from rosbags.typesys import Stores, get_typestore
 
@@ -192,6 +248,11 @@ def write_bag(out_dir: str | Path, rig: Rig, settings: SimSettings | None = None
         rng = np.random.default_rng([settings.seed, _WHEEL_NOISE_STREAM])
         v_true = sim.base_velocities()
         wheel = v_true + rng.normal(0.0, wheel_odom_std, v_true.shape) if wheel_odom_std > 0 else v_true
+    verg_error = None           # relative distance error of the vergence measurement
+    if vergence_std is not None:
+        rng = np.random.default_rng([settings.seed, _VERGENCE_NOISE_STREAM])
+        verg_error = float(rng.normal(0.0, vergence_std)) if vergence_std > 0 else 0.0
+    verg_meta: dict[str, object] = {}
     typestore = get_typestore(Stores.ROS2_JAZZY)
     wall0 = time.monotonic()
     bar = Progress(len(sim), f'fixego sim {settings.trajectory}', progress)
@@ -202,15 +263,25 @@ def write_bag(out_dir: str | Path, rig: Rig, settings: SimSettings | None = None
         writer.set_custom_data('fixego_sim', ' '.join(f'{k}={v}' for k, v in settings.to_dict().items()))
         if wheel is not None:
             writer.set_custom_data('fixego_sim_wheel_odom_std', f'{wheel_odom_std}')
+        if verg_error is not None:
+            writer.set_custom_data('fixego_sim_vergence_std', f'{vergence_std}')
         conns = {topic: writer.add_connection(topic, msgtype, typestore=typestore,
-                                              offered_qos_profiles=[_qos(topic.endswith('image_raw'))])
-                 for topic, msgtype in topics(wheel is not None).items()}
+                                              offered_qos_profiles=[_qos(topic.endswith('image_raw'),
+                                                                         topic == VERGENCE_TOPIC)])
+                 for topic, msgtype in topics(wheel is not None, verg_error is not None).items()}
         for frame in sim.frames():
             stamp_ns = round((settings.epoch + frame.t) * 1e9)
             msgs = frame_messages(frame, rig, settings.epoch, settings.encoding)
             if wheel is not None:   # before the frame's images: replay feeds it to the estimator first
                 t = settings.epoch + frame.t
                 msgs.insert(0, (WHEEL_ODOM_TOPIC, wheel_odom_msg(t, wheel[frame.index], wheel_odom_std)))
+            if verg_error is not None and frame.index == 0:   # also before the images, after the wheel sample
+                t = settings.epoch + frame.t
+                point, cov, d_true = vergence_point(rig, frame, verg_error, vergence_std)
+                msgs.insert(0 if wheel is None else 1, (VERGENCE_TOPIC, vergence_msg(t, point, cov)))
+                verg_meta = {'topic': VERGENCE_TOPIC, 'std_rel': float(vergence_std), 'stamp_s': float(t),
+                             'distance_true_m': d_true,
+                             'distance_m': float(np.linalg.norm(point - rig.center('right')))}
             for topic, msg in msgs:
                 writer.write(conns[topic], stamp_ns, canonical_cdr(msg, conns[topic].msgtype, typestore))
                 n_msgs += 1
@@ -222,6 +293,8 @@ def write_bag(out_dir: str | Path, rig: Rig, settings: SimSettings | None = None
             else [float(settings.epoch + m) for m in sim.trajectory.marks]}
     if wheel is not None:
         meta['wheel_odometry'] = {'topic': WHEEL_ODOM_TOPIC, 'std_m_s': float(wheel_odom_std)}
+    if verg_error is not None:
+        meta['vergence'] = verg_meta
     (out_dir / 'sim.yaml').write_text(yaml.safe_dump(meta, sort_keys=False))
     size = sum(f.stat().st_size for f in out_dir.iterdir() if f.is_file())
     return BagSummary(out_dir, len(sim), n_msgs, float(sim.stamps[-1]), size,

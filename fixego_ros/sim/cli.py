@@ -32,6 +32,11 @@ def register(subparsers) -> None:
     p.add_argument('--wheel-odom-std', type=float, metavar='S',
                    help='also write /fixego/wheel/odom (nav_msgs/Odometry, one per frame): the true base_link '
                         'velocity plus seeded Gaussian noise of std S m/s, covariance S^2 (default: off)')
+    p.add_argument('--vergence-std', type=float, metavar='REL',
+                   help='also write /fixego/vergence (geometry_msgs/PoseWithCovarianceStamped, one message at the '
+                        'first frame): the right fixation point in the rig frame, its distance off by seeded '
+                        'Gaussian relative error of std REL (e.g. 0.02 = 2 %%), as the start-up vergence step '
+                        'would measure it (default: off)')
     p.add_argument('--no-progress', action='store_true', help='no progress bar on stderr')
     p.set_defaults(func=run)
 
@@ -59,13 +64,17 @@ def run(args: argparse.Namespace) -> int:
         print(f'fixego sim: --wheel-odom-std must be a finite number >= 0, got {args.wheel_odom_std}',
               file=sys.stderr)
         return 2
+    if args.vergence_std is not None and not (0 <= args.vergence_std < float('inf')):
+        print(f'fixego sim: --vergence-std must be a finite number >= 0, got {args.vergence_std}', file=sys.stderr)
+        return 2
     if args.out.exists():
         print(f'fixego sim: {args.out} exists already (bags are never overwritten)', file=sys.stderr)
         return 2
     settings = SimSettings(trajectory=args.trajectory, seed=args.seed, fps=args.fps, encoding=args.encoding,
                            noise_sigma=args.noise, speed=args.speed, duration=args.duration, steps=args.steps,
                            texel=args.texel)
-    s = write_bag(args.out, rig, settings, progress=not args.no_progress, wheel_odom_std=args.wheel_odom_std)
+    s = write_bag(args.out, rig, settings, progress=not args.no_progress, wheel_odom_std=args.wheel_odom_std,
+                  vergence_std=args.vergence_std)
     print(f'wrote {s.path}: {s.frames} frames ({s.duration_s:.1f} s), {s.messages} messages, '
           f'{s.bytes / 1e6:.1f} MB in {s.wall_s:.1f} s; fixation re-selections right {s.reselections["right"]}, '
           f'left {s.reselections["left"]}')
