@@ -30,9 +30,9 @@ def _estimator(**params) -> Estimator:
 def test_prior_is_the_nominal_speed_until_calibrated():
     c = ConstantSpeed(0.4)
     assert c.prior(0.5) == pytest.approx((0.2, PRIOR_REL_STD * 0.2))
-    assert not c.measured and c.prefix_factor() == 1.0
+    assert not c.measured
     c.calibrate(0.5, 0.02)
-    assert c.measured and c.v == pytest.approx(0.2) and c.prefix_factor() == pytest.approx(0.5)
+    assert c.measured and c.v == pytest.approx(0.2)
     assert c.prior(1.0)[0] == pytest.approx(0.2)
     for bad in ((0.0, 0.1), (np.nan, 0.1), (1.0, -0.1)):
         with pytest.raises(ValueError):
@@ -53,23 +53,43 @@ def _anchor_on(run, scale: float, frames: int) -> ScaleAnchor:
     a.start(Pose.identity(), fixations_of(run.observations[0])['right'][1])
     for obs, pose in zip(run.observations[1:frames], run.poses[1:frames], strict=True):
         f = fixations_of(obs)['right']
-        a.add(Pose(pose.R, pose.t * scale), f[1], f[0])
+        a.add(obs.stamp, Pose(pose.R, pose.t * scale), f[1], f[0])
     return a
 
 
 def test_anchor_recovers_the_scale_of_a_trajectory(straight):
     assert _anchor_on(straight, 1.0, 3).fit() is None               # too few views
     for scale in (1.0, 2.5):
-        k, std = _anchor_on(straight, scale, 30).settled()
-        assert k * scale == pytest.approx(1.0, abs=0.03) and 0 < std < 0.05 * k
+        fit = _anchor_on(straight, scale, 30).settled()
+        assert fit.position_k * scale == pytest.approx(1.0, abs=0.03)
+        assert fit.speed_k * scale == pytest.approx(1.0, abs=0.05) and 0 < fit.rel_std < 0.1
+
+
+def test_anchor_speed_is_the_recent_one(straight):
+    """A path drawn at a constant speed while the rig accelerated from rest: the distances are wrong early on,
+    the recent metric speed (the slope) is still the true one."""
+    stamps = np.array(straight.stamps[:30])
+    true_dist = np.array([np.linalg.norm(p.t) for p in straight.poses[:30]])
+    v_true = (true_dist[-1] - true_dist[-8]) / (stamps[-1] - stamps[-8])
+    a = ScaleAnchor(straight.stamps[0], 'right', straight.fixation_points[0]['right'], np.eye(3) * 1e-6,
+                    RIG.center('right'), 0.3 / RIG.camera('right').fx)
+    a.start(Pose.identity(), fixations_of(straight.observations[0])['right'][1])
+    nominal = 0.5
+    for obs, pose, t in zip(straight.observations[1:30], straight.poses[1:30], stamps[1:], strict=True):
+        f = fixations_of(obs)['right']
+        drawn = pose.t / np.linalg.norm(pose.t) * nominal * (t - stamps[0])
+        a.add(obs.stamp, Pose(pose.R, drawn), f[1], f[0])
+    fit = a.fit()
+    assert fit.speed_k * nominal == pytest.approx(v_true, rel=0.1)
+    assert fit.position_k * nominal * (stamps[-1] - stamps[0]) == pytest.approx(true_dist[-1], rel=0.05)
 
 
 def test_anchor_ends_when_the_camera_reselects(straight):
     a = _anchor_on(straight, 1.0, 8)
     n = len(a.views)
-    a.add(Pose.identity(), a.fixation_id + 1, np.array([0.0, 0.0, 1.0]))
+    a.add(9.0, Pose.identity(), a.fixation_id + 1, np.array([0.0, 0.0, 1.0]))
     assert a.ended and len(a.views) == n
-    a.add(Pose.identity(), a.fixation_id, np.array([0.0, 0.0, 1.0]))
+    a.add(9.5, Pose.identity(), a.fixation_id, np.array([0.0, 0.0, 1.0]))
     assert len(a.views) == n
 
 
@@ -106,9 +126,13 @@ def test_vergence_point_calibrates_the_speed(straight, late):
     assert res[-1].scale_observed and 'vergence' in res[-1].scale_note
     assert sum(r.prefix_scale != 1.0 for r in res) == 1
     truth = np.array([p.t for p in straight.poses])
-    est_len = np.sum(np.linalg.norm(np.diff(_path(res), axis=0), axis=1))
     true_len = np.sum(np.linalg.norm(np.diff(truth, axis=0), axis=1))
-    assert est_len / true_len == pytest.approx(1.0, abs=0.5)      # nominal alone: x2.8
+    ratio = np.sum(np.linalg.norm(np.diff(_path(res), axis=0), axis=1)) / true_len
+    nominal = _estimator(speed_nominal=0.5)
+    nominal_ratio = np.sum(np.linalg.norm(np.diff(_path([nominal.update(o) for o in straight.observations]), axis=0),
+                                          axis=1)) / true_len
+    # closer to the truth than the nominal speed (x3.5 here); the anchor's own error is in bench.accuracy
+    assert abs(ratio - 1.0) < 0.5 * abs(nominal_ratio - 1.0)
 
 
 def test_vergence_point_too_old_is_ignored(straight):

@@ -48,7 +48,3 @@ class ConstantSpeed:
         self.v *= k
         self.rel_std = rel_std
         self.measured = True
-
-    def prefix_factor(self) -> float:
-        """Scale that turns lengths made at the nominal speed into metric ones (1 before a measurement)."""
-        return self.v / self.nominal if self.measured else 1.0

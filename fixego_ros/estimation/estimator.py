@@ -261,6 +261,7 @@ class Estimator:
         self._prefix_anchor: tuple[np.ndarray, np.ndarray] | None = None
         self._prefix_rescaled = False
         self._prefix_scale_out = 1.0        # reported with the next result
+        self._prefix_k = 1.0                # the factor that makes the path so far metric
         # with the constant-speed prior, a vergence point fixes the scale (:mod:`.scale_anchor`); recent frames are kept
         # (bounded) because the measurement arrives after the frame it was made at
         self._anchor: ScaleAnchor | None = None
@@ -325,16 +326,17 @@ class Estimator:
             return
         if stamp <= a.stamp + tol:
             return
-        a.add(pose, f[1] if f is not None else None, f[0] if f is not None else None)
+        a.add(stamp, pose, f[1] if f is not None else None, f[0] if f is not None else None)
         fit = a.settled()
         if fit is not None:
-            k, std = fit
-            self._speed_prior.calibrate(k, std / k)
+            self._speed_prior.calibrate(fit.speed_k, fit.rel_std)
             self._aids.add('the vergence step')
             self._prefix_anchor = (self._key_pose.t.copy(), self._key_pose_raw.t.copy())
+            self._prefix_k = fit.position_k
             self._prefix_rescaled = False
             self._anchor = None
-            self._anchor_note = f'vergence: speed x{k:.3f} (std {std:.3f}) over {len(a.views)} frames'
+            self._anchor_note = (f'vergence: speed x{fit.speed_k:.3f} (std {fit.rel_std * 100:.0f} %), path so far '
+                                 f'x{fit.position_k:.3f}, from {len(a.views)} frames')
         elif a.ended:
             self._anchor, self._anchor_note = None, (f'vergence: the {a.side} camera left the point after '
                                                      f'{len(a.views)} frames, before the scale settled')
@@ -391,16 +393,31 @@ class Estimator:
             full = full or count >= n - 1
         return BAProblem(terms), full
 
+    def _length_jump(self, t: np.ndarray, dt: float) -> str:
+        """Why a step of translation ``t`` over ``dt`` is a jump ('' if it is not). With the constant-speed prior
+        the length is the prior's (a gauge while the scale is unobserved): only a length far off it is a jump,
+        not one beyond the metric limits."""
+        cfg = self.config
+        n = float(np.linalg.norm(t))
+        if self._speed_prior is not None:
+            length, std = self._speed_prior.prior(dt)
+            far = abs(n - length) > 5 * std
+            return f'jump: |T| = {n:.3f} m, the constant-speed prior says {length:.3f}' if far else ''
+        if n > cfg.max_step_translation:
+            return f'jump: |T| = {n:.3f} m > {cfg.max_step_translation}'
+        if dt > 0 and n > cfg.max_speed * dt:
+            return f'jump: {n / dt:.2f} m/s > {cfg.max_speed} m/s'
+        return ''
+
     def _accept(self, res: TwoFrameResult, dt: float) -> tuple[bool, str]:
         cfg = self.config
         if not res.status.usable:
             return False, f'two-frame {res.status.value}: {res.message}'
         if not res.pose.is_finite():
             return False, 'non-finite solution'
-        if np.linalg.norm(res.pose.t) > cfg.max_step_translation:
-            return False, f'jump: |T| = {np.linalg.norm(res.pose.t):.3f} m > {cfg.max_step_translation}'
-        if dt > 0 and np.linalg.norm(res.pose.t) > cfg.max_speed * dt:
-            return False, f'jump: {np.linalg.norm(res.pose.t) / dt:.2f} m/s > {cfg.max_speed} m/s'
+        jump = self._length_jump(res.pose.t, dt)
+        if jump:
+            return False, jump
         if rotation_angle(res.pose.R) > cfg.max_step_rotation:
             return False, f'jump: rotation {np.degrees(rotation_angle(res.pose.R)):.1f} deg'
         if float(np.max(res.translation_std)) > cfg.reject_translation_std:
@@ -483,7 +500,7 @@ class Estimator:
                     ba = refine_latest(problem, tf.pose, self.config.mode, pairs, self.config.solver.sigma,
                                        backend=self.config.solver.backend)
                     refined = ba.pose
-                    if (np.linalg.norm(refined.t) <= min(self.config.max_step_translation, self.config.max_speed * dt)
+                    if (not self._length_jump(refined.t, dt)
                             and rotation_angle(refined.R) <= self.config.max_step_rotation):
                         motion = refined
                     else:
@@ -554,8 +571,8 @@ class Estimator:
     def _rescale_prefix(self, pose: Pose, pose_raw: Pose) -> tuple[Pose, Pose]:
         """The speed was measured: the path up to the measurement was built at the nominal speed, so stretch it
         to the measured one (once; later steps are made at the measured speed)."""
-        assert self._speed_prior is not None and self._prefix_anchor is not None
-        k = self._speed_prior.prefix_factor()
+        assert self._prefix_anchor is not None
+        k = self._prefix_k
         self._prefix_rescaled = True
         self._prefix_scale_out = k
         anchor, anchor_raw = self._prefix_anchor

@@ -402,9 +402,10 @@ class TwoFrameSolver:
                                   'no parallax: rotation only')
         warm = initial is not None and initial.is_finite()
         best = self._best(pairs, [initial] if warm else self._cold_starts(pairs, R_rot), prior)
-        # a poor warm start gets the cold starts too, unless a motion prior anchors it (real time: the cold
-        # starts cost ~10 solves; a prior-anchored bad step is flagged below and predicted by the caller)
-        if warm and (best is None or (best.cheirality < 0.5 and prior is None)):
+        # a poor warm start gets the cold starts too, unless a prior on T anchors it (real time: the cold starts
+        # cost ~10 solves; a prior-anchored bad step is flagged below and predicted by the caller). A prior on
+        # the length alone does not: it holds T and -T alike
+        if warm and (best is None or (best.cheirality < 0.5 and (prior is None or prior.t is None))):
             best = self._best(pairs, self._cold_starts(pairs, R_rot) + ([best.pose] if best else []), prior)
         if best is None:
             return TwoFrameResult(initial or Pose.identity(), StepStatus.FAILED, n_constraints=m,
