@@ -393,13 +393,13 @@ class Estimator:
             full = full or count >= n - 1
         return BAProblem(terms), full
 
-    def _length_jump(self, t: np.ndarray, dt: float) -> str:
-        """Why a step of translation ``t`` over ``dt`` is a jump ('' if it is not). With the constant-speed prior
-        the length is the prior's (a gauge while the scale is unobserved): only a length far off it is a jump,
-        not one beyond the metric limits."""
+    def _length_jump(self, t: np.ndarray, dt: float, held: bool) -> str:
+        """Why a step of translation ``t`` over ``dt`` is a jump ('' if it is not). ``held``: the length was solved
+        with the constant-speed prior, so it is the prior's (a gauge while the scale is unobserved): only a
+        length far off it is a jump, not one beyond the metric limits."""
         cfg = self.config
         n = float(np.linalg.norm(t))
-        if self._speed_prior is not None:
+        if held and self._speed_prior is not None:
             length, std = self._speed_prior.prior(dt)
             far = abs(n - length) > 5 * std
             return f'jump: |T| = {n:.3f} m, the constant-speed prior says {length:.3f}' if far else ''
@@ -409,13 +409,13 @@ class Estimator:
             return f'jump: {n / dt:.2f} m/s > {cfg.max_speed} m/s'
         return ''
 
-    def _accept(self, res: TwoFrameResult, dt: float) -> tuple[bool, str]:
+    def _accept(self, res: TwoFrameResult, dt: float, held: bool) -> tuple[bool, str]:
         cfg = self.config
         if not res.status.usable:
             return False, f'two-frame {res.status.value}: {res.message}'
         if not res.pose.is_finite():
             return False, 'non-finite solution'
-        jump = self._length_jump(res.pose.t, dt)
+        jump = self._length_jump(res.pose.t, dt, held)
         if jump:
             return False, jump
         if rotation_angle(res.pose.R) > cfg.max_step_rotation:
@@ -487,7 +487,8 @@ class Estimator:
             tf = self.solver.solve(pairs, initial=start, prior_t=t_pred, prior_sigma_t=sigma)
         else:
             tf = self.solver.solve(pairs, initial=start)
-        accepted, why = self._accept(tf, dt)
+        held = speed is None and self._speed_prior is not None     # the length is the constant-speed prior's
+        accepted, why = self._accept(tf, dt, held)
         ba: BAResult | None = None
         if accepted:
             motion = motion_raw = tf.pose
@@ -500,7 +501,7 @@ class Estimator:
                     ba = refine_latest(problem, tf.pose, self.config.mode, pairs, self.config.solver.sigma,
                                        backend=self.config.solver.backend)
                     refined = ba.pose
-                    if (not self._length_jump(refined.t, dt)
+                    if (not self._length_jump(refined.t, dt, held)
                             and rotation_angle(refined.R) <= self.config.max_step_rotation):
                         motion = refined
                     else:
