@@ -300,14 +300,19 @@ class SpeedCheckingEstimator(Estimator):
         super().add_velocity(stamp, v_rig, cov_rig)
 
 
+def _small_walk(tmp_path_factory, name: str, duration: str, *aid: str) -> Path:
+    """A short walk at 320x240, 10 Hz, written by ``fixego sim`` with the given aid options."""
+    from fixego_ros.cli import main as fixego
+    out = tmp_path_factory.mktemp(name) / f'walk_{name}'
+    assert fixego(['sim', '--trajectory', 'walk', '--duration', duration, '--width', '320', '--height', '240',
+                   '--fps', '10', *aid, '--no-progress', '--out', str(out)]) == 0
+    return out
+
+
 @pytest.fixture(scope='module')
 def wheel_bag(tmp_path_factory) -> Path:
-    """2 s of the walk at 320x240, 10 Hz, with simulated wheel odometry (std 5 cm/s)."""
-    from fixego_ros.cli import main as fixego
-    out = tmp_path_factory.mktemp('wheel') / 'walk_wheel'
-    assert fixego(['sim', '--trajectory', 'walk', '--duration', '2', '--width', '320', '--height', '240',
-                   '--fps', '10', '--wheel-odom-std', '0.05', '--no-progress', '--out', str(out)]) == 0
-    return out
+    """2 s of the walk with simulated wheel odometry (std 5 cm/s)."""
+    return _small_walk(tmp_path_factory, 'wheel', '2', '--wheel-odom-std', '0.05')
 
 
 def test_replay_feeds_wheel_odometry_and_is_same_with_two_workers(wheel_bag, tmp_path, monkeypatch, capsys):
@@ -403,12 +408,8 @@ class RefusingEstimator(Estimator):
 
 @pytest.fixture(scope='module')
 def vergence_bag(tmp_path_factory) -> Path:
-    """1.5 s of the walk at 320x240, 10 Hz, with a simulated start-up vergence measurement (2 %)."""
-    from fixego_ros.cli import main as fixego
-    out = tmp_path_factory.mktemp('vergence') / 'walk_vergence'
-    assert fixego(['sim', '--trajectory', 'walk', '--duration', '1.5', '--width', '320', '--height', '240',
-                   '--fps', '10', '--vergence-std', '0.02', '--no-progress', '--out', str(out)]) == 0
-    return out
+    """1.5 s of the walk with a simulated start-up vergence measurement (2 %)."""
+    return _small_walk(tmp_path_factory, 'vergence', '1.5', '--vergence-std', '0.02')
 
 
 def test_replay_feeds_the_vergence_measurement_and_is_same_with_two_workers(vergence_bag, tmp_path, monkeypatch,
