@@ -212,6 +212,7 @@ class _Latest:
 # frames kept for a vergence measurement that arrives after its frame (~10 s at 10 Hz)
 ANCHOR_HISTORY = 100
 
+
 class Estimator:
     """Stateful incremental estimator (one instance per trajectory; :meth:`reset` restarts).
 
@@ -256,12 +257,10 @@ class Estimator:
         self._prior_scale_pending = False   # a vergence distance arrived: rescale once the window has placed it
         cfg = self.config
         self._speed_prior = ConstantSpeed(cfg.speed_nominal) if cfg.constant_speed else None
-        # key positions (refined, raw) when the speed was measured: the path up to them was built at the nominal
-        # speed and is rescaled at the next keyframe
-        self._prefix_anchor: tuple[np.ndarray, np.ndarray] | None = None
-        self._prefix_rescaled = False
+        # the speed was just measured: (factor that makes the path so far metric, key positions refined and raw
+        # then); the path up to them was built at the nominal speed and is rescaled at the next keyframe, once
+        self._pending_prefix: tuple[float, np.ndarray, np.ndarray] | None = None
         self._prefix_scale_out = 1.0        # reported with the next result
-        self._prefix_k = 1.0                # the factor that makes the path so far metric
         # with the constant-speed prior, a vergence point fixes the scale (:mod:`.scale_anchor`); recent frames are kept
         # (bounded) because the measurement arrives after the frame it was made at
         self._anchor: ScaleAnchor | None = None
@@ -310,6 +309,13 @@ class Estimator:
         for f_stamp, pose, fix in recent:
             self._feed_anchor(f_stamp, pose, fix)
 
+    def _remember(self, stamp: float, pose: Pose, fix: dict[str, Fixation | None]) -> None:
+        """Constant-speed prior: keep a placed frame for a vergence measurement still to come, and feed the
+        scale anchor with it."""
+        if self._speed_prior is not None:
+            self._recent.append((stamp, pose, fix))
+            self._feed_anchor(stamp, pose, fix)
+
     def _feed_anchor(self, stamp: float, pose: Pose, fix: dict[str, Fixation | None]) -> None:
         """One placed frame for the scale anchor; calibrates the speed once the fit has settled."""
         a = self._anchor
@@ -331,9 +337,7 @@ class Estimator:
         if fit is not None:
             self._speed_prior.calibrate(fit.speed_k, fit.rel_std)
             self._aids.add('the vergence step')
-            self._prefix_anchor = (self._key_pose.t.copy(), self._key_pose_raw.t.copy())
-            self._prefix_k = fit.position_k
-            self._prefix_rescaled = False
+            self._pending_prefix = (fit.position_k, self._key_pose.t.copy(), self._key_pose_raw.t.copy())
             self._anchor = None
             self._anchor_note = (f'vergence: speed x{fit.speed_k:.3f} (std {fit.rel_std * 100:.0f} %), path so far '
                                  f'x{fit.position_k:.3f}, from {len(a.views)} frames')
@@ -464,9 +468,7 @@ class Estimator:
             self._window.append(_Slot(fix, Pose.identity()))
             if self._sliding is not None:
                 self._sliding.add(obs.stamp, Pose.identity(), *landmark_observations(self.rig, obs), None)
-            if self._speed_prior is not None:
-                self._recent.append((obs.stamp, self._key_pose, fix))
-                self._feed_anchor(obs.stamp, self._key_pose, fix)
+            self._remember(obs.stamp, self._key_pose, fix)
             return FrameResult(self._index, obs.stamp, StepStatus.INIT, self._key_pose, self._key_pose_raw,
                                Pose.identity(), Pose.identity(), np.zeros((6, 6)), self._key_cov.copy(),
                                'first frame', scale_observed=self.scale_observed, scale_note=self.scale_note())
@@ -530,9 +532,7 @@ class Estimator:
             pose, motion = self._key_pose, self._window[-1].step.normalized()
         if gap:
             message = f'{gap}; {message}' if message else gap
-        if self._speed_prior is not None:
-            self._recent.append((obs.stamp, pose, fix))
-            self._feed_anchor(obs.stamp, pose, fix)
+        self._remember(obs.stamp, pose, fix)
         observed = self.scale_observed
         if not observed:      # the position is known only up to an unobserved scale: say so
             pose_cov = pose_cov.copy()
@@ -563,7 +563,7 @@ class Estimator:
         self._window.append(_Slot(f.fixation, prev_pose.inverse() @ pose))
         self._speed.forget_before(self._key_stamp)     # later steps start at this keyframe or after
         pose_raw = f.pose_raw
-        if self._prefix_anchor is not None and not self._prefix_rescaled:
+        if self._pending_prefix is not None:
             pose, pose_raw = self._rescale_prefix(pose, pose_raw)
         self._key_stamp, self._key_pose, self._key_pose_raw, self._key_cov = f.stamp, pose, pose_raw, f.pose_cov
         self._latest = None
@@ -572,11 +572,10 @@ class Estimator:
     def _rescale_prefix(self, pose: Pose, pose_raw: Pose) -> tuple[Pose, Pose]:
         """The speed was measured: the path up to the measurement was built at the nominal speed, so stretch it
         to the measured one (once; later steps are made at the measured speed)."""
-        assert self._prefix_anchor is not None
-        k = self._prefix_k
-        self._prefix_rescaled = True
+        assert self._pending_prefix is not None
+        k, anchor, anchor_raw = self._pending_prefix
+        self._pending_prefix = None
         self._prefix_scale_out = k
-        anchor, anchor_raw = self._prefix_anchor
         return Pose(pose.R, pose.t + (k - 1.0) * anchor), Pose(pose_raw.R, pose_raw.t + (k - 1.0) * anchor_raw)
 
     def _rescale(self, s: float) -> None:

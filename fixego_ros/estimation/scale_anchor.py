@@ -54,6 +54,12 @@ class ScaleAnchor:
     views: list[tuple[float, float, float, float]] = field(default_factory=list)
     ended: bool = False             # the camera re-selected its fixation point: no more views
     newest: Pose | None = None      # the newest view's pose relative to the anchor frame
+    rel_point: float = field(init=False)   # relative std of the point's distance: it scales every k_j one for one
+
+    def __post_init__(self) -> None:
+        u = self.point - self.center
+        dist = float(np.linalg.norm(u))
+        self.rel_point = math.sqrt(max(float(u @ self.cov @ u), 0.0)) / dist**2 if dist > 0 else math.inf
 
     def start(self, pose: Pose, fixation_id: int) -> None:
         """The anchor frame itself: its estimated pose and the fixation it belongs to."""
@@ -88,11 +94,7 @@ class ScaleAnchor:
         info = float(sol.jac[:, 0] @ sol.jac[:, 0])
         if not (math.isfinite(k) and info > 0):
             return None
-        # the point's own distance error scales k one for one
-        u = self.point - self.center
-        dist = float(np.linalg.norm(u))
-        rel_point = math.sqrt(max(float(u @ self.cov @ u), 0.0)) / dist**2 if dist > 0 else math.inf
-        std = math.sqrt(1.0 / info + (rel_point * k) ** 2)
+        std = math.sqrt(1.0 / info + (self.rel_point * k) ** 2)
         return (k, std) if math.isfinite(std) else None
 
     def parallax_deg(self, k: float) -> float:

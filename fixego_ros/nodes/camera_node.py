@@ -22,7 +22,6 @@ from __future__ import annotations
 import math
 from collections import deque
 
-import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PointStamped, PoseWithCovarianceStamped
 from rclpy.node import Node
@@ -47,6 +46,7 @@ from fixego_ros.nodes.common import (
     sec_to_stamp,
     spin_node,
     stamp_to_sec,
+    vergence_to_msg,
 )
 from fixego_ros.pipeline.messages import pan_tilt
 from fixego_ros.pipeline.params import FIXATION_PARAMS, fixation_params
@@ -383,18 +383,9 @@ class CameraNode(Node):
                 del self._vergence_stamps[k]
 
     def _publish_vergence(self, res) -> None:
-        out = PoseWithCovarianceStamped()
         stamp = self._vergence_stamps.get(res.stamp)
-        out.header.stamp = stamp if stamp is not None else sec_to_stamp(res.stamp)
-        out.header.frame_id = 'rig'
-        pos = out.pose.pose.position
-        pos.x, pos.y, pos.z = (float(x) for x in res.point_rig)
-        out.pose.pose.orientation.w = 1.0
-        cov = np.zeros((6, 6))
-        cov[:3, :3] = res.cov_rig
-        cov[3:, 3:] = np.eye(3) * 1e6          # the orientation carries no information
-        out.pose.covariance = [float(x) for x in cov.ravel()]
-        self.pub_vergence.publish(out)
+        self.pub_vergence.publish(vergence_to_msg(stamp if stamp is not None else sec_to_stamp(res.stamp),
+                                                  res.point_rig, res.cov_rig))
         self.get_logger().info(
             f'vergence: right fixation point at {res.distance_m:.3f} m (std {res.std_m:.3f} m, vergence '
             f'{math.degrees(res.angle_rad):.2f} deg, NCC {res.match.ncc:.2f}) after {res.duration_s:.1f} s')

@@ -13,6 +13,7 @@ import rclpy
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Pose as PoseMsg
+from geometry_msgs.msg import PoseWithCovarianceStamped
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
@@ -91,6 +92,23 @@ def pose_to_msg(pose: Pose, out: PoseMsg | None = None) -> PoseMsg:
     out.position.x, out.position.y, out.position.z = (float(x) for x in pose.t)
     o = out.orientation
     o.x, o.y, o.z, o.w = (float(x) for x in quat_xyzw(pose.R))
+    return out
+
+
+def vergence_to_msg(stamp: Time, point_rig: np.ndarray, cov_rig: np.ndarray) -> PoseWithCovarianceStamped:
+    """/fixego/vergence message: the vergence point in ``rig`` with its 3x3 covariance in the position block;
+    the orientation carries no information (identity, variance 1e6). camera_node and the simulator's bags
+    both write it this way."""
+    out = PoseWithCovarianceStamped()
+    out.header.stamp = stamp
+    out.header.frame_id = 'rig'
+    pos = out.pose.pose.position
+    pos.x, pos.y, pos.z = (float(x) for x in point_rig)
+    out.pose.pose.orientation.w = 1.0
+    cov = np.zeros((6, 6))
+    cov[:3, :3] = cov_rig
+    cov[3:, 3:] = np.eye(3) * 1e6
+    out.pose.covariance = [float(x) for x in cov.ravel()]
     return out
 
 

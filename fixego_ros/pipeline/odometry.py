@@ -65,6 +65,27 @@ class VelocitySample:
     cov_rig: np.ndarray
 
 
+def covariance_block(cov6: np.ndarray, what: str) -> np.ndarray:
+    """The leading 3x3 block (linear velocity, or position) of a row-major 6x6 ROS covariance;
+    :class:`OdometryError` (kind ``covariance``) when it is not 36 numbers or the block is not finite."""
+    if cov6.size != 36:
+        raise OdometryError(f'{what} has {cov6.size} entries, expected 36 (6x6 row-major)', 'covariance')
+    c = cov6.reshape(6, 6)[:3, :3].copy()
+    if not np.all(np.isfinite(c)):
+        raise OdometryError(f'{what} not finite', 'covariance')
+    return c
+
+
+def psd_eigen(c: np.ndarray, what: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(symmetrised c, eigenvalues ascending, eigenvectors); :class:`OdometryError` (kind ``covariance``) when
+    c is not positive semi-definite beyond round-off."""
+    c = 0.5 * (c + c.T)
+    w, V = np.linalg.eigh(c)
+    if w[0] < -1e-9 * max(1.0, w[-1]):
+        raise OdometryError(f'{what} not positive semi-definite (eigenvalues {w.tolist()})', 'covariance')
+    return c, w, V
+
+
 def twist_to_rig(linear: Any, covariance: Any, default_std: float) -> tuple[np.ndarray, np.ndarray]:
     """(v_rig, cov_rig) of a ``base_link`` linear twist (x, y, z or a Vector3) and the row-major 6x6 twist
     covariance; :class:`OdometryError` (kind ``velocity`` / ``covariance``) when they are unusable."""
@@ -77,12 +98,7 @@ def twist_to_rig(linear: Any, covariance: Any, default_std: float) -> tuple[np.n
         raise OdometryError(f'twist not numeric: {e}', 'velocity') from None
     if not np.all(np.isfinite(v_base)):
         raise OdometryError(f'non-finite linear velocity {v_base.tolist()}', 'velocity')
-    if cov6.size != 36:
-        raise OdometryError(f'twist covariance has {cov6.size} entries, expected 36 (6x6 row-major)',
-                            'covariance')
-    c = cov6.reshape(6, 6)[:3, :3]
-    if not np.all(np.isfinite(c)):
-        raise OdometryError('non-finite twist covariance', 'covariance')
+    c = covariance_block(cov6, 'twist covariance')
     if not math.isfinite(default_std) or default_std <= 0:
         raise ValueError(f'speed_default_std must be a positive number of m/s, got {default_std}')
     if not np.any(c):
@@ -90,11 +106,7 @@ def twist_to_rig(linear: Any, covariance: Any, default_std: float) -> tuple[np.n
     else:
         if np.any(np.diag(c) < 0):
             raise OdometryError(f'negative velocity variance {np.diag(c).tolist()}', 'covariance')
-        c = 0.5 * (c + c.T)
-        w, V = np.linalg.eigh(c)
-        if w[0] < -1e-9 * max(1.0, w[-1]):
-            raise OdometryError(f'twist covariance not positive semi-definite (eigenvalues {w.tolist()})',
-                                'covariance')
+        c, w, V = psd_eigen(c, 'twist covariance')
         if w[0] < MIN_STD ** 2:
             c = (V * np.maximum(w, MIN_STD ** 2)) @ V.T
     v_rig = RIG_TO_BASE.T @ v_base
@@ -183,12 +195,6 @@ def vergence_from_msg(msg: Any) -> tuple[float, np.ndarray, np.ndarray]:
         raise ValueError(f'vergence message with non-finite stamp {stamp}')
     if not np.all(np.isfinite(point)):
         raise ValueError(f'vergence point not finite: {point.tolist()}')
-    if cov6.size != 36:
-        raise ValueError(f'vergence covariance has {cov6.size} entries, expected 36 (6x6 row-major)')
-    cov = cov6.reshape(6, 6)[:3, :3].copy()
-    if not np.all(np.isfinite(cov)):
-        raise ValueError('vergence point covariance not finite')
-    w = np.linalg.eigvalsh(0.5 * (cov + cov.T))
-    if w[0] < -1e-9 * max(1.0, w[-1]):
-        raise ValueError(f'vergence point covariance not positive semi-definite (eigenvalues {w.tolist()})')
+    cov = covariance_block(cov6, 'vergence point covariance')
+    psd_eigen(cov, 'vergence point covariance')
     return stamp, point, cov

@@ -107,25 +107,6 @@ def vergence_point(rig: Rig, frame: Frame, rel_error: float, std: float) -> tupl
     return c + d * u, cov, d_true
 
 
-def vergence_msg(t: float, point: np.ndarray, cov: np.ndarray):
-    """PoseWithCovarianceStamped as camera_node publishes it: ``point`` in ``rig``, covariance in the position
-    block, the orientation unused (identity, variance 1e6)."""
-    from geometry_msgs.msg import PoseWithCovarianceStamped
-
-    from fixego_ros.nodes.common import sec_to_stamp
-    msg = PoseWithCovarianceStamped()
-    msg.header.stamp = sec_to_stamp(t)
-    msg.header.frame_id = 'rig'
-    pos = msg.pose.pose.position
-    pos.x, pos.y, pos.z = (float(x) for x in point)
-    msg.pose.pose.orientation.w = 1.0
-    cov6 = np.zeros((6, 6))
-    cov6[:3, :3] = cov
-    cov6[3:, 3:] = np.eye(3) * UNKNOWN_VARIANCE
-    msg.pose.covariance = [float(x) for x in cov6.ravel()]
-    return msg
-
-
 def camera_info_msg(rig: Rig, side: str, t: float):
     from sensor_msgs.msg import CameraInfo
 
@@ -239,6 +220,8 @@ def write_bag(out_dir: str | Path, rig: Rig, settings: SimSettings | None = None
     from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
     from rosbags.typesys import Stores, get_typestore
 
+    from fixego_ros.nodes.common import sec_to_stamp, vergence_to_msg
+
     out_dir = Path(out_dir)
     if out_dir.exists():
         raise FileExistsError(f'{out_dir} exists already; rosbag2 directories are never overwritten')
@@ -278,7 +261,8 @@ def write_bag(out_dir: str | Path, rig: Rig, settings: SimSettings | None = None
             if verg_error is not None and frame.index == 0:   # also before the images, after the wheel sample
                 t = settings.epoch + frame.t
                 point, cov, d_true = vergence_point(rig, frame, verg_error, vergence_std)
-                msgs.insert(0 if wheel is None else 1, (VERGENCE_TOPIC, vergence_msg(t, point, cov)))
+                msgs.insert(0 if wheel is None else 1,
+                            (VERGENCE_TOPIC, vergence_to_msg(sec_to_stamp(t), point, cov)))
                 verg_meta = {'topic': VERGENCE_TOPIC, 'std_rel': float(vergence_std), 'stamp_s': float(t),
                              'distance_true_m': d_true,
                              'distance_m': float(np.linalg.norm(point - rig.center('right')))}
