@@ -79,9 +79,21 @@ def test_scale_is_reported_unobserved_on_a_straight_run():
 
 
 @pytest.mark.parametrize('refinement', ['local', 'sliding'])
-def test_scale_becomes_observed_after_enough_rotation(refinement):
+def test_turning_alone_does_not_make_the_scale_observed(refinement):
+    # a circle with the heading along it: the lever arm lies along every step (estimation/observability.py)
     run = _run('circle', 10.0)
-    est = Estimator(RIG, EstimatorConfig(refinement=refinement, scale_min_rotation_deg=15.0))
+    est = Estimator(RIG, EstimatorConfig(refinement=refinement))
+    results = [est.update(o) for o in run.observations]
+    assert not any(r.scale_observed for r in results)
+    assert 'no scale aid' in results[-1].scale_note and 'constant-curvature' in results[-1].scale_note
+    assert np.all(np.sqrt(np.diag(results[-1].pose_covariance)[3:]) >= 1.0)
+
+
+@pytest.mark.parametrize('refinement', ['local', 'sliding'])
+def test_scale_from_rotation_counts_it_observed_after_enough_rotation(refinement):
+    run = _run('circle', 10.0)
+    est = Estimator(RIG, EstimatorConfig(refinement=refinement, scale_min_rotation_deg=15.0,
+                                         scale_from_rotation=True))
     flags = [est.update(o).scale_observed for o in run.observations]
     assert not flags[1] and flags[-1]
     first = flags.index(True)

@@ -12,10 +12,12 @@ for every flow preset (``paper``, ``window``, ``full``) and refinement (``local`
 local BA; ``sliding``: keyframe poses with persistent landmarks; ``constant``: local BA with the
 constant-speed prior, nominal 0.5 m/s until the vergence step measures the speed), and reports the papers' unaligned
 position error (mean, terminal), ATE after SE(3) and Sim(3) alignment, the estimated/true path length,
-and the estimator's median ms per frame. The two-frame-only ("raw") trajectory is the same for both
-refinements and is reported once per preset. Everything is deterministic, so the results are computed
-once per process (``make bench`` repeats are free) and written with a plot of the paper loop to
-``bench/accuracy.md`` and ``bench/accuracy_paper.png``.
+and the estimator's median ms per frame; and, per bag, how much of the true motion could show the metric
+scale to the rays at all: the angle between each true step's translation and the left camera's lever arm
+``(R - I) c_L`` (:mod:`fixego_ros.estimation.observability`; 0 = that step's length is invisible). The
+two-frame-only ("raw") trajectory is the same for both refinements and is reported once per preset.
+Everything is deterministic, so the results are computed once per process (``make bench`` repeats are
+free) and written with a plot of the paper loop to ``bench/accuracy.md`` and ``bench/accuracy_paper.png``.
 
     python -m fixego_ros.bench.accuracy [--out bench]
 """
@@ -23,6 +25,7 @@ once per process (``make bench`` repeats are free) and written with a plot of th
 from __future__ import annotations
 
 import argparse
+import itertools
 import tempfile
 from pathlib import Path
 
@@ -74,6 +77,29 @@ def _replay(path: Path, preset: str, refinement: str, aid: str):
     return replay(Bag(path), rig, settings, workers=1)
 
 
+LEVER_STEP_DEG = 1.0       # a true step whose lever arm is this far off its translation shows some scale
+
+
+def lever_arm_stats(rig, gt_poses: list) -> dict[str, float]:
+    """Over the true frame-to-frame steps (``gt_poses``: base_link in odom): the share of steps whose lever arm is
+    more than ``LEVER_STEP_DEG`` off the translation, and the median angle over the turning steps (deg)."""
+    from fixego_ros.estimation.observability import lever_arm_angle
+    from fixego_ros.geometry.rotation import base_link_pose_to_rig, rotation_angle
+    poses = [base_link_pose_to_rig(p) for p in gt_poses]
+    c = rig.center('left') - rig.center('right')
+    angles, turning = [], []
+    for a, b in itertools.pairwise(poses):
+        step = a.inverse() @ b
+        if np.linalg.norm(step.t) < 1e-6:
+            continue
+        angles.append(np.degrees(lever_arm_angle(step.R, step.t + step.R @ rig.center('right') - rig.center('right'),
+                                                 c)))
+        turning.append(rotation_angle(step.R) > np.radians(0.5))
+    angles, turning = np.array(angles), np.array(turning, bool)
+    return {'scale_steps_share': float(np.mean(angles > LEVER_STEP_DEG)) if len(angles) else float('nan'),
+            'turning_median_deg': float(np.median(angles[turning])) if turning.any() else float('nan')}
+
+
 def run() -> dict[str, float]:
     global _results
     if _results is not None:
@@ -93,6 +119,11 @@ def run() -> dict[str, float]:
                     continue                       # the local BA does not use the vergence point
                 res = _replay(path, preset, refinement, aid)
                 key = f'{name}.{preset}.{refinement}'
+                bag = name.split('+')[0]
+                if f'lever.{bag}.scale_steps_share' not in out:
+                    from fixego_ros.geometry.rig import load_rig
+                    out.update({f'lever.{bag}.{k}': v
+                                for k, v in lever_arm_stats(load_rig(path / 'rig.yaml'), res.gt_poses).items()})
                 trajectory_figures(out, key, res.stamps, res.poses, res)
                 out[f'{key}.estimate_ms_median'] = float(np.median(res.stage_ms.get('estimate', [np.nan])))
                 if refinement == 'local':
@@ -110,7 +141,7 @@ def table(results: dict[str, float]) -> str:
     """Markdown: one row per bag / preset / refinement."""
     rows = ['| bag | preset | refinement | mean (cm) | terminal (cm) | ATE SE(3) (cm) | ATE Sim(3) (cm) '
             '| path est/true | estimator ms (median) |', '|---|---|---|---:|---:|---:|---:|---:|---:|']
-    keys = sorted({k.rsplit('.', 1)[0] for k in results})
+    keys = sorted({k.rsplit('.', 1)[0] for k in results if not k.startswith('lever.')})
     order = {'paper': 0, 'walk': 1, 'straight': 2, 'straight+speed': 3, 'paper+speed': 4, 'paper+vergence': 5,
              'walk+vergence': 6, 'straight+vergence': 7}
     keys.sort(key=lambda k: (order.get(k.split('.')[0], 9), PRESETS.index(k.split('.')[1]),
@@ -123,6 +154,17 @@ def table(results: dict[str, float]) -> str:
         ms = '' if ref == 'raw' else f'{r["estimate_ms_median"]:.1f}'
         rows.append(f'| {bag} | {preset} | {ref} | {r["mean_error_cm"]:.1f} | {r["terminal_error_cm"]:.1f} | '
                     f'{r["ate_se3_cm"]:.1f} | {r["ate_sim3_cm"]:.1f} | {r["path_length_ratio"]:.3f} | {ms} |')
+    return '\n'.join(rows) + '\n'
+
+
+def lever_table(results: dict[str, float]) -> str:
+    """Markdown: per bag, how much of the true motion could show the metric scale to the rays."""
+    rows = [f'| bag | true steps with the lever arm > {LEVER_STEP_DEG:g}° off the translation | '
+            'median angle over turning steps |', '|---|---:|---:|']
+    for bag in sorted({k.split('.')[1] for k in results if k.startswith('lever.')}):
+        median = results[f'lever.{bag}.turning_median_deg']
+        rows.append(f'| {bag} | {100 * results[f"lever.{bag}.scale_steps_share"]:.0f} % | '
+                    + (f'{median:.2f}° |' if np.isfinite(median) else 'no turns |'))
     return '\n'.join(rows) + '\n'
 
 
@@ -153,7 +195,8 @@ def report(out: Path) -> None:
     out.mkdir(parents=True, exist_ok=True)
     (out / 'accuracy.md').write_text('# Accuracy per preset and refinement (deterministic replays)\n\n'
                                      'Produced by `python -m fixego_ros.bench.accuracy`; see the module docstring.\n\n'
-                                     + table(res))
+                                     + table(res) + '\nWhere the rays could see the scale at all (true motion; '
+                                     '`estimation/observability.py`):\n\n' + lever_table(res))
     plot(out / 'accuracy_paper.png')
 
 
@@ -163,6 +206,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     report(Path(args.out))
     print(table(run()))
+    print(lever_table(run()))
     return 0
 
 

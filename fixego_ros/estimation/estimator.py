@@ -142,7 +142,11 @@ class EstimatorConfig:
     # from turns through straights); 'local': the papers' local BA of the latest step over ``window`` frames
     refinement: str = 'local'
     sliding: WindowConfig = field(default_factory=WindowConfig)
-    scale_min_rotation_deg: float = 15.0   # the metric scale counts as observed after this much rig rotation
+    # the sliding window stays open (grows) until the rig has turned this much; with ``scale_from_rotation`` the
+    # metric scale also counts as observed then (the papers' assumption; see :mod:`.observability` for when the
+    # lever arm carries no scale at all: straight and constant-curvature motion)
+    scale_min_rotation_deg: float = 15.0
+    scale_from_rotation: bool = False
     # constant-speed prior (:mod:`.constant_speed`): every step at one speed, nominal until the vergence step
     # (:meth:`Estimator.add_fixation_point`) measures it; off = the papers' free two-frame lengths
     constant_speed: bool = False
@@ -227,8 +231,11 @@ class Estimator:
     Refinement (``config.refinement``): ``'local'`` is the papers' local BA of the latest step over the
     last n keyframes (the default); ``'sliding'`` refines the recent keyframe poses together with the
     persistent landmarks (:mod:`.sliding_window`). Either way the metric scale is reported unobserved
-    (``FrameResult.scale_observed``, large position covariance) until the rig has turned by
-    ``scale_min_rotation_deg`` or a scale aid (:meth:`add_velocity`, :meth:`add_fixation_point`) was used.
+    (``FrameResult.scale_observed``, large position covariance) until a scale aid (:meth:`add_velocity`,
+    :meth:`add_fixation_point`) was used: the rays alone carry no scale on straight and constant-curvature
+    motion (:mod:`.observability`), and too little on our other sequences to be trusted (README, "Scale").
+    ``scale_from_rotation`` restores the papers' assumption (observed after ``scale_min_rotation_deg`` of
+    rotation).
     """
 
     GAP_TOLERANCE_S = 1e-6
@@ -351,6 +358,10 @@ class Estimator:
             return True
         if self._speed_prior is not None:
             return False                # every step has the nominal speed: turns do not change that
+        return self.config.scale_from_rotation and self._turned
+
+    @property
+    def _turned(self) -> bool:
         return self._rotation_seen >= math.radians(self.config.scale_min_rotation_deg)
 
     def scale_note(self) -> str:
@@ -363,9 +374,12 @@ class Estimator:
             note = (f'scale unobserved: every step at the nominal {self._speed_prior.nominal:g} m/s '
                     '(constant-speed prior)')
             return f'{note}; {self._anchor_note}' if self._anchor_note else note
-        if seen >= need:
-            return f'scale observed: {seen:.0f} deg of rotation seen'
-        return f'scale unobserved: {seen:.1f} of {need:.0f} deg rotation seen, no scale aid'
+        if self.config.scale_from_rotation:
+            if seen >= need:
+                return f'scale observed: {seen:.0f} deg of rotation seen (scale_from_rotation)'
+            return f'scale unobserved: {seen:.1f} of {need:.0f} deg rotation seen, no scale aid'
+        return (f'scale unobserved: no scale aid ({seen:.0f} deg of rotation seen; the lever arm carries no scale on '
+                'straight and constant-curvature motion and too little elsewhere to trust)')
 
     @property
     def last_stamp(self) -> float | None:
@@ -550,7 +564,7 @@ class Estimator:
         pose = f.pose
         if self._sliding is not None and f.landmarks is not None:
             factor = StepFactor(f.motion, f.step_cov, *(f.speed if f.speed is not None else (None, None)))
-            self._sliding.hold_open = not self.scale_observed
+            self._sliding.hold_open = not (self._aids or self._turned)
             pose = self._sliding.add(f.stamp, f.pose, *f.landmarks, factor).normalized()
             if self._prior_scale_pending:
                 s = self._sliding.prior_scale()
@@ -632,7 +646,7 @@ class Estimator:
         self._key_pose_raw = (self._key_pose_raw @ step_raw).normalized()
         if self._sliding is not None:
             empty = (np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)))
-            self._sliding.hold_open = not self.scale_observed
+            self._sliding.hold_open = not (self._aids or self._turned)
             self._key_pose = self._sliding.add(ref, self._key_pose, *empty, StepFactor(step, cov)).normalized()
         self._key_stamp = ref
         # the missed frames' fixations are unknown: no fixation pair or BA term may span the gap

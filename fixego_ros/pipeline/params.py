@@ -91,8 +91,12 @@ ESTIMATOR_PARAMS: Table = {
                               "lever arm's unreliable lengths; the scale stays unobserved (nominal speed) until a "
                               'vergence measurement (vergence_topic) calibrates it. false = the papers\' method'),
     'speed_nominal': (0.5, 'constant-speed prior: m/s assumed until the vergence step measures the speed'),
-    'scale_min_rotation_deg': (15.0, 'the metric scale counts as observed after this much rig rotation (or once '
-                                     'a scale aid was used); before, /fixego/odom carries a large covariance'),
+    'scale_min_rotation_deg': (15.0, 'sliding refinement: the window grows until the rig has turned this much (with '
+                                     'scale_from_rotation the scale then also counts as observed)'),
+    'scale_from_rotation': (False, 'count the metric scale as observed after scale_min_rotation_deg of rotation '
+                                   'without a scale aid (the papers\' assumption; the lever arm carries no scale on '
+                                   'straight and constant-curvature motion: README "Scale"). false = only a scale aid '
+                                   'makes it observed; until then /fixego/odom carries a large covariance'),
 }
 
 
@@ -133,6 +137,7 @@ def estimator_config(g: Getter, rig: Rig) -> EstimatorConfig:
         solver=SolverConfig(sigma=float(g('pixel_sigma')) / f, loss=str(g('loss')), max_nfev=int(g('max_nfev')),
                             min_parallax=float(g('stationary_parallax_px')) / f, backend=str(g('solver_backend'))),
         refinement=str(g('refinement')), scale_min_rotation_deg=float(g('scale_min_rotation_deg')),
+        scale_from_rotation=bool(g('scale_from_rotation')),
         constant_speed=bool(g('constant_speed')), speed_nominal=float(g('speed_nominal')),
         sliding=WindowConfig(frames=int(g('sliding_frames')),
                              max_unobserved_frames=int(g('sliding_max_unobserved_frames')),
