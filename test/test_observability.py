@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from fixego_ros.estimation.coplanarity import RayPairs
-from fixego_ros.estimation.observability import length_invariant, lever_arm, lever_arm_angle
+from fixego_ros.estimation.observability import length_invariant, lever_arm, lever_arm_angle, rig_lever_arm_angle
 from fixego_ros.geometry.rig import make_rig
 from fixego_ros.geometry.rotation import Pose, rot_y
 from fixego_ros.sim.trajectories import make_trajectory, paper
@@ -63,8 +63,7 @@ def test_turning_against_the_path_makes_the_length_observable():
 
 def _step_angles(poses: list[Pose]) -> np.ndarray:
     """Lever-arm angle (deg) of every frame-to-frame step of a sampled trajectory (rig poses)."""
-    return np.degrees([lever_arm_angle((a.inverse() @ b).R, (a.inverse() @ b).t, C_L)
-                       for a, b in itertools.pairwise(poses)])
+    return np.degrees([rig_lever_arm_angle(RIG, a.inverse() @ b) for a, b in itertools.pairwise(poses)])
 
 
 def test_the_papers_loop_is_degenerate_on_every_step_within_a_segment():

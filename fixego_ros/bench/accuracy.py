@@ -83,17 +83,15 @@ LEVER_STEP_DEG = 1.0       # a true step whose lever arm is this far off its tra
 def lever_arm_stats(rig, gt_poses: list) -> dict[str, float]:
     """Over the true frame-to-frame steps (``gt_poses``: base_link in odom): the share of steps whose lever arm is
     more than ``LEVER_STEP_DEG`` off the translation, and the median angle over the turning steps (deg)."""
-    from fixego_ros.estimation.observability import lever_arm_angle
+    from fixego_ros.estimation.observability import rig_lever_arm_angle
     from fixego_ros.geometry.rotation import base_link_pose_to_rig, rotation_angle
     poses = [base_link_pose_to_rig(p) for p in gt_poses]
-    c = rig.center('left') - rig.center('right')
     angles, turning = [], []
     for a, b in itertools.pairwise(poses):
         step = a.inverse() @ b
         if np.linalg.norm(step.t) < 1e-6:
             continue
-        angles.append(np.degrees(lever_arm_angle(step.R, step.t + step.R @ rig.center('right') - rig.center('right'),
-                                                 c)))
+        angles.append(np.degrees(rig_lever_arm_angle(rig, step)))
         turning.append(rotation_angle(step.R) > np.radians(0.5))
     angles, turning = np.array(angles), np.array(turning, bool)
     return {'scale_steps_share': float(np.mean(angles > LEVER_STEP_DEG)) if len(angles) else float('nan'),

@@ -8,8 +8,8 @@ path (a cart, a tripod steered along a curve: *Ackermann* motion) and the camera
 ``T`` and ``D`` both point at half the turned angle, so the lever arm carries no scale on any step of a
 straight-and-arc loop like the papers'. Only motion off that pattern -- heading turned against the path,
 curvature changing within a step, the head swaying -- tilts ``D`` away from ``T``; the sine of that angle is
-what a step can say about its length. :func:`lever_arm_angle` measures it; :func:`length_invariant` is the
-exact statement, used by the tests.
+what a step can say about its length. :func:`lever_arm_angle` measures it (:func:`rig_lever_arm_angle` for a
+rig's step); :func:`length_invariant` is the exact statement, used by the tests.
 """
 
 from __future__ import annotations
@@ -19,6 +19,8 @@ import math
 import numpy as np
 
 from fixego_ros.estimation.coplanarity import RayPairs, sampson_residuals
+from fixego_ros.geometry.rig import Rig
+from fixego_ros.geometry.rotation import Pose
 
 
 def lever_arm(R: np.ndarray, c: np.ndarray) -> np.ndarray:
@@ -39,6 +41,13 @@ def lever_arm_angle(R: np.ndarray, T: np.ndarray, c: np.ndarray, min_norm: float
         return 0.0
     s = float(np.linalg.norm(np.cross(D / nd, T / nt)))
     return math.asin(min(1.0, s))
+
+
+def rig_lever_arm_angle(rig: Rig, step: Pose) -> float:
+    """:func:`lever_arm_angle` of one rig step (rig frame at t): the right camera's baseline against the left
+    camera's extra lever arm ``(R - I)(c_L - c_R)``, for any placement of the two cameras in the rig."""
+    c_r, c_l = rig.center('right'), rig.center('left')
+    return lever_arm_angle(step.R, step.t + lever_arm(step.R, c_r), c_l - c_r)
 
 
 def length_invariant(R: np.ndarray, T: np.ndarray, pairs: RayPairs, k: float = 2.0, atol: float = 1e-12) -> bool:
