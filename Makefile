@@ -7,16 +7,27 @@ STAMP := $(VENV)/.installed
 export ROS_AUTOMATIC_DISCOVERY_RANGE ?= LOCALHOST
 export MPLBACKEND ?= Agg
 
-.PHONY: install test lint demo bench bags bags-check paper-sim clean
+.PHONY: install lock test lint demo bench bags bags-check paper-sim clean
 
 install: $(STAMP)
 
-$(STAMP): setup.py package.xml
-	@$(PYTHON) -c 'import sys; assert sys.version_info >= (3, 11), "Python >= 3.11 needed, found " + sys.version' 
+# constraints.txt pins every resolved dependency, so a fresh machine gets what CI tested; `make lock` refreshes it.
+$(STAMP): setup.py package.xml constraints.txt
+	@$(PYTHON) -c 'import sys; assert sys.version_info >= (3, 11), "Python >= 3.11 needed, found " + sys.version'
 	$(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install --quiet --upgrade pip setuptools wheel
-	$(PY) -m pip install --quiet -e '.[ros,test]'
+	$(PY) -m pip install --quiet --upgrade pip setuptools wheel -c constraints.txt
+	$(PY) -m pip install --quiet -e '.[ros,test]' -c constraints.txt
 	touch $(STAMP)
+
+# Re-resolve the dependencies from setup.py in a scratch venv (newest versions the registries offer) and pin them.
+lock:
+	rm -rf .venv-lock
+	$(PYTHON) -m venv .venv-lock
+	.venv-lock/bin/python -m pip install --quiet --upgrade pip setuptools wheel
+	.venv-lock/bin/python -m pip install --quiet -e '.[ros,test]'
+	(echo '# Resolved dependency versions for `make install` (pip -c). Refresh: `make lock`, then run `make test`.'; \
+	 .venv-lock/bin/python -m pip freeze --all --exclude-editable | grep -v '^#') > constraints.txt
+	rm -rf .venv-lock
 
 lint: install
 	$(VENV)/bin/ruff check .

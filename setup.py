@@ -28,6 +28,7 @@ setup(
         'mcap',
         'evo',
         'matplotlib',
+        'gtsam',
     ],
     extras_require={
         # ROS 2 Jazzy from PyPI wheels; on a full ROS install these come from the distro instead.

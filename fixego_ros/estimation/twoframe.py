@@ -186,6 +186,10 @@ def _eigh(H: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return s, V
 
 
+# eigenvalues of the normal matrix below this fraction of the largest are rounding (a null direction of J)
+NULL_EIGENVALUE_REL = 1e-14
+
+
 def _trust_region_step(s: list[float], gt: list[float], delta: float,
                        lam: float) -> tuple[list[float], float, bool]:
     """Minimiser of the model ``g.h + h.H.h / 2`` with ``|h| <= delta``, in the eigenbasis of ``H`` (eigenvalues
@@ -194,10 +198,14 @@ def _trust_region_step(s: list[float], gt: list[float], delta: float,
     same on the SVD of J). ``lam`` is the previous multiplier, a warm start. Returns the step (eigenbasis),
     its multiplier and whether it lies on the boundary. Plain floats: six of them are cheaper than numpy."""
     s = [v if v > 0.0 else 0.0 for v in s]
-    if s[0] > 1e-12 * s[-1]:
-        h = [-g / v for g, v in zip(gt, s, strict=True)]
-        if sum(v * v for v in h) <= delta * delta:
-            return h, 0.0, False
+    # Directions with an eigenvalue at rounding level are the null space of J: the gradient J^T r has no real
+    # component there, only rounding, which differs between BLAS kernels. Dropping it makes the step the
+    # pseudo-inverse (minimum-norm) one, decided by the data rather than by the CPU.
+    floor = NULL_EIGENVALUE_REL * s[-1]
+    gt = [g if v > floor else 0.0 for g, v in zip(gt, s, strict=True)]
+    h = [-g / v if v > floor else 0.0 for g, v in zip(gt, s, strict=True)]
+    if sum(v * v for v in h) <= delta * delta:
+        return h, 0.0, False
     g2 = [g * g for g in gt]
     upper = math.sqrt(sum(g2)) / delta
     lower = max(0.0, upper - s[-1])
