@@ -142,3 +142,27 @@ def test_vergence_point_too_old_is_ignored(straight):
     est.add_fixation_point(straight.stamps[0] - 100.0, 'right', np.array([0.0, 0.0, 3.0]), np.eye(3) * 1e-4)
     r = est.update(straight.observations[5])
     assert not r.scale_observed and 'older than the frames kept' in r.scale_note
+
+
+def test_each_vergence_point_re_measures_the_speed():
+    """Every vergence measurement is used: a later one corrects the speed that a first one, 30 % too far, set."""
+    scene = LandmarkScene(RIG, LandmarkSceneConfig(noise_px=0.3, window_px=300.0, max_tracks=40))
+    straight = scene.run(make_trajectory('straight'), duration=12.0)
+
+    def final_speed(measurements: dict[int, float]) -> float:
+        est = _estimator(speed_nominal=0.5)
+        res = []
+        for i, obs in enumerate(straight.observations):
+            if i in measurements:
+                point = straight.fixation_points[i]['right'] * measurements[i]     # right camera centre = origin
+                est.add_fixation_point(straight.stamps[i], 'right', point, np.eye(3) * 0.01**2)
+            res.append(est.update(obs))
+        p = _path(res)
+        return float(np.linalg.norm(p[-1] - p[-6]) / (straight.stamps[-1] - straight.stamps[-6]))
+
+    truth = np.array([p.t for p in straight.poses])
+    v_true = float(np.linalg.norm(truth[-1] - truth[-6]) / (straight.stamps[-1] - straight.stamps[-6]))
+    wrong = final_speed({0: 1.3})
+    corrected = final_speed({0: 1.3, 25: 1.0})
+    assert abs(wrong / v_true - 1.0) > 0.15                       # the first measurement alone leaves it off
+    assert abs(corrected / v_true - 1.0) < 0.5 * abs(wrong / v_true - 1.0)

@@ -271,6 +271,7 @@ class Estimator:
         # with the constant-speed prior, a vergence point fixes the scale (:mod:`.scale_anchor`); recent frames are kept
         # (bounded) because the measurement arrives after the frame it was made at
         self._anchor: ScaleAnchor | None = None
+        self._anchors_used = 0              # vergence measurements that have calibrated the speed
         self._recent: deque[tuple[float, Pose, dict[str, Fixation | None]]] = deque(maxlen=ANCHOR_HISTORY)
         self._anchor_note = ''
 
@@ -288,8 +289,10 @@ class Estimator:
 
     def add_fixation_point(self, stamp: float, side: str, point_rig: np.ndarray, cov_rig: np.ndarray) -> None:
         """Vergence aid: camera ``side``'s fixation point was at ``point_rig`` (rig frame at ``stamp``, m)
-        with covariance ``cov_rig``. Used by the sliding window when the frame at ``stamp`` becomes a
-        keyframe (it is kept until then); ignored by the 'local' refinement."""
+        with covariance ``cov_rig``. With the constant-speed prior every measurement is used, one at a time: it is
+        followed while its camera keeps fixating the point and then re-measures the speed (the first one also
+        makes the path so far metric). The sliding window uses it when the frame at ``stamp`` becomes a keyframe
+        (it is kept until then)."""
         if side not in SIDES:
             raise ValueError(f'side must be one of {SIDES}, got {side!r}')
         point = np.asarray(point_rig, float).reshape(3)
@@ -304,8 +307,8 @@ class Estimator:
 
     def _start_anchor(self, stamp: float, side: str, point: np.ndarray, cov: np.ndarray) -> None:
         """Constant-speed prior: the vergence point becomes a scale anchor, fed with the frames since its stamp."""
-        if self._speed_prior is None or self._speed_prior.measured or self._anchor is not None:
-            self._anchor_note = 'vergence measurement ignored: the speed is already measured or being anchored'
+        if self._speed_prior is None or self._anchor is not None:
+            self._anchor_note = 'vergence measurement ignored: the previous one is still being followed'
             return
         anchor = ScaleAnchor(stamp, side, point, cov, self.rig.center(side), self.config.solver.sigma)
         recent = list(self._recent)
@@ -342,12 +345,16 @@ class Estimator:
         a.add(stamp, pose, f[1] if f is not None else None, f[0] if f is not None else None)
         fit = a.settled()
         if fit is not None:
+            first = not self._speed_prior.measured
             self._speed_prior.calibrate(fit.speed_k, fit.rel_std)
             self._aids.add('the vergence step')
-            self._pending_prefix = (fit.position_k, self._key_pose.t.copy(), self._key_pose_raw.t.copy())
+            self._anchors_used += 1
+            if first:      # the path so far was drawn at the nominal speed: make it metric once
+                self._pending_prefix = (fit.position_k, self._key_pose.t.copy(), self._key_pose_raw.t.copy())
             self._anchor = None
-            self._anchor_note = (f'vergence: speed x{fit.speed_k:.3f} (std {fit.rel_std * 100:.0f} %), path so far '
-                                 f'x{fit.position_k:.3f}, from {len(a.views)} frames')
+            done = f'path so far x{fit.position_k:.3f}' if first else 'speed re-measured'
+            self._anchor_note = (f'vergence {self._anchors_used}: speed x{fit.speed_k:.3f} (std '
+                                 f'{fit.rel_std * 100:.0f} %), {done}, from {len(a.views)} frames')
         elif a.ended:
             self._anchor, self._anchor_note = None, (f'vergence: the {a.side} camera left the point after '
                                                      f'{len(a.views)} frames, before the scale settled')
