@@ -3,12 +3,14 @@ independent implementation (visca-over-ip builds the same VISCA payload inside i
 
 from __future__ import annotations
 
+import json
+
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from fixego_ros.visca import protocol as vp
-from fixego_ros.visca.profiles import PROFILES, get_profile
+from fixego_ros.visca.profiles import PROFILES, CameraProfile, get_profile
 
 positions = st.integers(min_value=-0x8000, max_value=0x7FFF)
 speeds = st.integers(min_value=1, max_value=0x18)
@@ -93,6 +95,30 @@ def test_profiles():
     assert d30.pan_code_for(10.0) == 3 and d30.pan_code_for(1e6) == 0x18
     with pytest.raises(ValueError):
         get_profile('evi_nope')
+
+
+def test_network_change_packet():
+    assert vp.network_change(1) == bytes.fromhex('9038FF')
+    r = vp.parse_reply(vp.network_change(3))
+    assert (r.kind, r.address) == (vp.ReplyKind.NETWORK_CHANGE, 3)
+
+
+def test_profiles_refuse_values_that_would_hang_or_crash(tmp_path):
+    d30 = PROFILES['evi_d30']
+    for bad in ({'pan_units_per_deg': float('nan')}, {'tilt_units_per_deg': 0.0}, {'pan_speeds_deg_s': ()},
+                {'tilt_speeds_deg_s': (1.0, float('inf'))}, {'pan_min': 900}, {'tilt_max': 0x8000},
+                {'version': (1, 2, 3, 0)}, {'baud_rates': (0,)}, {'pan_min': -880.5}):
+        with pytest.raises(ValueError):
+            CameraProfile(**{**d30.__dict__, **bad})
+    for angle in (float('inf'), float('-inf'), float('nan')):
+        with pytest.raises(ValueError, match='finite'):
+            d30.pan_units(angle)
+        with pytest.raises(ValueError, match='finite'):
+            d30.tilt_units(angle)
+    path = tmp_path / 'p.json'                        # a calibrate-style file round-trips, extra rates included
+    path.write_text(json.dumps({'profile': dict(d30.to_dict(), name='mine', baud_rates=[4800])}))
+    mine = get_profile(str(path))
+    assert mine.baud_rates == (4800,) and 4800 in mine.supported_baud_rates and mine.pan_max == 880
 
 
 # ---------------------------------------------------------------------------- visca-over-ip identity

@@ -15,6 +15,10 @@ documented here because a driver could depend on them):
 - after a disconnect the camera comes back on a new pty (``link_path`` is a stable symlink to it)
   and announces itself with a network-change packet ``z0 38 FF``.
 
+Faults (:class:`EmulatorFaults`) are real bytes on the pty: silence, lost or corrupted bytes, unsolicited
+packets now or part-way through a move (a network change mid-AbsolutePosition), replies replaced by
+truncated, foreign-address or error packets, and a position counter reporting impossible values.
+
 The true angles over time (:meth:`ViscaEmulator.pan_tilt_rad`) let the simulator render what the
 camera sees. Angles follow VISCA: positive pan = right, positive tilt = up.
 """
@@ -75,11 +79,28 @@ class EmulatorFaults:
         self.drop_prob = 0.0         # each outgoing byte is lost with this probability
         self.corrupt_prob = 0.0      # each outgoing byte is XORed with a random bit
         self.rx_drop_prob = 0.0      # each incoming byte is lost
+        # Pan-tiltPosInq answers this (pan, tilt) in units (signed 16-bit) instead of the true position:
+        # a camera with a corrupted counter, or another model than the profile says
+        self.position_override: tuple[int, int] | None = None
         self.rng = random.Random(seed)
+        self._replace: deque[bytes] = deque()
+        self._mid_motion: deque[tuple[bytes, float]] = deque()
 
     def inject(self, data: bytes) -> None:
         """Send unsolicited bytes as soon as the line is free (noise, a stray reply, ...)."""
         self._emu._post(lambda t: self._emu._send(bytes(data), t, faults=False))
+
+    def inject_mid_motion(self, data: bytes, fraction: float = 0.5) -> None:
+        """Send ``data`` unsolicited ``fraction`` of the way through the next timed pan/tilt move
+        (absolute, relative, home, reset), i.e. after its ACK and before its completion."""
+        if not 0.0 < fraction < 1.0:
+            raise ValueError(f'fraction must be in (0, 1), got {fraction!r}')
+        self._mid_motion.append((bytes(data), float(fraction)))
+
+    def replace_replies(self, *packets: bytes) -> None:
+        """The next ``len(packets)`` packets the camera sends are replaced by these bytes (b'' = lost):
+        truncated or garbled replies, another camera's address, error replies where an ACK was due."""
+        self._replace.extend(bytes(p) for p in packets)
 
     def disconnect(self, duration_s: float = 0.5) -> None:
         """The device vanishes (pty closed) and reappears after ``duration_s`` at ``link_path``."""
@@ -246,7 +267,7 @@ class ViscaEmulator:
         if self._master is None and self._running:
             self._open_pty()
             self._rx_clock = self._tx_clock = t
-            self._send(bytes((vp.reply_header(self.address), 0x38, 0xFF)), t)
+            self._send(vp.network_change(self.address), t)
 
     # ------------------------------------------------------------------------------ event loop
     def _post(self, fn: Callable[[float], None]) -> None:
@@ -305,6 +326,10 @@ class ViscaEmulator:
         """Queue ``pkt`` to be written when its last byte would have left the UART."""
         if faults and self.faults.silent:
             return
+        if faults and self.faults._replace:
+            pkt = self.faults._replace.popleft()
+            if not pkt:
+                return
         out = bytearray()
         for b in pkt:
             if faults and self.faults.drop_prob and self.faults.rng.random() < self.faults.drop_prob:
@@ -413,7 +438,7 @@ class ViscaEmulator:
     def _inquiry(self, q: bytes, t: float) -> None:
         a, pr = self.address, self.profile
         if q == b'\x06\x12':
-            pan, tilt = self.pan_tilt_units(t)
+            pan, tilt = self.faults.position_override or self.pan_tilt_units(t)
             self._send(vp.position_reply(a, pan, tilt), t)
         elif q == b'\x04\x47':
             self._send(vp.inquiry_reply(a, vp.encode_nibbles(self._zoom, 4, signed=False)), t)
@@ -520,6 +545,9 @@ class ViscaEmulator:
         self._motion_socket = s
         gen = self._motion_gen
         self._schedule(done, lambda tt: self._with_lock(self._complete, s, tt, 'pantilt', gen))
+        if done > t and self.faults._mid_motion:
+            data, fraction = self.faults._mid_motion.popleft()
+            self._schedule(t + fraction * (done - t), lambda tt, d=data: self._send(d, tt, faults=False))
 
     def _supersede(self, t: float) -> None:
         old = self._motion_socket

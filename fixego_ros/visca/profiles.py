@@ -11,8 +11,15 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
+
+# Serial rates every profile accepts: the Sony EVI RS-232 rates (9600; 19200/38400 on the D70/D100) plus the
+# two higher standard UART rates of later VISCA cameras and USB adapters (the pty emulator's fast tests use
+# 115200). A profile lists any other rate its device supports in ``baud_rates``.
+BAUD_RATES: tuple[int, ...] = (9600, 19200, 38400, 57600, 115200)
+
+_POSITION_LIMIT = 0x7FFF    # positions travel as signed 16-bit values
 
 
 @dataclass(frozen=True)
@@ -31,6 +38,45 @@ class CameraProfile:
     verified: bool = True
     notes: str = ''
     extra: dict[str, float] = field(default_factory=dict)
+    baud_rates: tuple[int, ...] = ()      # rates beyond BAUD_RATES this device supports
+
+    def __post_init__(self) -> None:
+        # a profile drives timeouts, range checks and unit conversions: a NaN or an empty speed table
+        # there would turn into hangs or crashes far from the file that caused them
+        for lo, hi, axis in ((self.pan_min, self.pan_max, 'pan'), (self.tilt_min, self.tilt_max, 'tilt')):
+            if not all(isinstance(v, int) and not isinstance(v, bool) for v in (lo, hi)):
+                raise ValueError(f'profile {self.name!r}: {axis} limits must be integers (VISCA units)')
+            if not -_POSITION_LIMIT - 1 <= lo <= hi <= _POSITION_LIMIT:
+                raise ValueError(f'profile {self.name!r}: {axis} range {lo}..{hi} is not a signed 16-bit interval')
+        for v, what in ((self.pan_units_per_deg, 'pan_units_per_deg'), (self.tilt_units_per_deg, 'tilt_units_per_deg')):
+            if not _positive(v):
+                raise ValueError(f'profile {self.name!r}: {what} must be a finite number > 0, got {v!r}')
+        for table, what in ((self.pan_speeds_deg_s, 'pan_speeds_deg_s'), (self.tilt_speeds_deg_s, 'tilt_speeds_deg_s')):
+            if not 1 <= len(table) <= 0x18 or not all(_positive(v) for v in table):
+                raise ValueError(f'profile {self.name!r}: {what} needs 1..24 finite speeds > 0 (deg/s)')
+        if not isinstance(self.zoom_max, int) or not 0 <= self.zoom_max <= 0xFFFF:
+            raise ValueError(f'profile {self.name!r}: zoom_max must be an integer 0..0xFFFF')
+        if len(self.version) != 4 or not 1 <= int(self.version[3]) <= 7:
+            raise ValueError(f'profile {self.name!r}: version must be (vendor, model, rom, max socket 1..7)')
+        if not all(isinstance(b, int) and b > 0 for b in self.baud_rates):
+            raise ValueError(f'profile {self.name!r}: baud_rates must be positive integers')
+
+    @property
+    def max_socket(self) -> int:
+        """Highest command socket the camera uses (an ACK on another socket is not ours)."""
+        return int(self.version[3])
+
+    @property
+    def supported_baud_rates(self) -> tuple[int, ...]:
+        return tuple(sorted(set(BAUD_RATES) | set(self.baud_rates)))
+
+    @property
+    def pan_range_deg(self) -> tuple[float, float]:
+        return self.pan_deg(self.pan_min), self.pan_deg(self.pan_max)
+
+    @property
+    def tilt_range_deg(self) -> tuple[float, float]:
+        return self.tilt_deg(self.tilt_min), self.tilt_deg(self.tilt_max)
 
     @property
     def pan_speed_max(self) -> int:
@@ -48,10 +94,10 @@ class CameraProfile:
         return units / self.tilt_units_per_deg
 
     def pan_units(self, deg: float) -> int:
-        return round(deg * self.pan_units_per_deg)
+        return round(_finite(deg, 'pan angle') * self.pan_units_per_deg)
 
     def tilt_units(self, deg: float) -> int:
-        return round(deg * self.tilt_units_per_deg)
+        return round(_finite(deg, 'tilt angle') * self.tilt_units_per_deg)
 
     def pan_rad(self, units: int) -> float:
         return math.radians(self.pan_deg(units))
@@ -79,12 +125,35 @@ class CameraProfile:
     def tilt_code_for(self, deg_s: float) -> int:
         return _code_for(self.tilt_speeds_deg_s, deg_s)
 
+    def range_text(self) -> str:
+        """The position range in units and degrees, for error messages."""
+        (p0, p1), (t0, t1) = self.pan_range_deg, self.tilt_range_deg
+        return (f'{self.name} range pan {self.pan_min}..{self.pan_max} units ({p0:.4g}..{p1:.4g} deg), '
+                f'tilt {self.tilt_min}..{self.tilt_max} units ({t0:.4g}..{t1:.4g} deg)')
+
     def to_dict(self) -> dict:
         d = asdict(self)
-        d['pan_speeds_deg_s'] = list(self.pan_speeds_deg_s)
-        d['tilt_speeds_deg_s'] = list(self.tilt_speeds_deg_s)
-        d['version'] = list(self.version)
+        for k in _TUPLE_FIELDS:
+            d[k] = list(getattr(self, k))
         return d
+
+
+_TUPLE_FIELDS = ('pan_speeds_deg_s', 'tilt_speeds_deg_s', 'version', 'baud_rates')
+
+
+def _positive(v: object) -> bool:
+    return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) and v > 0
+
+
+def _finite(v: float, what: str) -> float:
+    # round(inf) raises OverflowError and round(nan) a bare ValueError: name the quantity instead
+    try:
+        f = float(v)
+    except (TypeError, ValueError):
+        raise ValueError(f'{what} must be a number, got {v!r}') from None
+    if not math.isfinite(f):
+        raise ValueError(f'{what} must be finite, got {v!r}')
+    return f
 
 
 def _code(code: int, max_code: int, axis: str) -> int:
@@ -133,11 +202,26 @@ def get_profile(name_or_path: str) -> CameraProfile:
     if name_or_path in PROFILES:
         return PROFILES[name_or_path]
     p = Path(name_or_path)
-    if p.suffix == '.json' and p.exists():
-        d = json.loads(p.read_text())
-        d = d.get('profile', d)
-        for k in ('pan_speeds_deg_s', 'tilt_speeds_deg_s', 'version'):
-            d[k] = tuple(d[k])
-        return CameraProfile(**d)
+    if p.suffix == '.json' and p.is_file():
+        return _load_json(p)
     raise ValueError(f'unknown camera profile {name_or_path!r} (built-in: {", ".join(PROFILES)}; '
                      'or a .json file written by `fixego ptz calibrate`)')
+
+
+def _load_json(path: Path) -> CameraProfile:
+    """A profile file; every way it can be unusable is one ValueError naming the file."""
+    try:
+        d = json.loads(path.read_text())
+        d = d.get('profile', d) if isinstance(d, dict) else d
+        if not isinstance(d, dict):
+            raise ValueError('expected a JSON object')
+        names = {f.name for f in fields(CameraProfile)}
+        unknown = sorted(set(d) - names)
+        if unknown:
+            raise ValueError(f'unknown field(s) {", ".join(unknown)}')
+        for k in _TUPLE_FIELDS:
+            if k in d:
+                d[k] = tuple(d[k])
+        return CameraProfile(**d)
+    except (OSError, ValueError, TypeError) as e:   # JSONDecodeError is a ValueError
+        raise ValueError(f'camera profile {path}: {e}') from None

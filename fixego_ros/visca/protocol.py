@@ -319,6 +319,11 @@ def inquiry_reply(address: int, data: bytes) -> bytes:
     return bytes((reply_header(address), 0x50, *data, TERMINATOR))
 
 
+def network_change(address: int) -> bytes:
+    """``z0 38 FF``: unsolicited, sent by a camera when the daisy chain changes (e.g. after power-up)."""
+    return bytes((reply_header(address), 0x38, TERMINATOR))
+
+
 # ------------------------------------------------------------------------------------- splitting
 
 class PacketSplitter:
