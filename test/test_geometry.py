@@ -154,3 +154,63 @@ def test_rig_file_errors_name_the_file(tmp_path):
         load_rig(p)
     with pytest.raises(RigError, match='cannot read'):
         load_rig(tmp_path / 'missing.yaml')
+
+
+# ------------------------------------------------------------------------------------ rig file: keys and values
+@pytest.mark.parametrize('mutate, match', [
+    (lambda d: d['pan_tilt']['right'].update(pan_offst=0.1),
+     r"unknown key pan_tilt\.right\.pan_offst \(did you mean 'pan_offset'\?\)"),
+    (lambda d: d['right'].update(fxx=1700.0), r"unknown key right\.fxx \(did you mean 'fx'\?\)"),
+    (lambda d: d['left'].update(distortion=[0, 0, 0, 0, 0]), r"unknown key left\.distortion \(did you mean 'dist"),
+    (lambda d: d['left_in_rig'].update(rotation=[0, 0, 0, 1]),
+     r"unknown key left_in_rig\.rotation \(did you mean 'rotation_xyzw'\?\)"),
+    (lambda d: d['pan_tilt'].update(rigth={'pan_sign': 1}), r"unknown key pan_tilt\.rigth \(did you mean 'right'\?\)"),
+    (lambda d: d.update(rig_in_base_link={'translation': [0, 0, 0], 'rotation_xyz': [0, 0, 0, 1]}),
+     r"unknown key rig_in_base_link\.rotation_xyz \(did you mean 'rotation_xyzw'\?\)"),
+    (lambda d: d['right'].update(width='640'), r'right\.width must be a number'),
+    (lambda d: d['right'].update(fx=True), r'right\.fx must be a number'),
+    (lambda d: d['right'].update(cy=float('inf')), r'right\.cy must be finite'),
+    (lambda d: d['right'].update(width=640.5), r'right\.width/height must be integers'),
+    (lambda d: d['right'].update(dist=[0, 0, 0, 0, 0, 0]), r'right\.dist must be a list of 5 numbers'),
+    (lambda d: d['right'].update(dist=['0', 0, 0, 0, 0]), r'right\.dist must be a list of 5 numbers'),
+    (lambda d: d['left_in_rig'].update(translation=[0.2, 0.0]), r'left_in_rig\.translation must be a list of 3'),
+    (lambda d: d['left_in_rig'].update(translation=[0.2, float('nan'), 0.0]), r'left_in_rig\.translation .* finite'),
+    (lambda d: d['left_in_rig'].update(rotation_xyzw=[0, 0, 0, 2]), r'left_in_rig\.rotation_xyzw must be a unit '
+                                                                    r'quaternion .* of norm 2'),
+    (lambda d: d['left_in_rig'].update(rotation_xyzw=[0, 0, 0, 0]), r'rotation_xyzw must be a unit quaternion'),
+    (lambda d: d.update(rig_in_base_link={'translation': [0, 0, 0], 'rotation_xyzw': [1, 1, 0, 0]}),
+     r'rig_in_base_link\.rotation_xyzw must be a unit quaternion'),
+    (lambda d: d.update(pan_tilt=[1, 2]), r'pan_tilt must be a mapping'),
+    (lambda d: d['pan_tilt']['left'].update(tilt_offset='0.1'), r'pan_tilt\.left\.tilt_offset must be a number'),
+])
+def test_rig_file_misspelt_keys_and_bad_values_are_errors_naming_the_key(mutate, match):
+    """Inside the fixed blocks a misspelt key would silently fall back to a default: it is an error naming the
+    key, where it is, and the closest known one."""
+    d = yaml.safe_load(default_rig_path().read_text())
+    mutate(d)
+    with pytest.raises(RigError, match=match):
+        rig_from_dict(d)
+
+
+def test_rig_file_unknown_top_level_keys_are_kept_and_reported(tmp_path, caplog):
+    d = yaml.safe_load(default_rig_path().read_text())
+    d['notes'] = 'rig of bench 2'
+    d['pan_tlit'] = {'right': {'pan_offset': 0.1}}
+    d['rig_in_base_link'] = {'translation': [0.1, 0, 1.2], 'rotation_xyzw': [0.5, -0.5, 0.5, -0.5]}
+    notes: list[str] = []
+    rig = rig_from_dict(d, notes)
+    assert len(notes) == 2, notes
+    assert "'notes'" in notes[0] and "'pan_tlit'" in notes[1] and "did you mean 'pan_tilt'" in notes[1]
+    assert rig.extra['notes'] == 'rig of bench 2' and 'rig_in_base_link' in rig.extra   # kept, written back
+    path = tmp_path / 'r.yaml'
+    rig.save(path)
+    notes = []
+    load_rig(path, notes)
+    assert len(notes) == 2 and all(n.startswith(f'{path}: ') for n in notes)
+    with caplog.at_level('WARNING'):          # no list given: logged, never silent
+        load_rig(path)
+    assert sum('unknown top-level key' in r.getMessage() for r in caplog.records) == 2
+    # hand-written quaternions with 4 decimals are unit enough
+    d = yaml.safe_load(default_rig_path().read_text())
+    d['left_in_rig']['rotation_xyzw'] = [0.0, 0.7071, 0.0, 0.7071]
+    assert np.allclose(rig_from_dict(d, []).R_L @ [0, 0, 1], [1, 0, 0], atol=1e-6)

@@ -120,7 +120,8 @@ def test_estimator_node_publishes_trajectory_resets_and_survives_bad_input(ros_c
     node = EstimatorNode(context=ros_context, parameter_overrides=[
         Parameter('rig_file', value=str(rig_file)), Parameter('max_step_translation', value=2.0),
         Parameter('max_speed', value=100.0), Parameter('max_lag_s', value=1e12),
-        Parameter('max_keyframe_lag_s', value=1e12)])
+        Parameter('max_keyframe_lag_s', value=1e12),
+        Parameter('constant_speed', value=False)])   # noise-free rays: the lever arm gives the lengths here
     probe = rclpy.create_node('probe', context=ros_context)
     ex = executor_for(ros_context, node, probe)
     pose_msgs: list[PoseStamped] = []
@@ -172,6 +173,78 @@ def test_estimator_node_publishes_trajectory_resets_and_survives_bad_input(ros_c
         assert np.allclose(msg_to_pose(pose_msgs[0].pose).t, 0.0)
         np.testing.assert_allclose(msg_to_pose(pose_msgs[1].pose).t, rig_pose_to_base_link(poses[1]).t,
                                    atol=0.1 * path_len)
+    finally:
+        ex.shutdown()
+
+
+def test_estimator_node_rejects_future_stamps_counts_disorder_and_resets_on_a_clock_jump(ros_context,
+                                                                                        clean_sequence, tmp_path):
+    """An observation an hour ahead is rejected (it used to be accepted, and every later one then dropped as out
+    of order); a stray old one is dropped and counted with a WARN; a run of older ones (the clock jumped back, a
+    bag restarted) resets the trajectory, which restarts at the observation that completed the run."""
+    import time
+
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+    from geometry_msgs.msg import PoseStamped
+    from sensor_msgs.msg import PointCloud2
+
+    from fixego_ros.nodes.common import RELIABLE_QOS, msg_to_pose, stamp_to_sec
+    from fixego_ros.nodes.estimator_node import EstimatorNode
+
+    rig, _, clean = clean_sequence
+    rig_file = tmp_path / 'rig.yaml'
+    rig.save(rig_file)
+    node = EstimatorNode(context=ros_context, parameter_overrides=[
+        Parameter('rig_file', value=str(rig_file)), Parameter('max_step_translation', value=2.0),
+        Parameter('max_speed', value=100.0), Parameter('max_lag_s', value=1e12),
+        Parameter('max_keyframe_lag_s', value=1e12), Parameter('backward_reset_count', value=3),
+        Parameter('backward_reset_s', value=60.0), Parameter('diagnostics_period_s', value=0.05)])
+    probe = rclpy.create_node('probe', context=ros_context)
+    ex = executor_for(ros_context, node, probe)
+    poses: list[PoseStamped] = []
+    diags: list[DiagnosticStatus] = []
+    probe.create_subscription(PoseStamped, '/fixego/pose', poses.append, RELIABLE_QOS)
+    probe.create_subscription(DiagnosticArray, '/diagnostics',
+                              lambda m: diags.extend(s for s in m.status if s.name == 'fixego estimator_node'),
+                              RELIABLE_QOS)
+    pub = probe.create_publisher(PointCloud2, '/fixego/flow/observation', RELIABLE_QOS)
+    assert spin_until(ex, lambda: pub.get_subscription_count() > 0, 10.0)
+    seen = 0
+
+    def send(k: int, t: float) -> None:
+        nonlocal seen
+        pub.publish(_cloud(clean[k], t))
+        seen += 1
+        assert spin_until(ex, lambda: node.stats['observations'] >= seen, 5.0)
+
+    def warned(key: str) -> bool:
+        return any(d.level == DiagnosticStatus.WARN and any(kv.key == key for kv in d.values) for d in diags)
+
+    try:
+        send(0, time.time() + 3600.0)                   # an hour ahead of the node clock
+        assert node.stats['future_rejected'] == 1 and node.last is None
+        for k in range(4):
+            send(k, 100.0 + k)
+        assert spin_until(ex, lambda: len(poses) >= 4, 5.0), len(poses)
+        assert [stamp_to_sec(p.header.stamp) for p in poses] == [100.0, 101.0, 102.0, 103.0]
+        send(4, 50.0)                                   # one stray old observation: dropped, counted, no reset
+        assert node.stats['out_of_order'] == 1 and node.stats['clock_jump_resets'] == 0
+        send(4, 104.0)
+        assert spin_until(ex, lambda: len(poses) >= 5, 5.0)
+        assert spin_until(ex, lambda: warned('recent_future_rejected') and warned('recent_out_of_order'), 5.0)
+        # the clock jumps back: the third older observation in a row resets the trajectory and starts it anew
+        for k, t in ((0, 10.0), (1, 11.0), (2, 12.0)):
+            send(k, t)
+        assert node.stats['clock_jump_resets'] == 1 and node.stats['out_of_order'] == 4
+        send(3, 13.0)
+        assert spin_until(ex, lambda: len(poses) >= 7, 5.0), len(poses)
+        assert [stamp_to_sec(p.header.stamp) for p in poses[5:]] == [12.0, 13.0]
+        assert np.allclose(msg_to_pose(poses[5].pose).t, 0.0) and len(node.path) == 2
+        assert spin_until(ex, lambda: warned('recent_clock_jump_resets'), 5.0)
+        # the stamp WARN clears once the problem stops (reports count since the previous one)
+        assert spin_until(ex, lambda: not any(kv.key.startswith('recent_') for kv in diags[-1].values), 5.0)
+        for p in poses:
+            assert all(math.isfinite(v) for v in (p.pose.position.x, p.pose.position.y, p.pose.position.z))
     finally:
         ex.shutdown()
 

@@ -195,7 +195,7 @@ def test_flow_node_yaml_lists_every_parameter_with_its_default():
 
     path = Path(__file__).resolve().parents[1] / 'config' / 'flow_node.yaml'
     values = load_params_file(path, 'flow_node')
-    assert values == {k: v for k, (v, _) in PARAMS.items()}
+    assert values == {k: spec.default for k, spec in PARAMS.items()}
     for name in PARAMS:
         line = next(x for x in path.read_text().splitlines() if x.strip().startswith(f'{name}:'))
         assert '  # ' in line, f'{name}: no comment'

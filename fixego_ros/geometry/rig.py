@@ -9,6 +9,9 @@ the rig file's ``pan_tilt`` block: ``angle = sign * reading + offset``.
 
 from __future__ import annotations
 
+import difflib
+import logging
+import numbers
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -190,13 +193,41 @@ def _check_side(side: str) -> str:
     return side
 
 
+# the fixed blocks of DESIGN.md §4: inside them every key is known, so a misspelt one is an error (it would
+# otherwise fall back to a default without a word); unknown top-level keys are extra data, kept and reported
+TOP_KEYS = ('right', 'left', 'left_in_rig', 'pan_tilt', 'rig_in_base_link')
+CAMERA_KEYS = ('width', 'height', 'fx', 'fy', 'cx', 'cy', 'dist')
+POSE_KEYS = ('translation', 'rotation_xyzw')
+PAN_TILT_KEYS = ('pan_sign', 'tilt_sign', 'pan_offset', 'tilt_offset')
+QUATERNION_NORM_TOL = 1e-3   # hand-written quaternions (0.7071...) pass; a wrong one (norm 2, 0) does not
+
+_log = logging.getLogger(__name__)
+
+
+def _did_you_mean(key: str, known: tuple[str, ...]) -> str:
+    """The closest known key by spelling, else one the key abbreviates or extends (dist / distortion)."""
+    close = difflib.get_close_matches(key, known, n=1, cutoff=0.6) or [
+        k for k in known if min(len(k), len(key)) >= 3 and (key.startswith(k) or k.startswith(key))][:1]
+    return f" (did you mean '{close[0]}'?)" if close else ''
+
+
+def _known_keys(block: dict[Any, Any], known: tuple[str, ...], where: str) -> None:
+    for key in block:
+        if key not in known:
+            raise RigError(f'rig file: unknown key {where}.{key}{_did_you_mean(str(key), known)}; '
+                           f'{where} takes {", ".join(known)}')
+
+
+def _is_number(v: Any) -> bool:
+    return isinstance(v, numbers.Real) and not isinstance(v, bool)
+
+
 def _number(d: dict[str, Any], key: str, where: str, positive: bool = False) -> float:
     if key not in d:
         raise RigError(f'rig file: missing key {where}.{key}')
-    try:
-        value = float(d[key])
-    except (TypeError, ValueError):
-        raise RigError(f'rig file: {where}.{key} must be a number, got {d[key]!r}') from None
+    if not _is_number(d[key]):
+        raise RigError(f'rig file: {where}.{key} must be a number, got {d[key]!r}')
+    value = float(d[key])
     if not np.isfinite(value):
         raise RigError(f'rig file: {where}.{key} must be finite, got {value}')
     if positive and value <= 0:
@@ -207,79 +238,114 @@ def _number(d: dict[str, Any], key: str, where: str, positive: bool = False) -> 
 def _vector(d: dict[str, Any], key: str, where: str, length: int) -> np.ndarray:
     if key not in d:
         raise RigError(f'rig file: missing key {where}.{key}')
-    try:
-        v = np.asarray(d[key], dtype=float).reshape(-1)
-    except (TypeError, ValueError):
-        raise RigError(f'rig file: {where}.{key} must be a list of {length} numbers') from None
-    if v.shape != (length,) or not np.all(np.isfinite(v)):
-        raise RigError(f'rig file: {where}.{key} must be a list of {length} finite numbers, got {d[key]!r}')
-    return v
+    v = d[key]
+    if not isinstance(v, (list, tuple)) or len(v) != length or not all(_is_number(x) for x in v):
+        raise RigError(f'rig file: {where}.{key} must be a list of {length} numbers, got {v!r}')
+    out = np.asarray(v, dtype=float)
+    if not np.all(np.isfinite(out)):
+        raise RigError(f'rig file: {where}.{key} must be a list of {length} finite numbers, got {v!r}')
+    return out
 
 
 def _mapping(d: Any, key: str, where: str) -> dict[str, Any]:
     if not isinstance(d, dict) or key not in d:
         raise RigError(f'rig file: missing key {where + "." if where else ""}{key}')
     if not isinstance(d[key], dict):
-        raise RigError(f'rig file: {where + "." if where else ""}{key} must be a mapping')
+        raise RigError(f'rig file: {where + "." if where else ""}{key} must be a mapping, got {d[key]!r}')
     return d[key]
+
+
+def _rotation(d: dict[str, Any], where: str) -> np.ndarray:
+    q = _vector(d, 'rotation_xyzw', where, 4)
+    n = float(np.linalg.norm(q))
+    if abs(n - 1.0) > QUATERNION_NORM_TOL:
+        raise RigError(f'rig file: {where}.rotation_xyzw must be a unit quaternion (x, y, z, w), got {q.tolist()} '
+                       f'of norm {n:.6g}')
+    try:
+        return from_quat_xyzw(q)
+    except ValueError as e:
+        raise RigError(f'rig file: {where}.rotation_xyzw: {e}') from None
+
+
+def _pose_block(d: dict[str, Any], key: str) -> tuple[np.ndarray, np.ndarray]:
+    """(translation, rotation matrix) of a ``{translation, rotation_xyzw}`` block."""
+    block = _mapping(d, key, '')
+    _known_keys(block, POSE_KEYS, key)
+    return _vector(block, 'translation', key, 3), _rotation(block, key)
 
 
 def _camera(d: dict[str, Any], side: str) -> CameraModel:
     c = _mapping(d, side, '')
+    _known_keys(c, CAMERA_KEYS, side)
     width, height = _number(c, 'width', side, True), _number(c, 'height', side, True)
     if width != int(width) or height != int(height):
-        raise RigError(f'rig file: {side}.width/height must be integers')
+        raise RigError(f'rig file: {side}.width/height must be integers, got {c["width"]!r} x {c["height"]!r}')
     dist = _vector(c, 'dist', side, 5) if 'dist' in c else np.zeros(5)
     return CameraModel(int(width), int(height), _number(c, 'fx', side, True), _number(c, 'fy', side, True),
                        _number(c, 'cx', side), _number(c, 'cy', side), tuple(float(x) for x in dist))
 
 
 def _calibration(d: dict[str, Any], side: str) -> PanTiltCalibration:
-    pt = d.get('pan_tilt')
-    if pt is None:
+    if 'pan_tilt' not in d:
         return PanTiltCalibration()
-    c = _mapping({'pan_tilt': pt}, 'pan_tilt', '')
+    c = _mapping(d, 'pan_tilt', '')
+    _known_keys(c, SIDES, 'pan_tilt')
     if side not in c:
         return PanTiltCalibration()
     c = _mapping(c, side, 'pan_tilt')
     where = f'pan_tilt.{side}'
-    values = {k: _number(c, k, where) for k in ('pan_sign', 'tilt_sign', 'pan_offset', 'tilt_offset') if k in c}
+    _known_keys(c, PAN_TILT_KEYS, where)
+    values = {k: _number(c, k, where) for k in PAN_TILT_KEYS if k in c}
     for k in ('pan_sign', 'tilt_sign'):
         if k in values and values[k] not in (1.0, -1.0):
             raise RigError(f'rig file: {where}.{k} must be 1 or -1, got {values[k]}')
     return PanTiltCalibration(**values)
 
 
-def rig_from_dict(d: Any) -> Rig:
-    """Validate a parsed rig file (DESIGN.md §4); errors name the offending key."""
+def rig_from_dict(d: Any, warnings: list[str] | None = None) -> Rig:
+    """Validate a parsed rig file (DESIGN.md §4); :class:`RigError` names the offending key, where it is and,
+    for a misspelt one, the closest known key. Unknown top-level keys are allowed (kept in ``Rig.extra``)
+    but reported: appended to ``warnings`` when given, otherwise logged."""
     if not isinstance(d, dict):
-        raise RigError('rig file: top level must be a mapping with keys right, left, left_in_rig')
+        raise RigError(f'rig file: top level must be a mapping with keys right, left, left_in_rig, got {d!r}')
     right, left = _camera(d, 'right'), _camera(d, 'left')
-    lir = _mapping(d, 'left_in_rig', '')
-    c_L = _vector(lir, 'translation', 'left_in_rig', 3)
-    q = _vector(lir, 'rotation_xyzw', 'left_in_rig', 4)
-    try:
-        R_L = from_quat_xyzw(q)
-    except ValueError as e:
-        raise RigError(f'rig file: left_in_rig.rotation_xyzw: {e}') from None
+    c_L, R_L = _pose_block(d, 'left_in_rig')
+    if 'rig_in_base_link' in d:
+        _pose_block(d, 'rig_in_base_link')      # checked; kept (in extra) as given
+    calibrations = _calibration(d, 'right'), _calibration(d, 'left')
     known = {'right', 'left', 'left_in_rig', 'pan_tilt'}
     extra = {k: v for k, v in d.items() if k not in known}
-    return Rig(right, left, R_L, c_L, _calibration(d, 'right'), _calibration(d, 'left'), extra)
+    notes = [f'rig file: unknown top-level key {k!r} kept as extra data{_did_you_mean(str(k), TOP_KEYS)}'
+             for k in extra if k not in TOP_KEYS]
+    if warnings is None:
+        for note in notes:
+            _log.warning(note)
+    else:
+        warnings.extend(notes)
+    return Rig(right, left, R_L, c_L, *calibrations, extra)
 
 
-def load_rig(path: str | Path) -> Rig:
-    """Load and validate a rig YAML file."""
+def load_rig(path: str | Path, warnings: list[str] | None = None) -> Rig:
+    """Load and validate a rig YAML file; errors and ``warnings`` (see :func:`rig_from_dict`) name the file."""
     path = Path(path)
     try:
         data = yaml.safe_load(path.read_text())
     except OSError as e:
         raise RigError(f'rig file {path}: cannot read ({e.strerror})') from None
     except yaml.YAMLError as e:
-        raise RigError(f'rig file {path}: not valid YAML ({e})') from None
+        raise RigError(f'rig file {path}: not valid YAML ({" ".join(str(e).split())})') from None
+    notes: list[str] = []
     try:
-        return rig_from_dict(data)
+        rig = rig_from_dict(data, notes)
     except RigError as e:
         raise RigError(f'{path}: {e}') from None
+    notes = [f'{path}: {n}' for n in notes]
+    if warnings is None:
+        for note in notes:
+            _log.warning(note)
+    else:
+        warnings.extend(notes)
+    return rig
 
 
 def default_rig_path() -> Path:

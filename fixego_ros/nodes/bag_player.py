@@ -10,7 +10,8 @@ runs the diagnostics timer. With ``publish_clock`` every message is preceded by 
 Damaged bags play what can be read (:mod:`fixego_ros.bags.reader`); topics whose message package is not
 installed are skipped with one warning. At the end (not looping) the node logs one summary line, publishes
 a final ``/diagnostics`` status, and ``main`` returns 0. A bag that cannot be opened or a bad parameter
-gives one error line on stderr and exit code 2.
+(:data:`fixego_ros.pipeline.params.BAG_PLAYER_PARAMS`: checked at start, all read-only) gives one error
+line on stderr and exit code 2.
 """
 
 from __future__ import annotations
@@ -24,7 +25,6 @@ from collections import Counter
 
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.duration import Duration
-from rclpy.exceptions import InvalidParameterTypeException, ParameterUninitializedException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -36,6 +36,7 @@ from fixego_ros.nodes.common import (
     ERROR,
     OK,
     RELIABLE_QOS,
+    SETUP_ERRORS,
     WARN,
     OnceLogger,
     declare_parameters,
@@ -43,20 +44,9 @@ from fixego_ros.nodes.common import (
     publish_diagnostics,
     spin_node,
 )
+from fixego_ros.pipeline.params import BAG_PLAYER_PARAMS
 
-PARAMS: dict[str, tuple[object, str]] = {
-    'bag': ('', 'rosbag2 directory or .mcap file to play'),
-    'rate': (1.0, 'playback speed factor (2 = twice as fast); 0 = as fast as possible'),
-    'loop': (False, 'replay the bag from its start when it ends (the /clock time keeps increasing)'),
-    'topics': (Parameter.Type.STRING_ARRAY, 'topics to play; unset or empty = all'),
-    'remap': (Parameter.Type.STRING_ARRAY, "topic renames 'FROM:=TO' applied when publishing"),
-    'publish_clock': (False, 'publish rosgraph_msgs/Clock on /clock at each message\'s bag time'),
-    'start_delay_s': (0.5, 'wait this long after creating the publishers, for discovery, before the first '
-                           'message (s)'),
-    'start_offset_s': (0.0, 'skip the first seconds of the bag'),
-    'ack_timeout_s': (2.0, 'at the end, wait at most this long for reliable subscribers to acknowledge'),
-    'diagnostics_period_s': (1.0, 'diagnostics publishing period (s)'),
-}
+PARAMS = BAG_PLAYER_PARAMS
 
 # rosbag2's ClockQoS: the newest time only, best effort (matches rclpy's and rclcpp's /clock subscriptions)
 CLOCK_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT)
@@ -97,12 +87,10 @@ class BagPlayer(Node):
     def __init__(self, **kwargs) -> None:
         super().__init__('bag_player', **kwargs)
         g = declare_parameters(self, PARAMS)
+        g.start(lambda changes, getter: None, ())      # every parameter is read-only: one playback per node
 
         def array(name: str) -> list[str]:
-            try:
-                return [str(x) for x in g(name) or []]
-            except ParameterUninitializedException:
-                return []
+            return [str(x) for x in g(name) or []]
 
         if not str(g('bag')):
             raise PlayError('no bag given (parameter bag:=PATH)')
@@ -111,8 +99,8 @@ class BagPlayer(Node):
         self.remap = parse_remaps(array('remap'))
         self.schedule = Schedule(self.bag, float(g('rate')), self.topics or None, bool(g('loop')),
                                  float(g('start_offset_s')))
-        self.start_delay_s = max(0.0, float(g('start_delay_s')))
-        self.ack_timeout_s = max(0.0, float(g('ack_timeout_s')))
+        self.start_delay_s = float(g('start_delay_s'))
+        self.ack_timeout_s = float(g('ack_timeout_s'))
         self.once = OnceLogger(self)
         self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', RELIABLE_QOS)
         self.pub_clock = self.create_publisher(Clock, '/clock', CLOCK_QOS) if g('publish_clock') else None
@@ -296,7 +284,7 @@ def run(args: list[str] | None = None, overrides: list[Parameter] | None = None,
     try:
         node = spin_node(lambda: BagPlayer(parameter_overrides=overrides or []), args,
                          finished=lambda n: n.finished, domain_id=domain_id)
-    except (BagError, PlayError, InvalidParameterTypeException) as e:
+    except (BagError, PlayError, *SETUP_ERRORS) as e:
         print(f'{prog}: {e}', file=sys.stderr)
         return 2
     return node.exit_code if node is not None else 0

@@ -7,19 +7,19 @@ bytes are written untouched), with a QoS adapted to the publishers like rosbag2:
 publisher is reliable, transient-local only if every publisher is. The publishers' offered QoS profiles
 and RIHS01 type hash go into the bag. The log time of a message is its receive time on the node clock.
 Storage is :class:`fixego_ros.bags.recorder.BagRecorder` (a writer thread, so callbacks never wait on
-the disk). Publishes nothing but ``/diagnostics`` (received / written / dropped counts).
+the disk). Publishes nothing but ``/diagnostics`` (received / written / dropped counts). Parameters
+(:data:`fixego_ros.pipeline.params.BAG_RECORDER_PARAMS`) are checked at start and all read-only.
 """
 
 from __future__ import annotations
 
 import importlib
+import sys
 import time
 
 from diagnostic_msgs.msg import DiagnosticArray
-from rclpy.exceptions import ParameterUninitializedException
 from rclpy.expand_topic_name import expand_topic_name
 from rclpy.node import Node
-from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.topic_or_service_is_hidden import topic_or_service_is_hidden
 
@@ -33,20 +33,11 @@ from fixego_ros.nodes.common import (
     declare_parameters,
     diagnostic_status,
     publish_diagnostics,
-    spin_node,
+    run_node,
 )
+from fixego_ros.pipeline.params import BAG_RECORDER_PARAMS
 
-PARAMS: dict[str, tuple[object, str]] = {
-    'bag': ('', 'bag directory to create (must not exist); empty = rosbag2_YYYY_MM_DD-HH_MM_SS here'),
-    'topics': (Parameter.Type.STRING_ARRAY, 'topics to record; unset or empty = every topic discovered'),
-    'discovery_period_s': (1.0, 'how often the graph is scanned for new topics and publishers (s)'),
-    'include_hidden': (False, 'with an empty topic list, also record hidden topics (a name part starting with _)'),
-    'depth': (100, 'subscription queue depth (keep-last)'),
-    'compression': (True, 'zstd-compress the MCAP chunks'),
-    'flush_period_s': (1.0, 'close the MCAP chunk and flush the file this often, so a killed recorder '
-                            'leaves a readable bag up to then (0 = only at 1 MiB chunks)'),
-    'diagnostics_period_s': (1.0, 'diagnostics publishing period (0 = none)'),
-}
+PARAMS = BAG_RECORDER_PARAMS
 
 
 def _duration_dict(d) -> dict[str, int]:
@@ -82,13 +73,11 @@ class BagRecorderNode(Node):
     def __init__(self, **kwargs) -> None:
         super().__init__('bag_recorder', **kwargs)
         g = declare_parameters(self, PARAMS)
-        try:
-            wanted = [str(t) for t in g('topics') if str(t)]
-        except ParameterUninitializedException:
-            wanted = []
+        g.start(lambda changes, getter: None, ())      # every parameter is read-only: one recording per node
+        wanted = [str(t) for t in g('topics') or [] if str(t)]
         self.wanted = {expand_topic_name(t, self.get_name(), self.get_namespace()) for t in wanted}
         self.include_hidden = bool(g('include_hidden'))
-        self.depth = max(1, int(g('depth')))
+        self.depth = int(g('depth'))
         bag = str(g('bag')) or time.strftime('rosbag2_%Y_%m_%d-%H_%M_%S')
         self.recorder = BagRecorder(bag, compression=bool(g('compression')),
                                     flush_period_s=float(g('flush_period_s')))
@@ -201,9 +190,9 @@ class BagRecorderNode(Node):
                                                                     message, values)])
 
 
-def main(args: list[str] | None = None) -> None:
-    spin_node(BagRecorderNode, args)
+def main(args: list[str] | None = None) -> int:
+    return run_node(BagRecorderNode, 'bag_recorder', args)
 
 
 if __name__ == '__main__':
-    main()
+    sys.exit(main())

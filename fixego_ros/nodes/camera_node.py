@@ -15,11 +15,16 @@ It publishes ``/fixego/vergence`` (geometry_msgs/PoseWithCovarianceStamped, fram
 local), drives its head back and selects its own point again. One attempt, bounded by
 ``vergence_timeout_s``; the outcome is a ``vergence`` status on ``/diagnostics``. The right node needs no
 change: if it re-selects during the step, the step fails (its fixation id changed).
+
+Parameters (:data:`fixego_ros.pipeline.params.CAMERA_NODE_PARAMS`) are checked at start and on ``ros2 param
+set``; the tracker thresholds, servo gains, limit re-selection, joint wait and diagnostics period change at
+run time, the rest (side, port, profile, rig, template size, vergence step) is read-only.
 """
 
 from __future__ import annotations
 
 import math
+import sys
 from collections import deque
 
 from diagnostic_msgs.msg import DiagnosticArray
@@ -43,67 +48,54 @@ from fixego_ros.nodes.common import (
     diagnostic_status,
     image_to_gray,
     publish_diagnostics,
+    run_node,
     sec_to_stamp,
-    spin_node,
+    set_timer_period,
     stamp_to_sec,
     vergence_to_msg,
 )
 from fixego_ros.pipeline.messages import pan_tilt
-from fixego_ros.pipeline.params import FIXATION_PARAMS, fixation_params
+from fixego_ros.pipeline.params import CAMERA_NODE_PARAMS, Getter, ParamsError, fixation_params
 from fixego_ros.tracking.fixation import FixationTracker, LimitCheck
 from fixego_ros.tracking.servo import FixationServo, JointHistory, ServoLoop, ServoParams, Target
 from fixego_ros.tracking.vergence import VergenceParams, VergenceStep
 from fixego_ros.visca.driver import ViscaCamera
 from fixego_ros.visca.profiles import get_profile
 
-PARAMS: dict[str, tuple[object, str]] = {
-    'side': ('right', 'which camera: right | left (topic prefix and joint names)'),
-    'port': ('', 'VISCA serial device; empty = passive mode (no serial port)'),
-    'baud': (9600, 'serial baud rate (EVI cameras: 9600)'),
-    'address': (1, 'VISCA camera address 1..7'),
-    'profile': ('evi_d30', 'camera profile: evi_d30 | evi_d100 | evi_d70 | evi_g20 | path to calibrate .json'),
-    'passive': (False, 'follow recorded joint states and only track (replays); also implied by empty port'),
-    'video_device': ('', 'V4L2 device (index or path) read with OpenCV instead of subscribing image_raw'),
-    'video_fps': (30.0, 'frame rate to poll video_device at'),
-    'rig_file': ('', 'rig calibration YAML (DESIGN.md §4); empty = the package config/rig.yaml'),
-    'serial_timeout_s': (0.3, 'bound on every serial reply wait'),
-    'servo_gain': (0.9, 'fraction of the angular error corrected per command'),
-    'servo_deadband_px': (0.75, 'no command while the fixation is this close to the principal point'),
-    'servo_move_time_s': (0.08, 'speed codes chosen so a correction takes about this long'),
-    'servo_max_command_rate_hz': (15.0, 'AbsolutePosition commands per second at most (serial bandwidth)'),
-    'servo_feedforward': (True, 'lead a drifting fixation point by its estimated angular rate'),
-    **FIXATION_PARAMS,
-    'limit_margin_deg': (5.0, 're-select when pan/tilt comes this close to a limit'),
-    'limit_reselect_offset_px': (120.0, 'after a limit re-selection, pick the new point this far off centre '
-                                        'on the side that moves the head back into its range'),
-    'joint_max_wait_s': (0.25, 'how long an image stamp may wait for the PosInq reading after it'),
-    'diagnostics_period_s': (1.0, 'diagnostics publishing period'),
-    'vergence_on_start': (False, 'left node only, active mode: at start-up fixate the right camera\'s point too and '
-                                 'publish its triangulated distance on /fixego/vergence (scale aid)'),
-    'vergence_timeout_s': (20.0, 'bound on the whole vergence step; then independent fixation goes on'),
-    'vergence_settle_px': (3.0, 'both fixations this close to their principal points (3 frames) to triangulate'),
-    'vergence_min_depth_m': (0.8, 'nearest depth searched along the right fixation ray'),
-    'vergence_max_depth_m': (10.0, 'farthest depth searched along the right fixation ray'),
-    'vergence_ncc_min': (0.8, 'partner point: best NCC below this is no match'),
-    'vergence_margin_min': (0.1, 'partner point: best minus second-best NCC peak below this is ambiguous'),
-    'vergence_pixel_sigma_px': (0.5, 'fixation pixel noise used for the covariance'),
-    'vergence_joint_sigma_deg': (0.033, 'joint reading noise used for the covariance (EVI-D30 unit / sqrt 12)'),
-}
+PARAMS = CAMERA_NODE_PARAMS
+# applied at run time: the tracker, the servo (and its loop thread) and the limit check read them per frame
+LIVE_TRACKER = ('search_radius_px', 'min_corner_score', 'ncc_min', 'fb_max_px', 'border_margin_px')
+LIVE_SERVO = ('servo_gain', 'servo_deadband_px', 'servo_move_time_s', 'servo_max_command_rate_hz',
+              'servo_feedforward')
+LIVE_NODE = ('limit_margin_deg', 'limit_reselect_offset_px', 'joint_max_wait_s', 'diagnostics_period_s')
 
+
+def servo_params(g: Getter) -> ServoParams:
+    return ServoParams(gain=float(g('servo_gain')), deadband_px=float(g('servo_deadband_px')),
+                       move_time_s=float(g('servo_move_time_s')),
+                       max_command_rate_hz=float(g('servo_max_command_rate_hz')),
+                       feedforward=bool(g('servo_feedforward')))
 
 
 class CameraNode(Node):
     def __init__(self, **kwargs) -> None:
         super().__init__('camera_node', **kwargs)
-        g = declare_parameters(self, PARAMS)
+        self.params = g = declare_parameters(self, PARAMS)
         self.side = str(g('side'))
-        if self.side not in ('right', 'left'):
-            raise ValueError(f"side must be 'right' or 'left', got {self.side!r}")
-        rig = load_rig(g('rig_file') or default_rig_path())
+        if float(g('vergence_min_depth_m')) >= float(g('vergence_max_depth_m')):
+            raise ParamsError(f"parameters vergence_min_depth_m ({g('vergence_min_depth_m')}) and vergence_max_depth_m "
+                              f"({g('vergence_max_depth_m')}): the nearest depth must be below the farthest")
+        rig_notes: list[str] = []
+        rig = load_rig(g('rig_file') or default_rig_path(), warnings=rig_notes)
+        for note in rig_notes:
+            self.get_logger().warning(note)
         self.rig = rig
         self.camera = rig.camera(self.side)
         self.calibration = rig.calibration(self.side)
-        self.profile = get_profile(str(g('profile')))
+        try:
+            self.profile = get_profile(str(g('profile')))
+        except (ValueError, OSError) as e:
+            raise ParamsError(f'parameter profile: {e}') from None
         self.frame_id = f'{self.side}_optical_frame'
         self.once = OnceLogger(self)
         self.tracker = FixationTracker(self.camera, fixation_params(g))
@@ -111,10 +103,7 @@ class CameraNode(Node):
         self.limits = LimitCheck((pr.pan_rad(pr.pan_min), pr.pan_rad(pr.pan_max)),
                                  (pr.tilt_rad(pr.tilt_min), pr.tilt_rad(pr.tilt_max)),
                                  math.radians(float(g('limit_margin_deg'))), float(g('limit_reselect_offset_px')))
-        self.servo_params = ServoParams(gain=float(g('servo_gain')), deadband_px=float(g('servo_deadband_px')),
-                                        move_time_s=float(g('servo_move_time_s')),
-                                        max_command_rate_hz=float(g('servo_max_command_rate_hz')),
-                                        feedforward=bool(g('servo_feedforward')))
+        self.servo_params = servo_params(g)
         self.joint_max_wait_s = float(g('joint_max_wait_s'))
         port = str(g('port'))
         self.passive = bool(g('passive')) or not port
@@ -156,9 +145,10 @@ class CameraNode(Node):
             self.create_subscription(Image, f'{ns}/image_raw', self._on_image, SENSOR_QOS)
         self.create_service(Trigger, '~/reselect', self._srv_reselect)
         self.create_service(Trigger, '~/home', self._srv_home)
-        self.create_timer(float(g('diagnostics_period_s')), self._publish_diagnostics)
+        self.diag_timer = self.create_timer(float(g('diagnostics_period_s')), self._publish_diagnostics)
         self.stats = {'frames': 0, 'frames_without_fixation': 0, 'joint_states': 0, 'joint_states_dropped': 0}
         self._setup_vergence(g)
+        self.params.start(self._apply_params, LIVE_TRACKER + LIVE_SERVO + LIVE_NODE)
         self.get_logger().info(
             f'{self.side} camera: {"passive" if self.passive else f"VISCA on {port}"}, profile {self.profile.name}'
             + ('' if self.profile.verified else ' (UNVERIFIED numbers: run `fixego ptz calibrate`)'))
@@ -280,6 +270,23 @@ class CameraNode(Node):
             js.position = [float(q[0]), float(q[1])]
             self.pub_joint.publish(js)
             self.stats['joint_states'] += 1
+
+    # ---------------------------------------------------------------------------------------- parameters
+    def _apply_params(self, changes: dict[str, object], g: Getter) -> None:
+        """``ros2 param set``: new params objects are swapped in whole (the servo loop thread then reads
+        either the old or the new one, never a mix); they take effect at the next frame or command."""
+        if changes.keys() & set(LIVE_TRACKER):
+            self.tracker.params = fixation_params(g)
+        if changes.keys() & set(LIVE_SERVO):
+            new = servo_params(g)
+            self.servo_params = self.servo.params = new
+            if self.loop is not None:
+                self.loop.params = new
+        self.limits.margin_rad = math.radians(float(g('limit_margin_deg')))
+        self.limits.offset_px = float(g('limit_reselect_offset_px'))
+        self.joint_max_wait_s = float(g('joint_max_wait_s'))
+        if 'diagnostics_period_s' in changes:
+            set_timer_period(self.diag_timer, float(g('diagnostics_period_s')))
 
     # ---------------------------------------------------------------------------------------- services
     def _srv_reselect(self, request, response):
@@ -442,9 +449,9 @@ class CameraNode(Node):
         super().destroy_node()
 
 
-def main(args: list[str] | None = None) -> None:
-    spin_node(CameraNode, args)
+def main(args: list[str] | None = None) -> int:
+    return run_node(CameraNode, 'camera_node', args)
 
 
 if __name__ == '__main__':
-    main()
+    sys.exit(main())

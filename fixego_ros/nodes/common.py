@@ -6,7 +6,8 @@ One place for each: nodes must use these rather than re-implement them.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterable
+import sys
+from collections.abc import Callable, Iterable, Mapping
 
 import numpy as np
 import rclpy
@@ -14,12 +15,19 @@ from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Pose as PoseMsg
 from geometry_msgs.msg import PoseWithCovarianceStamped
-from rcl_interfaces.msg import ParameterDescriptor
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType, SetParametersResult
+from rclpy.exceptions import (
+    InvalidParameterTypeException,
+    InvalidParameterValueException,
+    ParameterUninitializedException,
+)
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, qos_profile_sensor_data
 from sensor_msgs.msg import Image, PointCloud2, PointField
 
+from fixego_ros.geometry.rig import RigError
 from fixego_ros.geometry.rotation import Pose, quat_xyzw
 from fixego_ros.pipeline.messages import (  # noqa: F401 - re-exported: nodes import them from here
     ENCODINGS,
@@ -28,6 +36,7 @@ from fixego_ros.pipeline.messages import (  # noqa: F401 - re-exported: nodes im
     msg_to_pose,
     stamp_to_sec,
 )
+from fixego_ros.pipeline.params import Getter, ParamsError, ParamSpec
 
 SENSOR_QOS: QoSProfile = qos_profile_sensor_data
 RELIABLE_QOS = QoSProfile(depth=50)
@@ -49,11 +58,130 @@ _POINT_FIELD_TYPES = {np.dtype('<i1'): PointField.INT8, np.dtype('<u1'): PointFi
                       np.dtype('<f4'): PointField.FLOAT32, np.dtype('<f8'): PointField.FLOAT64}
 
 
-def declare_parameters(node: Node, params: dict[str, tuple[object, str]]) -> Callable[[str], object]:
-    """Declare ``name -> (default, description)`` on ``node``; returns a getter of the current values."""
-    for name, (default, text) in params.items():
-        node.declare_parameter(name, default, ParameterDescriptor(description=text))
-    return lambda name: node.get_parameter(name).value
+_ROS_TYPES = {bool: ParameterType.PARAMETER_BOOL, int: ParameterType.PARAMETER_INTEGER,
+              float: ParameterType.PARAMETER_DOUBLE, str: ParameterType.PARAMETER_STRING,
+              list: ParameterType.PARAMETER_STRING_ARRAY}
+_INT64 = (-(2**63), 2**63 - 1)
+READ_ONLY_NOTE = 'read-only: taken at start (restart the node to change it)'
+
+
+def parameter_descriptor(spec: ParamSpec) -> ParameterDescriptor:
+    """ROS descriptor of a spec: type, description, read-only flag, the range rclpy can check (the closed hull
+    of the allowed values) and the exact rule in words (exclusive bounds, special values, finiteness)."""
+    d = ParameterDescriptor(name=spec.name, type=_ROS_TYPES[spec.type], description=spec.description,
+                            read_only=spec.read_only,
+                            additional_constraints=spec.allowed() + (f'; {READ_ONLY_NOTE}' if spec.read_only else ''))
+    lo, hi = spec.hull()
+    if spec.type is float and (lo is not None or hi is not None):
+        d.floating_point_range = [FloatingPointRange(from_value=-math.inf if lo is None else float(lo),
+                                                     to_value=math.inf if hi is None else float(hi), step=0.0)]
+    elif spec.type is int and (lo is not None or hi is not None):
+        d.integer_range = [IntegerRange(from_value=_INT64[0] if lo is None else int(lo),
+                                        to_value=_INT64[1] if hi is None else int(hi), step=0)]
+    return d
+
+
+Apply = Callable[[dict[str, object], Getter], None]
+
+
+class NodeParams:
+    """A node's parameters, declared from their specs (:mod:`fixego_ros.pipeline.params`); call it as the getter.
+
+    Start: every override (``-p``, ``--params-file``, ``parameter_overrides``) is checked against its spec before
+    anything is declared, so a bad one raises :class:`ParamsError` naming the parameter, the value and the range
+    (:func:`run_node` prints it as one line and exits 2). Run time (``ros2 param set``): values are checked the
+    same way by an on-set callback; read-only ones are refused by rclpy; the others go to the node's ``apply``
+    (given to :meth:`start`), which puts them into effect or raises to refuse them, so a set never reports
+    success without effect. An int given for a float parameter is taken as that float, as in ``fixego replay``.
+    """
+
+    def __init__(self, node: Node, specs: Mapping[str, ParamSpec]) -> None:
+        self._node = node
+        self.specs = dict(specs)
+        self._apply: Apply | None = None
+        # rclpy keeps the overrides it will apply at declaration here; checking them first gives our message
+        overrides = getattr(node, '_parameter_overrides', {})
+        for name, spec in self.specs.items():
+            given = overrides.get(name)
+            if given is None or given.type_ == Parameter.Type.NOT_SET:
+                continue
+            value = spec.check(given.value)
+            if type(value) is not type(given.value):
+                overrides[name] = Parameter(name, value=value)
+        node.add_pre_set_parameters_callback(self._coerce)
+        node.add_on_set_parameters_callback(self._on_set)
+        for name, spec in self.specs.items():
+            try:
+                node.declare_parameter(name, Parameter.Type.STRING_ARRAY if spec.default is None else spec.default,
+                                       parameter_descriptor(spec))
+            except (InvalidParameterTypeException, InvalidParameterValueException) as e:
+                raise ParamsError(f'parameter {name}: {e}') from None
+
+    def __call__(self, name: str) -> object:
+        """Current value (None for an unset string array)."""
+        try:
+            return self._node.get_parameter(name).value
+        except ParameterUninitializedException:
+            return None
+
+    def overlay(self, changes: Mapping[str, object]) -> Getter:
+        """Getter of the values a change would give (current ones where unchanged)."""
+        return lambda name: changes[name] if name in changes else self(name)
+
+    def start(self, apply: Apply, handles: Iterable[str]) -> None:
+        """From now on run-time changes go to ``apply(changes, getter)``. ``handles`` must be exactly the
+        parameters that are not read-only: one the node would not apply must be read-only, so no set of it
+        can report success without effect."""
+        live = {n for n, s in self.specs.items() if not s.read_only}
+        if set(handles) != live:
+            raise RuntimeError(f'{self._node.get_name()}: run-time handlers {sorted(set(handles))} do not match '
+                               f'the parameters that are not read-only {sorted(live)}')
+        self._apply = apply
+
+    def _coerce(self, params: list[Parameter]) -> list[Parameter]:
+        out = []
+        for p in params:
+            spec = self.specs.get(p.name)
+            if spec is not None and spec.type is float and p.type_ == Parameter.Type.INTEGER:
+                p = Parameter(p.name, value=float(p.value))
+            out.append(p)
+        return out
+
+    def _on_set(self, params: list[Parameter]) -> SetParametersResult:
+        changes: dict[str, object] = {}
+        for p in params:
+            spec = self.specs.get(p.name)
+            if spec is None or p.type_ == Parameter.Type.NOT_SET:
+                continue
+            try:
+                changes[p.name] = spec.check(p.value)
+            except ParamsError as e:
+                return SetParametersResult(successful=False, reason=str(e))
+        if self._apply is None or not changes:          # declaration (already checked), or none of ours
+            return SetParametersResult(successful=True)
+        fixed = sorted(n for n in changes if self.specs[n].read_only)
+        if fixed:        # rclpy refuses read-only parameters before calling us; kept so it can never slip through
+            return SetParametersResult(successful=False, reason=f'{", ".join(fixed)}: {READ_ONLY_NOTE}')
+        try:
+            self._apply(changes, self.overlay(changes))
+        except ValueError as e:                          # ParamsError, or a combination the core refuses
+            return SetParametersResult(successful=False, reason=str(e))
+        self._node.get_logger().info('parameters set: ' + ', '.join(f'{k}={v!r}' for k, v in changes.items()))
+        return SetParametersResult(successful=True)
+
+
+def declare_parameters(node: Node, specs: Mapping[str, ParamSpec]) -> NodeParams:
+    """Declare ``specs`` on ``node`` (see :class:`NodeParams`); returns the getter of the current values."""
+    return NodeParams(node, specs)
+
+
+def set_timer_period(timer, period_s: float) -> None:
+    """Change a running timer's period (e.g. ``diagnostics_period_s`` set at run time)."""
+    timer.timer_period_ns = round(period_s * 1e9)
+
+
+# configuration errors a node reports as one line instead of a traceback
+SETUP_ERRORS: tuple[type[Exception], ...] = (ParamsError, RigError)
 
 
 def spin_node(factory: Callable[[], Node], args: list[str] | None = None, *,
@@ -77,6 +205,18 @@ def spin_node(factory: Callable[[], Node], args: list[str] | None = None, *,
             node.destroy_node()
         rclpy.try_shutdown()
     return node
+
+
+def run_node(factory: Callable[[], Node], prog: str, args: list[str] | None = None, *,
+             finished: Callable[[Node], bool] | None = None) -> int:
+    """:func:`spin_node` for a node's ``main``: a bad parameter or rig file ends it with one line on stderr
+    (``prog: parameter NAME: VALUE ... (allowed: ...)``) and exit code 2, not a traceback; 0 otherwise."""
+    try:
+        spin_node(factory, args, finished=finished)
+    except SETUP_ERRORS as e:
+        print(f'{prog}: {e}', file=sys.stderr)
+        return 2
+    return 0
 
 
 def sec_to_stamp(t: float) -> Time:

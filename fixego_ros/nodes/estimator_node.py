@@ -19,11 +19,22 @@ otherwise) and, when the aid is on, a ``speed aid`` status.
 Bad input never stops the node: a malformed observation is rejected whole (logged once, counted on
 /diagnostics); a step the solver cannot make is replaced by a constant-velocity prediction and flagged;
 nothing non-finite is ever published.
+
+Stamps: an observation stamped more than ``max_future_s`` ahead of the node clock is rejected and counted
+(accepted, it would make every later observation out of order). One not after the last accepted frame is
+dropped and counted (/diagnostics WARN, logged once). When they keep coming older than the last accepted
+one (``backward_reset_count`` in a row, or for ``backward_reset_s``: the clock jumped back, e.g. a bag was
+restarted), the node logs it and resets the trajectory, which restarts at that observation.
+
+Parameters (:data:`fixego_ros.pipeline.params.ESTIMATOR_NODE_PARAMS`) are checked at start and on
+``ros2 param set``; the step acceptance thresholds, the lag/stamp bounds and the diagnostics period change
+at run time, the rest is read-only.
 """
 
 from __future__ import annotations
 
 import math
+import sys
 import time
 from collections import Counter, deque
 
@@ -52,36 +63,26 @@ from fixego_ros.nodes.common import (
     diagnostic_status,
     pose_to_msg,
     publish_diagnostics,
-    spin_node,
+    run_node,
+    set_timer_period,
     stamp_to_sec,
 )
 from fixego_ros.pipeline.observation import ROW_DTYPE, ObservationError, rows_to_observation
 from fixego_ros.pipeline.odometry import (
-    SPEED_PARAMS,
     OdometryError,
     SpeedInput,
     SpeedSettings,
     vergence_from_msg,
 )
-from fixego_ros.pipeline.params import ESTIMATOR_PARAMS, estimator_config
+from fixego_ros.pipeline.params import ESTIMATOR_NODE_PARAMS, Getter, estimator_config
 
-PARAMS: dict[str, tuple[object, str]] = {
-    'rig_file': ('', 'rig calibration YAML (DESIGN.md §4); empty = the package config/rig.yaml'),
-    'observation_topic': ('/fixego/flow/observation', 'flow observations (PointCloud2 rows, see README)'),
-    **ESTIMATOR_PARAMS,
-    **SPEED_PARAMS,
-    'max_lag_s': (0.1, 'when an observation is this far behind the clock and not a keyframe, skip it (keyframes '
-                       'are always solved: the trajectory continues through them)'),
-    'max_keyframe_lag_s': (0.5, 'even keyframes are skipped this far behind (the estimator then bridges the gap '
-                                'at constant velocity): bounds the latency when the machine is overloaded'),
-    'vergence_topic': ('', "start-up vergence distances (geometry_msgs/PoseWithCovarianceStamped from camera_node's "
-                           "vergence step, usually /fixego/vergence); '' = off"),
-    'odom_frame': ('odom', 'frame of the published trajectory'),
-    'base_frame': ('base_link', 'frame of the rig body (x forward, y left, z up)'),
-    'path_max_length': (20000, 'poses kept in /fixego/path and /fixego/path_raw (oldest dropped)'),
-    'publish_tf': (True, 'broadcast odom -> base_link when tf2_ros is importable'),
-    'diagnostics_period_s': (1.0, 'diagnostics publishing period'),
-}
+PARAMS = ESTIMATOR_NODE_PARAMS
+# the parameters applied at run time: Estimator reads these config fields at every step ...
+LIVE_CONFIG = ('fixation_weight', 'velocity_prior', 'prior_sigma_rel', 'prior_sigma_min', 'max_step_translation',
+               'max_speed', 'max_step_rotation_deg', 'reject_translation_std')
+# ... and the node reads these per message (or sets the timer's period)
+LIVE_NODE = ('max_lag_s', 'max_keyframe_lag_s', 'max_future_s', 'backward_reset_count', 'backward_reset_s',
+             'diagnostics_period_s')
 
 
 def odom_covariance(pose_cov_rig: np.ndarray) -> list[float]:
@@ -98,13 +99,15 @@ def odom_covariance(pose_cov_rig: np.ndarray) -> list[float]:
 class EstimatorNode(Node):
     def __init__(self, **kwargs) -> None:
         super().__init__('estimator_node', **kwargs)
-        g = declare_parameters(self, PARAMS)
-        self.rig = load_rig(g('rig_file') or default_rig_path())
+        self.params = g = declare_parameters(self, PARAMS)
+        rig_notes: list[str] = []
+        self.rig = load_rig(g('rig_file') or default_rig_path(), warnings=rig_notes)
+        for note in rig_notes:
+            self.get_logger().warning(note)
         self.config = estimator_config(g, self.rig)
         self.estimator = Estimator(self.rig, self.config)
         self.odom_frame, self.base_frame = str(g('odom_frame')), str(g('base_frame'))
-        self.max_lag_s = float(g('max_lag_s'))
-        self.max_keyframe_lag_s = float(g('max_keyframe_lag_s'))
+        self._set_stamp_bounds(g)
         self.once = OnceLogger(self)
         n_path = int(g('path_max_length'))
         self.path: deque[PoseStamped] = deque(maxlen=n_path)
@@ -127,13 +130,17 @@ class EstimatorNode(Node):
         if self.vergence_topic:
             self.create_subscription(PoseWithCovarianceStamped, self.vergence_topic, self._on_vergence, LATCHED_QOS)
         self.create_service(Trigger, '~/reset', self._srv_reset)
-        self.create_timer(float(g('diagnostics_period_s')), self._publish_diagnostics)
+        self.diag_timer = self.create_timer(float(g('diagnostics_period_s')), self._publish_diagnostics)
         self.status_counts: Counter[str] = Counter()
-        self.stats = {'observations': 0, 'malformed': 0, 'out_of_order': 0, 'skipped_behind': 0, 'published': 0,
-                      'resets': 0}
+        self.stats = {'observations': 0, 'malformed': 0, 'out_of_order': 0, 'future_rejected': 0,
+                      'skipped_behind': 0, 'published': 0, 'resets': 0, 'clock_jump_resets': 0}
+        self.recent: Counter[str] = Counter()      # stamp problems since the last diagnostics report
+        self.stamp_problem = ''                    # the latest of them, in words
+        self._backward: tuple[float, int] | None = None   # (monotonic start, count) of a run of older stamps
         self.solve_ms: deque[float] = deque(maxlen=300)
         self.last: FrameResult | None = None
         self.last_error = ''
+        self.params.start(self._apply_params, LIVE_CONFIG + LIVE_NODE)
         self.get_logger().info(f'estimator: local BA n={self.config.window} mode={self.config.mode}, '
                                f'TF {"on" if self.tf else "off"}, speed aid '
                                f'{self.speed_topic or "off"}')
@@ -158,26 +165,67 @@ class EstimatorNode(Node):
             self.once.warn('malformed', f'{self.last_error} (rejected; further ones are only counted)')
             return
         self.once.clear('malformed', 'observations well-formed again')
-        lag = self.get_clock().now().nanoseconds * 1e-9 - stamp
+        now_ns = self.get_clock().now().nanoseconds
+        now = now_ns * 1e-9
+        # ROS time before the first /clock message reads 0: nothing to compare with then
+        if now_ns > 0 and stamp - now > self.max_future_s:
+            self._stamp_problem('future_rejected', f'observation stamped {stamp - now:.3f} s ahead of the node '
+                                                   f'clock (max_future_s {self.max_future_s:g}): rejected')
+            self.once.warn('future', f'{self.stamp_problem} (further ones are only counted on /diagnostics)')
+            return
+        self.once.clear('future', 'observation stamps no longer ahead of the clock')
+        lag = now - stamp
         if (obs.keyframe is False and lag > self.max_lag_s) or lag > self.max_keyframe_lag_s:
             self.stats['skipped_behind'] += 1
             self.get_logger().warning(f'{lag * 1e3:.0f} ms behind the clock: skipping non-keyframe observations '
                                       '(count on /diagnostics)', throttle_duration_sec=10.0)
             return
+        last = self.estimator.last_stamp
         t = time.perf_counter()
         res = self.estimator.update(obs)
         self.solve_ms.append((time.perf_counter() - t) * 1e3)
         if not res.placed:
-            self.stats['out_of_order'] += 1
-            self.once.warn('order', f'observation ignored: {res.message}')
-            return
-        self.once.clear('order')
+            self._stamp_problem('out_of_order', f'observation ignored: {res.message}')
+            if not (last is not None and stamp <= last and self._clock_jumped_back()):
+                if last is None or stamp > last:
+                    self._backward = None          # not older than the last frame: no clock jump in progress
+                self.once.warn('order', f'{self.stamp_problem} (further ones are only counted on /diagnostics)')
+                return
+            self._reset_after_jump(stamp, last)
+            t = time.perf_counter()
+            res = self.estimator.update(obs)       # the first frame of the new trajectory
+            self.solve_ms.append((time.perf_counter() - t) * 1e3)
+        self._backward = None
+        self.once.clear('order', 'observations in order again')
         self.status_counts[res.status.value] += 1
         if not res.status.usable and res.status is not StepStatus.INIT:
             self.get_logger().warning(f'step not solved ({res.status.value}): {res.message} (further ones are '
                                       'counted on /diagnostics)', throttle_duration_sec=10.0)
         self.last = res
         self._publish(msg.header.stamp, res)
+
+    def _stamp_problem(self, key: str, text: str) -> None:
+        self.stats[key] += 1
+        self.recent[key] += 1
+        self.stamp_problem = text
+
+    def _clock_jumped_back(self) -> bool:
+        """One more observation older than the last accepted frame: true once they have come
+        ``backward_reset_count`` times in a row or for ``backward_reset_s`` (a jump, not a stray one)."""
+        now = time.monotonic()
+        since, n = self._backward if self._backward is not None else (now, 0)
+        self._backward = (since, n + 1)
+        return n + 1 >= self.backward_reset_count or now - since >= self.backward_reset_s
+
+    def _reset_after_jump(self, stamp: float, last: float) -> None:
+        n = self._backward[1] if self._backward is not None else 1
+        self.stats['clock_jump_resets'] += 1
+        self.recent['clock_jump_resets'] += 1
+        self.stamp_problem = (f'clock jumped back: {n} observations in a row older than the last accepted frame '
+                              f'({last:.3f} s; newest {stamp:.3f} s): trajectory reset')
+        self.get_logger().warning(f'{self.stamp_problem}, odom restarts at this observation')
+        self._reset_trajectory()
+        self._backward = None
 
     def _on_speed(self, msg: Odometry) -> None:
         try:
@@ -284,13 +332,34 @@ class EstimatorNode(Node):
         tf.transform.rotation = p.orientation
         self.tf.sendTransform(tf)
 
+    # -------------------------------------------------------------------------------------- parameters
+    def _set_stamp_bounds(self, g: Getter) -> None:
+        self.max_lag_s = float(g('max_lag_s'))
+        self.max_keyframe_lag_s = float(g('max_keyframe_lag_s'))
+        self.max_future_s = float(g('max_future_s'))
+        self.backward_reset_count = int(g('backward_reset_count'))
+        self.backward_reset_s = float(g('backward_reset_s'))
+
+    def _apply_params(self, changes: dict[str, object], g: Getter) -> None:
+        """``ros2 param set`` of run-time parameters: everything is built first (a combination the core
+        refuses raises and changes nothing), then put in place; the estimator reads its config every step."""
+        config = estimator_config(g, self.rig) if changes.keys() & set(LIVE_CONFIG) else None
+        if config is not None:
+            self.config = self.estimator.config = config
+        self._set_stamp_bounds(g)
+        if 'diagnostics_period_s' in changes:
+            set_timer_period(self.diag_timer, float(g('diagnostics_period_s')))
+
     # -------------------------------------------------------------------------------------- services
-    def _srv_reset(self, request, response):
+    def _reset_trajectory(self) -> None:
         self.estimator.reset()
         self.speed.reset()
         self.path.clear()
         self.path_raw.clear()
         self.last = None
+
+    def _srv_reset(self, request, response):
+        self._reset_trajectory()
         self.stats['resets'] += 1
         self.get_logger().info('trajectory reset: odom restarts at the next frame')
         response.success = True
@@ -315,6 +384,11 @@ class EstimatorNode(Node):
                 level, message = WARN, f'last step {self.last.status.value}: {self.last.message}'
             elif self.last.status is StepStatus.WEAK:
                 level, message = WARN, 'scale weakly observed (large translation covariance)'
+        if self.recent:      # stamp problems since the last report: out of order, from the future, clock jumps
+            values.update({f'recent_{k}': v for k, v in sorted(self.recent.items())})
+            level, message = WARN, (f'{", ".join(f"{v} {k}" for k, v in sorted(self.recent.items()))} since the '
+                                    f'last report; latest: {self.stamp_problem}')
+            self.recent.clear()
         if self.once.active('malformed'):
             level, message = ERROR, self.last_error
         statuses = [diagnostic_status('fixego estimator_node', 'estimator', level, message, values),
@@ -352,9 +426,9 @@ class EstimatorNode(Node):
         return diagnostic_status('fixego estimator_node: speed aid', 'speed aid', level, message, values)
 
 
-def main(args: list[str] | None = None) -> None:
-    spin_node(EstimatorNode, args)
+def main(args: list[str] | None = None) -> int:
+    return run_node(EstimatorNode, 'estimator_node', args)
 
 
 if __name__ == '__main__':
-    main()
+    sys.exit(main())

@@ -10,10 +10,16 @@ and turns every point into rig-frame rays with the pan/tilt of its frame
 :mod:`fixego_ros.pipeline.observation`) and ``/diagnostics``. A frame with one camera only gives a
 one-camera observation; dropped frames show up as a gap between the observation's ``t0`` and the
 previous frame, which the estimator bridges.
+
+Parameters (:data:`fixego_ros.pipeline.params.FLOW_NODE_PARAMS`) are checked at start and on ``ros2 param
+set``; the tracking thresholds, keyframe policy, synchronisation bounds and diagnostics period change at
+run time, the rest (preset, window sizes, LK pyramid, topics, rig) is read-only.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import sys
 import time
 from collections import deque
 
@@ -34,29 +40,33 @@ from fixego_ros.nodes.common import (
     declare_parameters,
     diagnostic_status,
     publish_diagnostics,
-    spin_node,
+    run_node,
+    set_timer_period,
     stamp_to_sec,
     table_to_cloud,
 )
 from fixego_ros.pipeline.frontend import CameraSample, StereoFrontEnd
 from fixego_ros.pipeline.messages import gray_for_camera, pan_tilt
 from fixego_ros.pipeline.observation import observation_to_rows
-from fixego_ros.pipeline.params import FLOW_PARAMS, flow_params, keyframe_policy, sync_params
+from fixego_ros.pipeline.params import FLOW_NODE_PARAMS, Getter, flow_params, keyframe_policy, sync_params
 from fixego_ros.pipeline.sync import StereoSync
 
-PARAMS: dict[str, tuple[object, str]] = {
-    'rig_file': ('', 'rig calibration YAML (DESIGN.md §4); empty = the package config/rig.yaml'),
-    **FLOW_PARAMS,
-    'observation_topic': ('/fixego/flow/observation', 'where observations are published'),
-    'diagnostics_period_s': (1.0, 'diagnostics publishing period'),
-}
+PARAMS = FLOW_NODE_PARAMS
+# applied at run time: the front end and the synchroniser read their params objects at every frame
+LIVE_FLOW = ('min_eig', 'fb_max_px', 'ransac_px')
+LIVE_KEYFRAMES = ('keyframe_max_frames', 'keyframe_min_parallax_px', 'keyframe_min_tracked_fraction',
+                  'keyframe_max_rotation_deg')
+LIVE_SYNC = ('slop_s', 'max_wait_s', 'joint_extrapolation_s')
 
 
 class FlowNode(Node):
     def __init__(self, **kwargs) -> None:
         super().__init__('flow_node', **kwargs)
-        g = declare_parameters(self, PARAMS)
-        self.rig = load_rig(g('rig_file') or default_rig_path())
+        self.params = g = declare_parameters(self, PARAMS)
+        rig_notes: list[str] = []
+        self.rig = load_rig(g('rig_file') or default_rig_path(), warnings=rig_notes)
+        for note in rig_notes:
+            self.get_logger().warning(note)
         self.flow_params = flow_params(g)
         self.frontend = StereoFrontEnd(self.rig, self.flow_params, keyframe_policy(g))
         self.sync = StereoSync(sync_params(g))
@@ -71,11 +81,12 @@ class FlowNode(Node):
             self.create_subscription(PointStamped, f'{ns}/fixation', lambda m, s=side: self._on_fixation(s, m),
                                      RELIABLE_QOS)
         self.create_timer(0.02, self._drain)
-        self.create_timer(float(g('diagnostics_period_s')), self._publish_diagnostics)
+        self.diag_timer = self.create_timer(float(g('diagnostics_period_s')), self._publish_diagnostics)
         self.stats = {'images': 0, 'bad_images': 0, 'observations': 0, 'keyframes': 0, 'points_right': 0,
                       'points_left': 0, 'tracks_right': 0, 'tracks_left': 0}
         self.process_ms: deque[float] = deque(maxlen=300)
         self.last_problem = ''
+        self.params.start(self._apply_params, LIVE_FLOW + LIVE_KEYFRAMES + LIVE_SYNC + ('diagnostics_period_s',))
         self.get_logger().info(f'flow: preset {self.flow_params.preset}, window {self.flow_params.window_px} px')
 
     def _now(self) -> float:
@@ -134,6 +145,24 @@ class FlowNode(Node):
                 self.stats[f'points_{side}'] = len(cam.flow_prev) if cam is not None else 0
                 self.stats[f'tracks_{side}'] = len(cam.track_ids) if cam is not None else 0
 
+    # -------------------------------------------------------------------------------------- parameters
+    def _apply_params(self, changes: dict[str, object], g: Getter) -> None:
+        """``ros2 param set``: build every new params object first (a combination the core refuses raises
+        and changes nothing), then swap them in; they are read at the next frame."""
+        new_flow = flow_params(g) if changes.keys() & set(LIVE_FLOW) else None
+        new_keyframes = keyframe_policy(g) if changes.keys() & set(LIVE_KEYFRAMES) else None
+        new_sync = sync_params(g) if changes.keys() & set(LIVE_SYNC) else None
+        if new_flow is not None:
+            self.flow_params = self.frontend.params = new_flow
+        if new_keyframes is not None:
+            self.frontend.keyframes = new_keyframes
+        if new_sync is not None:    # keep the synchroniser's own fields (queue bounds) that are not parameters
+            self.sync.params = dataclasses.replace(self.sync.params, slop_s=new_sync.slop_s,
+                                                   max_wait_s=new_sync.max_wait_s,
+                                                   joint_extrapolation_s=new_sync.joint_extrapolation_s)
+        if 'diagnostics_period_s' in changes:
+            set_timer_period(self.diag_timer, float(g('diagnostics_period_s')))
+
     # -------------------------------------------------------------------------------------- diagnostics
     def _publish_diagnostics(self) -> None:
         s = self.sync.stats
@@ -159,9 +188,9 @@ class FlowNode(Node):
                                                                     values)])
 
 
-def main(args: list[str] | None = None) -> None:
-    spin_node(FlowNode, args)
+def main(args: list[str] | None = None) -> int:
+    return run_node(FlowNode, 'flow_node', args)
 
 
 if __name__ == '__main__':
-    main()
+    sys.exit(main())

@@ -9,19 +9,22 @@ paths are logged and written as JSON ``{"right": ..., "left": ...}`` to ``pty_fi
 
 When the trajectory ends it publishes a final diagnostics status and, with ``exit_at_end``, stops
 (``main`` returns); otherwise it keeps rendering the final pose (or loops, with ``loop``).
+
+Parameters (:data:`fixego_ros.pipeline.params.SIM_RIG_NODE_PARAMS`) are checked at start (one line and exit
+code 2 for a bad one) and are all read-only: they shape the world and trajectory built at start.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
-from rcl_interfaces.msg import ParameterDescriptor, ParameterType
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image
 from std_srvs.srv import Trigger
@@ -34,21 +37,20 @@ from fixego_ros.nodes.common import (
     SENSOR_QOS,
     WARN,
     array_to_image,
+    declare_parameters,
     diagnostic_status,
     publish_diagnostics,
-    spin_node,
+    run_node,
 )
+from fixego_ros.pipeline.params import SIM_RIG_NODE_PARAMS
 from fixego_ros.sim.bag_writer import camera_info_msg, pose_msg
 from fixego_ros.sim.render import Renderer
 from fixego_ros.sim.run import resize_rig, rig_with_hfov
-from fixego_ros.sim.trajectories import NAMES, make_trajectory
+from fixego_ros.sim.trajectories import make_trajectory
 from fixego_ros.sim.world import make_room
 
 SIDES = ('right', 'left')
-
-
-def _desc(text: str, kind: int, read_only: bool = True) -> ParameterDescriptor:
-    return ParameterDescriptor(description=text, type=kind, read_only=read_only)
+PARAMS = SIM_RIG_NODE_PARAMS
 
 
 class SimRigNode(Node):
@@ -56,43 +58,15 @@ class SimRigNode(Node):
 
     def __init__(self, **kwargs) -> None:
         super().__init__('sim_rig_node', **kwargs)
-        S, D, I, B = (ParameterType.PARAMETER_STRING, ParameterType.PARAMETER_DOUBLE,
-                      ParameterType.PARAMETER_INTEGER, ParameterType.PARAMETER_BOOL)
-        params = {
-            'trajectory': ('paper', _desc(f'trajectory: {", ".join(NAMES)}', S)),
-            'speed': (0.0, _desc('rig speed in m/s (0: the trajectory default)', D)),
-            'duration': (0.0, _desc('truncate the trajectory to this many seconds (0: whole)', D)),
-            'fps': (30.0, _desc('frame rate of both cameras', D)),
-            'time_scale': (1.0, _desc('trajectory seconds per wall-clock second (0 freezes the rig)', D)),
-            'rig_file': ('', _desc('rig calibration file (empty: config/rig.yaml)', S)),
-            'width': (0, _desc('image width (0: the rig file; intrinsics scaled)', I)),
-            'height': (0, _desc('image height (0: the rig file; intrinsics scaled)', I)),
-            'hfov_deg': (0.0, _desc('horizontal angle of view in deg (0: the rig file; papers: 21)', D)),
-            'seed': (0, _desc('seed of textures, noise and the random trajectory', I)),
-            'encoding': ('mono8', _desc('mono8 or rgb8', S)),
-            'noise_sigma': (2.0, _desc('sensor noise sigma in grey levels', D)),
-            'texel': (0.002, _desc('texture resolution in m', D)),
-            'loop': (False, _desc('restart the trajectory at its end', B)),
-            'exit_at_end': (True, _desc('shut the node down when the trajectory ends (not looping)', B)),
-            'wait_for_start': (False, _desc('hold the rig at the start pose (still rendering) until ~/start is '
-                                            'called, so the other nodes can come up and fixate first', B)),
-            'pty_file': ('/tmp/fixego_sim_ptys.json', _desc('JSON file receiving the two pty paths', S)),
-            'profile': ('evi_d30', _desc('VISCA camera profile of the emulators', S)),
-            'baud': (9600, _desc('emulated serial baud rate', I)),
-            'start_pan_deg_right': (22.5, _desc('initial pan of the right head (deg)', D)),
-            'start_pan_deg_left': (-22.5, _desc('initial pan of the left head (deg)', D)),
-            'start_tilt_deg': (0.0, _desc('initial tilt of both heads (deg)', D)),
-        }
-        for name, (default, desc) in params.items():
-            self.declare_parameter(name, default, desc)
-        p = {name: self.get_parameter(name).value for name in params}
-        if p['trajectory'] not in NAMES:
-            raise ValueError(f'trajectory must be one of {NAMES}, got {p["trajectory"]!r}')
-        if p['fps'] <= 0:
-            raise ValueError(f'fps must be > 0, got {p["fps"]}')
+        g = declare_parameters(self, PARAMS)
+        g.start(lambda changes, getter: None, ())      # every parameter is read-only
+        p = {name: g(name) for name in PARAMS}
         self.p = p
 
-        rig = load_rig(p['rig_file'] or default_rig_path())
+        rig_notes: list[str] = []
+        rig = load_rig(p['rig_file'] or default_rig_path(), warnings=rig_notes)
+        for note in rig_notes:
+            self.get_logger().warning(note)
         if p['width'] > 0 or p['height'] > 0:
             w = p['width'] or round(rig.right.width * p['height'] / rig.right.height)
             h = p['height'] or round(rig.right.height * p['width'] / rig.right.width)
@@ -241,9 +215,9 @@ class SimRigNode(Node):
                 pass
 
 
-def main(args=None) -> None:
-    spin_node(SimRigNode, args, finished=lambda n: n.finished)
+def main(args: list[str] | None = None) -> int:
+    return run_node(SimRigNode, 'sim_rig_node', args, finished=lambda n: n.finished)
 
 
 if __name__ == '__main__':
-    main()
+    sys.exit(main())
