@@ -25,6 +25,7 @@ from fixego_ros.pipeline.params import (
     load_params_file,
     main,
     params_getter,
+    parse_value,
     render_config,
     write_config,
 )
@@ -328,3 +329,44 @@ def test_a_node_cannot_start_with_a_run_time_parameter_it_does_not_apply(ros_con
         g.start(lambda changes, getter: None, ('fb_max_px',))
     finally:
         node.destroy_node()
+
+
+# ------------------------------------------------------------------------------- parameter-file structure
+@pytest.mark.parametrize('text, message', [
+    ('flow_node:\n  ros__parameters:\n    bogus: 1\n', "unknown parameter 'bogus'"),
+    ('flow_node:\n  ros__parameters:\n    min_eg: 0.001\n', "did you mean 'min_eig'"),
+    ('bogus_node:\n  ros__parameters:\n    min_eig: 0.001\n', "unknown node 'bogus_node'"),
+    ('flow_node:\n  min_eig: 0.001\n', 'expected only ros__parameters'),
+    ('flow_node:\n  ros__parameters:\n    - min_eig\n', 'expected only ros__parameters'),
+    ('- a\n', 'not a ROS 2 parameter file'),
+    ('42\n', 'not a ROS 2 parameter file'),
+    ('/fixego/flow_node:\n  ros__parameters:\n    min_eig: .nan\n', 'not finite'),
+    ('right_camera_node:\n  ros__parameters:\n    ncc_min: 2.0\n', 'out of range'),
+    ('/**:\n  ros__parameters:\n    nonsense: 1\n', "unknown parameter 'nonsense'"),
+    ('flow_node:\n  ros__parameters: [\n', 'cannot read parameters'),
+])
+def test_parameter_file_structure_and_names_are_checked(tmp_path, text, message):
+    f = tmp_path / 'p.yaml'
+    f.write_text(text)
+    with pytest.raises(ParamsError, match=message) as e:
+        load_params_file(f, 'flow_node')
+    assert str(f) in str(e.value) and '\n' not in str(e.value)
+
+
+def test_parameter_file_blocks_apply_by_node_name_namespace_and_wildcard(tmp_path):
+    f = tmp_path / 'p.yaml'
+    f.write_text('/**:\n  ros__parameters:\n    min_eig: 0.002\n    diagnostics_period_s: 2.0\n'
+                 '/robot1/flow_node:\n  ros__parameters:\n    lk_win: 15\n'
+                 'right_camera_node:\n  ros__parameters:\n    ncc_min: 0.5\n')
+    assert load_params_file(f, 'flow_node') == {'min_eig': 0.002, 'diagnostics_period_s': 2.0, 'lk_win': 15}
+    assert load_params_file(f, 'estimator_node') == {'diagnostics_period_s': 2.0}
+
+
+def test_numbers_written_without_a_dot_are_numbers():
+    """YAML 1.1 reads 1e6 as a string; ROS reads it as a number, and so do we."""
+    spec = NODE_PARAMS['estimator_node']['fixation_weight']
+    assert spec.check('1e6') == 1e6 and spec.check(parse_value('fixation_weight', '1e-3')) == 1e-3
+    with pytest.raises(ParamsError, match='out of range'):
+        spec.check('1e308')
+    with pytest.raises(ParamsError, match='is not a YAML value'):
+        parse_value('min_eig', '[')

@@ -15,6 +15,7 @@ import argparse
 import difflib
 import json
 import math
+import re
 import sys
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -37,6 +38,9 @@ from fixego_ros.visca.driver import MAX_TIMEOUT_S
 
 Value = bool | int | float | str | list[str]
 Getter = Callable[[str], object]
+
+
+_NUMBER = re.compile(r'[-+]?(\d+\.?\d*|\.\d+)[eE][-+]?\d+')
 
 
 class ParamsError(ValueError):
@@ -125,6 +129,10 @@ class ParamSpec:
             if not isinstance(value, (list, tuple)) or not all(isinstance(x, str) for x in value):
                 raise self._error(value, 'has the wrong type')
             return list(value)
+        if isinstance(value, str) and _NUMBER.fullmatch(value.strip()):
+            value = float(value)       # YAML 1.1 reads 1e6 (no dot) as a string; ROS's own parser takes it as a number
+            if t is int and value.is_integer():
+                value = int(value)
         if isinstance(value, bool) or not isinstance(value, (int, float)) or (t is int and isinstance(value, float)):
             raise self._error(value, 'has the wrong type')
         v: int | float = float(value) if t is float else int(value)
@@ -536,21 +544,87 @@ def check_values(table: Mapping[str, ParamSpec | tuple[object, str]], values: Ma
     return {k: spec_of(k, table[k]).check(v) if k in table else v for k, v in values.items()}
 
 
-def load_params_file(path: str | Path, node: str) -> dict[str, object]:
-    """``ros__parameters`` of ``node`` in a ROS 2 parameter YAML file ({} when the file has no such node),
-    every parameter the node has checked against its spec (:class:`ParamsError` names the file)."""
+WILDCARDS = ('/**', '**')
+
+
+def _node_of(key: object) -> str | None:
+    """The node a parameter-file block is for: ``node``, ``/ns/node``, a renamed ``right_camera_node`` (its
+    last path segment names or ends with ``_<node>``), the wildcards (``'**'``), or None (unknown)."""
+    text = str(key)
+    if text in WILDCARDS:
+        return '**'
+    seg = text.rstrip('/').split('/')[-1]
+    for node in NODE_PARAMS:
+        if seg == node or seg.endswith('_' + node):
+            return node
+    return None
+
+
+def parse_value(name: str, text: str) -> object:
+    """A ``-p NAME:=VALUE`` value as ROS reads it (YAML), or :class:`ParamsError` naming the parameter."""
     try:
-        data = yaml.safe_load(Path(path).read_text()) or {}
-    except (OSError, yaml.YAMLError) as e:
-        raise ParamsError(f'{path}: cannot read parameters ({type(e).__name__}: {e})') from None
-    for key in (node, f'/{node}', '/**', '**'):
-        block = data.get(key) if isinstance(data, dict) else None
-        if isinstance(block, dict) and isinstance(block.get('ros__parameters'), dict):
+        return yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        where = f' (line {e.problem_mark.line + 1})' if getattr(e, 'problem_mark', None) else ''
+        raise ParamsError(f'parameter {name}: {text!r} is not a YAML value{where}') from None
+
+
+def read_params_file(path: str | Path) -> dict[str, dict[str, object]]:
+    """Every block of a ROS 2 parameter file (``{node: {ros__parameters: {name: value}}}``), checked: the
+    structure, the node names, and each parameter against the spec of its node, so a misspelt name or node
+    is an error (one line naming the file, the block and the closest known name), not silently ignored."""
+    try:
+        data = yaml.safe_load(Path(path).read_text())
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as e:
+        reason = str(e).splitlines()[0] if str(e) else type(e).__name__
+        raise ParamsError(f'{path}: cannot read parameters ({type(e).__name__}: {reason})') from None
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise ParamsError(f'{path}: not a ROS 2 parameter file (the top level must map node names to '
+                          '{ros__parameters: {name: value}})')
+    out: dict[str, dict[str, object]] = {}
+    for key, block in data.items():
+        node = _node_of(key)
+        if node is None:
+            close = difflib.get_close_matches(str(key), list(NODE_PARAMS), n=1)
+            hint = f" (did you mean '{close[0]}'?)" if close else f" (known: {', '.join(NODE_PARAMS)}, /**)"
+            raise ParamsError(f'{path}: unknown node {key!r}{hint}')
+        if not (isinstance(block, dict) and list(block) == ['ros__parameters']
+                and isinstance(block['ros__parameters'], dict)):
+            raise ParamsError(f'{path}: {key}: expected only ros__parameters: {{name: value, ...}}')
+        params = block['ros__parameters']
+        tables = list(NODE_PARAMS.values()) if node == '**' else [NODE_PARAMS[node]]
+        for name, value in params.items():
+            owners = [t[name] for t in tables if name in t]
+            if not owners:
+                known = sorted({n for t in tables for n in t})
+                close = difflib.get_close_matches(str(name), known, n=1)
+                hint = f" (did you mean '{close[0]}'?)" if close else ''
+                raise ParamsError(f'{path}: {key}: unknown parameter {name!r}{hint}')
             try:
-                return check_values(NODE_PARAMS.get(node, {}), dict(block['ros__parameters']))
+                for spec in owners:
+                    spec.check(value)
             except ParamsError as e:
-                raise ParamsError(f'{path}: {node}: {e}') from None
-    return {}
+                raise ParamsError(f'{path}: {key}: {e}') from None
+        out[str(key)] = dict(params)
+    return out
+
+
+def load_params_file(path: str | Path, node: str) -> dict[str, object]:
+    """The values a node named ``node`` takes from a ROS 2 parameter file: the wildcard blocks, then the
+    blocks keyed ``node`` or ``/ns/node`` (later wins), each checked against its spec ({} when none applies).
+    The whole file is checked (:func:`read_params_file`), so an error elsewhere in it is reported too."""
+    table = NODE_PARAMS.get(node, {})
+    values: dict[str, object] = {}
+    blocks = read_params_file(path)
+    for key, params in sorted(blocks.items(), key=lambda kv: kv[0] not in WILDCARDS):
+        if key in WILDCARDS or key.rstrip('/').split('/')[-1] == node:
+            values.update({k: v for k, v in params.items() if k in table or key not in WILDCARDS})
+    try:
+        return check_values(table, values)
+    except ParamsError as e:
+        raise ParamsError(f'{path}: {node}: {e}') from None
 
 
 def params_getter(table: Mapping[str, ParamSpec | tuple[object, str]],
