@@ -152,8 +152,13 @@ def test_rig_file_errors_name_the_file(tmp_path):
     p.write_text('right: [1, 2\n')
     with pytest.raises(RigError, match='not valid YAML'):
         load_rig(p)
-    with pytest.raises(RigError, match='cannot read'):
+    with pytest.raises(RigError, match=r'missing\.yaml: does not exist'):
         load_rig(tmp_path / 'missing.yaml')
+    with pytest.raises(RigError, match='not a regular file'):
+        load_rig(tmp_path)
+    p.write_bytes(bytes(range(256)) * 8)
+    with pytest.raises(RigError, match=r'bad.yaml: not text \(UTF-8\)'):
+        load_rig(p)
 
 
 # ------------------------------------------------------------------------------------ rig file: keys and values

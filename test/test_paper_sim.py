@@ -30,4 +30,4 @@ def test_paper_sim_writes_report_and_plots(tmp_path):
 
 def test_paper_sim_rejects_unknown_preset(tmp_path, capsys):
     assert main(['paper-sim', '--out', str(tmp_path), '--presets', 'nope']) == 2
-    assert 'unknown preset' in capsys.readouterr().out
+    assert 'unknown preset' in capsys.readouterr().err

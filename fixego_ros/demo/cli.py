@@ -18,52 +18,92 @@ from pathlib import Path
 
 import numpy as np
 
+from fixego_ros.sim.cli import (
+    DURATION_MAX,
+    FPS_RANGE,
+    SEED_MAX,
+    SIZE_RANGE,
+    OptionError,
+    check_float,
+    check_int,
+    image_size,
+    one_line_errors,
+    prepare_out_dir,
+    read_rig,
+)
+from fixego_ros.sim.run import resize_rig
 from fixego_ros.sim.trajectories import NAMES
+
+PROG = 'fixego demo'
+READY_TIMEOUT_MAX = 3600.0     # s
+DOMAIN_ID_MAX = 232            # ROS 2 domain ids 0..232 (as `fixego record --domain-id`)
 
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
         'demo', help='run the live pipeline on the simulated rig and write a report',
         description='Simulated rig + two camera nodes over VISCA on pseudo-terminals + flow + estimator, '
-                    'as separate processes over DDS; exits by itself and writes a report folder.')
-    p.add_argument('--out', type=Path, default=Path('demo_out'), help='report folder (default demo_out)')
+                    'as separate processes over DDS; exits by itself and writes a report folder. Every option is '
+                    'checked before any process is started (exit code 2, one line).')
+    p.add_argument('--out', default='demo_out', help='report folder (default demo_out; reused if it exists)')
     p.add_argument('--trajectory', choices=NAMES, default='paper', help='rig trajectory (default paper)')
-    p.add_argument('--duration', type=float, default=0.0, help='stop the trajectory after this many seconds')
-    p.add_argument('--fps', type=float, default=30.0, help='camera frame rate (default 30)')
+    p.add_argument('--duration', type=float, default=0.0,
+                   help=f'stop the trajectory after this many seconds, in [0, {DURATION_MAX:g}] (0: whole, default)')
+    p.add_argument('--fps', type=float, default=30.0,
+                   help=f'camera frame rate in [{FPS_RANGE[0]:g}, {FPS_RANGE[1]:g}] (default 30)')
     p.add_argument('--rig', type=Path, help='rig file (default config/rig.yaml)')
-    p.add_argument('--width', type=int, default=0, help='image width (intrinsics scaled; default: the rig file)')
-    p.add_argument('--height', type=int, default=0, help='image height')
+    p.add_argument('--width', type=int, help=f'image width, {SIZE_RANGE[0]}..{SIZE_RANGE[1]} px (intrinsics scaled; '
+                                             'default: the rig file\'s)')
+    p.add_argument('--height', type=int, help=f'image height, {SIZE_RANGE[0]}..{SIZE_RANGE[1]} px')
     p.add_argument('--preset', choices=('paper', 'window', 'full'), default='window', help='flow points')
-    p.add_argument('--window', type=int, default=3, help='local BA frames n (0 disables; default 3)')
+    p.add_argument('--window', type=int, default=3, help='local BA frames n: 3..10, or 0 (disabled) or 1 (default 3)')
     p.add_argument('--mode', choices=('paper', 'joint'), default='paper', help='local BA mode')
-    p.add_argument('--seed', type=int, default=0, help='seed of the simulated world')
-    p.add_argument('--domain-id', type=int, help='ROS_DOMAIN_ID for every process (default: inherited)')
-    p.add_argument('--ready-timeout', type=float, default=90.0, help='bound on start-up (s)')
+    p.add_argument('--seed', type=int, default=0, help=f'seed of the simulated world, 0..{SEED_MAX}')
+    p.add_argument('--domain-id', type=int,
+                   help=f'ROS_DOMAIN_ID for every process, 0..{DOMAIN_ID_MAX} (default: inherited)')
+    p.add_argument('--ready-timeout', type=float, default=90.0,
+                   help=f'bound on start-up in s, in (0, {READY_TIMEOUT_MAX:g}] (default 90)')
     p.add_argument('--quiet', action='store_true', help='no progress lines')
+    one_line_errors(p)
     p.set_defaults(func=run)
 
 
-def _rig_file(args: argparse.Namespace, out: Path) -> Path:
-    """The rig all nodes use, written to the report folder (resized when asked)."""
-    from fixego_ros.geometry.rig import default_rig_path, load_rig
-    from fixego_ros.sim.run import resize_rig
-    rig = load_rig(args.rig or default_rig_path())
-    if args.width or args.height:
-        w = args.width or round(rig.right.width * args.height / rig.right.height)
-        h = args.height or round(rig.right.height * args.width / rig.right.width)
-        rig = resize_rig(rig, w, h)
-    path = out / 'rig.yaml'
-    rig.save(path)
-    return path
+def check_args(args: argparse.Namespace):
+    """Every option, before any process is started: the rig (resized when asked); raises OptionError (one line).
+    ``--out`` is checked (and created) afterwards, by :func:`run`, once everything else is known to be usable."""
+    from fixego_ros.pipeline.params import ESTIMATOR_PARAMS, ParamsError
+
+    check_float(args.duration, '--duration', 0.0, DURATION_MAX, unit='s', note=' (0: the whole trajectory)')
+    check_float(args.fps, '--fps', *FPS_RANGE, unit='frames per second')
+    check_int(args.seed, '--seed', 0, SEED_MAX)
+    check_float(args.ready_timeout, '--ready-timeout', 0.0, READY_TIMEOUT_MAX, lo_open=True, unit='s')
+    if args.domain_id is not None:
+        check_int(args.domain_id, '--domain-id', 0, DOMAIN_ID_MAX, note=' (ROS 2 domain ids)')
+    spec = ESTIMATOR_PARAMS['window']
+    try:
+        spec.check(args.window)
+    except ParamsError:
+        raise OptionError(f'--window must be an {spec.allowed()} (estimator_node window), got {args.window!r}') \
+            from None
+    if not args.out or not args.out.strip():
+        raise OptionError('--out must name an output directory, got an empty path')
+    rig = read_rig(args.rig)
+    size = image_size(rig, args.width, args.height)
+    return resize_rig(rig, *size) if size is not None else rig
 
 
 def run(args: argparse.Namespace) -> int:
-    out = args.out
-    out.mkdir(parents=True, exist_ok=True)
     try:
-        rig_path = _rig_file(args, out)
+        rig = check_args(args)
+        out = prepare_out_dir(args.out, '--out')     # last: creates the folder
+    except (OptionError, ValueError) as e:
+        print(f'{PROG}: {" ".join(str(e).split())}', file=sys.stderr)
+        return 2
+    rig_path = out / 'rig.yaml'
+    try:
+        rig.save(rig_path)
     except (OSError, ValueError) as e:
-        print(f'fixego demo: {e}', file=sys.stderr)
+        print(f'{PROG}: cannot write {rig_path}: {" ".join(str(e).split())}', file=sys.stderr)
         return 2
     env = dict(os.environ)
     env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')

@@ -203,43 +203,84 @@ def _job(args: tuple[str, int, int, int]) -> tuple[str, dict[str, Any]]:
     return name, run_preset(name, PRESETS[name], trials, trials_seq, seed)
 
 
-def main(args: argparse.Namespace) -> int:
-    names = [n.strip() for n in args.presets.split(',') if n.strip()]
+PROG = 'fixego paper-sim'
+TRIALS_MAX = 1_000_000
+JOBS_MAX = 64          # processes: one per preset is all that can run at once anyway
+SEED_MAX = 2**32 - 1
+
+
+def check_args(args: argparse.Namespace) -> list[str]:
+    """Every option, before any work: the preset names; raises OptionError (one line naming the option)."""
+    from fixego_ros.sim.cli import OptionError, check_int
+    names = [n.strip() for n in args.presets.split(',')]
+    if not args.presets.strip() or not any(names):
+        raise OptionError(f'--presets must name at least one preset of {", ".join(PRESETS)}, got {args.presets!r}')
+    if '' in names:
+        raise OptionError(f'--presets {args.presets!r}: an empty name (stray comma); known: {", ".join(PRESETS)}')
     bad = [n for n in names if n not in PRESETS]
     if bad:
-        print(f'unknown preset(s) {bad}; known: {sorted(PRESETS)}')
+        raise OptionError(f'--presets: unknown preset(s) {", ".join(map(repr, bad))}; known: {", ".join(PRESETS)}')
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:
+        raise OptionError(f'--presets {args.presets!r}: {", ".join(twice)} given more than once')
+    check_int(args.trials, '--trials', 2, TRIALS_MAX, note=" (two-step trials; Welch's test needs two)")
+    check_int(args.trials_seq, '--trials-seq', 2, TRIALS_MAX, note=" (sequence trials; Welch's test needs two)")
+    check_int(args.seed, '--seed', 0, SEED_MAX)
+    check_int(args.jobs, '--jobs', 1, JOBS_MAX, note=' (parallel processes)')
+    if not args.out or not args.out.strip():
+        raise OptionError('--out must name an output directory, got an empty path')
+    return names
+
+
+def main(args: argparse.Namespace) -> int:
+    """``fixego paper-sim``: exit code 0 done; 2 an option cannot be used (one ``fixego paper-sim: ...`` line on
+    stderr before any work; nothing created), or the report cannot be written."""
+    import sys
+
+    from fixego_ros.sim.cli import OptionError, prepare_out_dir
+    try:
+        names = check_args(args)
+        out = prepare_out_dir(args.out, '--out')      # last: creates the folder
+    except OptionError as e:
+        print(f'{PROG}: {e}', file=sys.stderr)
         return 2
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     jobs = [(n, args.trials, args.trials_seq, args.seed) for n in names]
     report: dict[str, Any] = {'seed': args.seed, 'presets': {}}
     if args.jobs > 1 and len(jobs) > 1:
-        with ProcessPoolExecutor(max_workers=args.jobs) as pool:
+        with ProcessPoolExecutor(max_workers=min(args.jobs, len(jobs))) as pool:
             results = list(pool.map(_job, jobs))
     else:
         results = [_job(j) for j in jobs]
-    for name, res in results:
-        report['presets'][name] = res
-        plot_preset(name, res, out / f'paper_sim_{name}.png')
-        two = res['two_steps']
-        te = {k: two[k]['translation_error'] for k in ('raw', *BA_MODES)}
-        re_ = {k: two[k]['rotation_error'] for k in ('raw', *BA_MODES)}
-        print(f'[{name}] translation error: two-frame {te["raw"]["mean"]:.3g} ± {te["raw"]["std"]:.3g} '
-              f'(CRB RMS {two["crb"]["translation_error_rms"]:.3g}), BA paper {te["paper"]["mean"]:.3g}, '
-              f'joint {te["joint"]["mean"]:.3g}; rotation error: two-frame {re_["raw"]["mean"]:.3g}, '
-              f'BA paper {re_["paper"]["mean"]:.3g}, joint {re_["joint"]["mean"]:.3g} ({res["seconds"]:.0f} s)')
-    (out / 'report.json').write_text(json.dumps(report, indent=1))
+    try:
+        for name, res in results:
+            report['presets'][name] = res
+            plot_preset(name, res, out / f'paper_sim_{name}.png')
+            two = res['two_steps']
+            te = {k: two[k]['translation_error'] for k in ('raw', *BA_MODES)}
+            re_ = {k: two[k]['rotation_error'] for k in ('raw', *BA_MODES)}
+            print(f'[{name}] translation error: two-frame {te["raw"]["mean"]:.3g} ± {te["raw"]["std"]:.3g} '
+                  f'(CRB RMS {two["crb"]["translation_error_rms"]:.3g}), BA paper {te["paper"]["mean"]:.3g}, '
+                  f'joint {te["joint"]["mean"]:.3g}; rotation error: two-frame {re_["raw"]["mean"]:.3g}, '
+                  f'BA paper {re_["paper"]["mean"]:.3g}, joint {re_["joint"]["mean"]:.3g} ({res["seconds"]:.0f} s)')
+        (out / 'report.json').write_text(json.dumps(report, indent=1))
+    except OSError as e:
+        print(f'{PROG}: cannot write to {out}: {e.strerror or e}', file=sys.stderr)
+        return 2
     print(f'wrote {out / "report.json"} and {len(results)} plot(s)')
     return 0
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser('paper-sim', help="the papers' numerical experiments (§4.1): JSON + plots")
-    p.add_argument('--out', default='paper_sim', help='output folder (report.json, PNGs)')
+    from fixego_ros.sim.cli import one_line_errors
+    p = sub.add_parser('paper-sim', help="the papers' numerical experiments (§4.1): JSON + plots",
+                       description="The papers' numerical experiments (§4.1): report.json and one PNG per preset. "
+                                   'Every option is checked before any work (exit code 2, one line).')
+    p.add_argument('--out', default='paper_sim', help='output folder (report.json, PNGs; created or reused)')
     p.add_argument('--presets', default='paper,dense,jp_2m,jp_10m', help='comma-separated: ' + ','.join(PRESETS))
-    p.add_argument('--trials', type=int, default=200, help='trials of experiment 1 (two steps)')
-    p.add_argument('--trials-seq', type=int, default=30, help='trials of experiments 2 and 3 (sequences)')
-    p.add_argument('--seed', type=int, default=0)
-    p.add_argument('--jobs', type=int, default=2, help='presets run in parallel processes')
+    p.add_argument('--trials', type=int, default=200, help=f'trials of experiment 1 (two steps), 2..{TRIALS_MAX}')
+    p.add_argument('--trials-seq', type=int, default=30,
+                   help=f'trials of experiments 2 and 3 (sequences), 2..{TRIALS_MAX}')
+    p.add_argument('--seed', type=int, default=0, help=f'0..{SEED_MAX} (default 0)')
+    p.add_argument('--jobs', type=int, default=2, help=f'presets run in parallel processes, 1..{JOBS_MAX} (default 2)')
+    one_line_errors(p)
     p.set_defaults(func=main)
-

@@ -325,11 +325,20 @@ def rig_from_dict(d: Any, warnings: list[str] | None = None) -> Rig:
     return Rig(right, left, R_L, c_L, *calibrations, extra)
 
 
+MAX_RIG_FILE_BYTES = 1 << 20    # a rig file is a few hundred bytes; anything this large is the wrong file
+
+
 def load_rig(path: str | Path, warnings: list[str] | None = None) -> Rig:
     """Load and validate a rig YAML file; errors and ``warnings`` (see :func:`rig_from_dict`) name the file."""
     path = Path(path)
     try:
+        if not path.is_file():
+            raise RigError(f'rig file {path}: ' + ('not a regular file' if path.exists() else 'does not exist'))
+        if path.stat().st_size > MAX_RIG_FILE_BYTES:
+            raise RigError(f'rig file {path}: larger than {MAX_RIG_FILE_BYTES} bytes, not a rig file')
         data = yaml.safe_load(path.read_text())
+    except UnicodeDecodeError:
+        raise RigError(f'rig file {path}: not text (UTF-8)') from None
     except OSError as e:
         raise RigError(f'rig file {path}: cannot read ({e.strerror})') from None
     except yaml.YAMLError as e:

@@ -388,8 +388,8 @@ ESTIMATOR_NODE_PARAMS: Table = _table(
 
 SIM_RIG_NODE_PARAMS: Table = _table(
     _str('trajectory', 'paper', f'trajectory: {", ".join(TRAJECTORIES)}', choices=TRAJECTORIES),
-    _num('speed', 0.0, 'rig speed in m/s (0: the trajectory default)', ge=0.0, le=100.0),
-    _num('duration', 0.0, 'truncate the trajectory to this many seconds (0: whole)', ge=0.0),
+    _num('speed', 0.0, 'rig speed in m/s (0: the trajectory default)', ge=0.01, le=100.0, also=(0.0,)),
+    _num('duration', 0.0, 'truncate the trajectory to this many seconds (0: whole)', ge=0.0, le=3600.0),
     _num('fps', 30.0, 'frame rate of both cameras', gt=0.0, le=1000.0),
     _num('time_scale', 1.0, 'trajectory seconds per wall-clock second (0 freezes the rig)', ge=0.0, le=1000.0),
     _str('rig_file', '', 'rig calibration file (empty: config/rig.yaml)'),
@@ -399,7 +399,7 @@ SIM_RIG_NODE_PARAMS: Table = _table(
     _num('seed', 0, 'seed of textures, noise and the random trajectory', ge=0, le=2**32 - 1),
     _str('encoding', 'mono8', 'mono8 or rgb8', choices=('mono8', 'rgb8')),
     _num('noise_sigma', 2.0, 'sensor noise sigma in grey levels', ge=0.0, le=255.0),
-    _num('texel', 0.002, 'texture resolution in m', gt=0.0, le=1.0),
+    _num('texel', 0.002, 'texture resolution in m', ge=0.001, le=1.0),
     _bool('loop', False, 'restart the trajectory at its end'),
     _bool('exit_at_end', True, 'shut the node down when the trajectory ends (not looping)'),
     _bool('wait_for_start', False, 'hold the rig at the start pose (still rendering) until ~/start is called, so '

@@ -1,81 +1,388 @@
-"""``fixego sim``: write an image-level bag from the simulated rig (DESIGN.md §6)."""
+"""``fixego sim``: write an image-level bag from the simulated rig (DESIGN.md §6).
+
+Exit codes: 0 the bag is written; 2 an option cannot be used: one ``fixego sim: ...`` line on stderr naming
+the option, its value and what is allowed, printed before anything is simulated or created (the numbers
+are checked for finiteness and range, the rig file is read, and ``--out`` is probed by creating and
+removing the directory); 1 the simulation or the writing failed part way (one line): the incomplete bag
+directory is removed, so the same ``--out`` can be used again; 128 + the signal number (130 Ctrl-C,
+143 SIGTERM) when interrupted, also without leaving a partial bag. Never a traceback for these.
+
+The option checks (:func:`check_float`, :func:`check_int`, :func:`check_new_dir`, :func:`prepare_out_dir`,
+:func:`read_rig`, :func:`one_line_errors`) are shared with ``fixego demo`` and ``fixego paper-sim``.
+"""
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import math
+import shutil
+import signal
 import sys
+import tempfile
+import threading
+from collections.abc import Iterable, Iterator
 from pathlib import Path
+from typing import NoReturn
 
+from fixego_ros.sim.run import (
+    DURATION_MAX,
+    FPS_RANGE,
+    HFOV_RANGE,
+    MAX_FRAMES,
+    NOISE_RANGE,
+    SEED_MAX,
+    SIZE_RANGE,
+    SPEED_RANGE,
+    STEPS_RANGE,
+    TEXEL_RANGE,
+    SimSettings,
+    build_trajectory,
+    resize_rig,
+    rig_with_hfov,
+)
 from fixego_ros.sim.trajectories import NAMES
 
+PROG = 'fixego sim'
+# upper limits of the optional topics' noise (fixego_ros.sim.bag_writer only refuses negative/non-finite ones)
+WHEEL_ODOM_STD_MAX = 10.0        # m/s: beyond it the "speed aid" is noise (and 1e308 overflows to inf)
+VERGENCE_STD_MAX = 1.0           # relative, exclusive: a 100 % error is no measurement (and 1e308 writes inf)
 
+
+class OptionError(ValueError):
+    """An option that cannot be used; the message is one line naming the option, its value and what is allowed."""
+
+
+# ------------------------------------------------------------------------------------------------ checks
+def one_line_errors(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """argparse's own errors of ``parser`` (``--fps abc``, a missing ``--out``, ``--fps -inf`` read as an
+    option, ...) as one ``PROG: ...`` line and exit code 2, like the checks below (not usage + error)."""
+    def error(message: str) -> NoReturn:
+        parser.exit(2, f'{parser.prog}: {" ".join(message.split())} (see {parser.prog} --help)\n')
+
+    parser.error = error     # type: ignore[method-assign]
+    return parser
+
+
+def _interval(lo: float, hi: float, lo_open: bool, hi_open: bool) -> str:
+    return f'{"(" if lo_open else "["}{lo:g}, {hi:g}{")" if hi_open else "]"}'
+
+
+def check_float(value: float, option: str, lo: float, hi: float, *, lo_open: bool = False, hi_open: bool = False,
+                unit: str = '', note: str = '') -> float:
+    """``value`` if finite and within the interval, else :class:`OptionError` naming ``option`` and the value."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        v = math.nan
+    ok = math.isfinite(v) and (v > lo if lo_open else v >= lo) and (v < hi if hi_open else v <= hi)
+    if not ok:
+        raise OptionError(f'{option} must be a finite number in {_interval(lo, hi, lo_open, hi_open)}'
+                          f'{" " + unit if unit else ""}{note}, got {value!r}')
+    return v
+
+
+def check_int(value: int, option: str, lo: int, hi: int, *, also: Iterable[int] = (), note: str = '') -> int:
+    """``value`` if an integer in ``lo..hi`` (or one of ``also``), else :class:`OptionError`."""
+    also = tuple(also)
+    if isinstance(value, bool) or not isinstance(value, int) or not (lo <= value <= hi or value in also):
+        extra = ''.join(f' or {a}' for a in also)
+        raise OptionError(f'{option} must be an integer in {lo}..{hi}{extra}{note}, got {value!r}')
+    return value
+
+
+def _why(e: OSError) -> str:
+    return e.strerror or type(e).__name__
+
+
+def check_new_dir(text: str, option: str = '--out') -> Path:
+    """A directory that the command will create: a non-empty path that does not exist, in an existing writable
+    directory. Probed by creating and removing it, so ``/proc/x`` (which root may 'access') is refused too."""
+    if not text or not text.strip():
+        raise OptionError(f'{option} must name a directory to create, got an empty path')
+    path = Path(text)
+    if path.exists() or path.is_symlink():
+        raise OptionError(f'{option} {text}: exists already (bags are never overwritten; choose a new directory)')
+    parent = path.parent
+    if not parent.exists():
+        raise OptionError(f'{option} {text}: the parent directory {parent} does not exist')
+    if not parent.is_dir():
+        raise OptionError(f'{option} {text}: {parent} is not a directory')
+    try:
+        path.mkdir()
+    except OSError as e:
+        raise OptionError(f'{option} {text}: cannot create the directory ({_why(e)})') from None
+    try:
+        path.rmdir()
+    except OSError as e:     # pragma: no cover - we just made it
+        raise OptionError(f'{option} {text}: cannot remove the probe directory ({_why(e)})') from None
+    return path
+
+
+def prepare_out_dir(text: str, option: str = '--out') -> Path:
+    """An output folder that may exist already (then reused) or is created with its parents, and that takes a
+    file (probed with a temporary one). Call it last, after every other check; on refusal nothing it made is
+    left behind."""
+    if not text or not text.strip():
+        raise OptionError(f'{option} must name an output directory, got an empty path')
+    path = Path(text)
+    if path.exists() and not path.is_dir():
+        raise OptionError(f'{option} {text}: exists and is not a directory')
+    made: list[Path] = []
+    if not path.exists():
+        missing = [path, *(p for p in path.parents if not p.exists())]
+        blocker = next((p for p in path.parents if p.exists()), None)
+        if blocker is not None and not blocker.is_dir():
+            raise OptionError(f'{option} {text}: {blocker} is not a directory')
+        for p in reversed(missing):
+            try:
+                p.mkdir()
+            except FileExistsError:
+                continue
+            except OSError as e:
+                _remove_dirs(made)
+                raise OptionError(f'{option} {text}: cannot create {p} ({_why(e)})') from None
+            made.append(p)
+    try:
+        with tempfile.TemporaryFile(dir=path):
+            pass
+    except OSError as e:
+        _remove_dirs(made)
+        raise OptionError(f'{option} {text}: cannot write there ({_why(e)})') from None
+    return path
+
+
+def _remove_dirs(dirs: list[Path]) -> None:
+    for d in reversed(dirs):
+        with contextlib.suppress(OSError):
+            d.rmdir()
+
+
+def read_rig(path: Path | None, option: str = '--rig'):
+    """The rig of ``path`` (default: config/rig.yaml), or :class:`OptionError` naming the file
+    (:func:`~fixego_ros.geometry.rig.load_rig` refuses what is not a small regular UTF-8 YAML rig file)."""
+    from fixego_ros.geometry.rig import default_rig_path, load_rig
+    rig_path = Path(path) if path is not None else default_rig_path()
+    try:
+        return load_rig(rig_path)
+    except ValueError as e:              # RigError: names the file already
+        msg = ' '.join(str(e).split())
+        raise OptionError(f'{option}: {msg}' if path is not None else msg) from None
+
+
+def image_size(rig, width: int | None, height: int | None) -> tuple[int, int] | None:
+    """The (width, height) asked for (the missing one from the rig's aspect ratio), checked; None = the rig's."""
+    lo, hi = SIZE_RANGE
+    if width is not None:
+        check_int(width, '--width', lo, hi, note=' px')
+    if height is not None:
+        check_int(height, '--height', lo, hi, note=' px')
+    if width is None and height is None:
+        return None
+    w = width if width is not None else round(rig.right.width * height / rig.right.height)
+    h = height if height is not None else round(rig.right.height * width / rig.right.width)
+    for name, given, v in (('height', '--width', h), ('width', '--height', w)):
+        if not lo <= v <= hi:
+            raise OptionError(f'{given} {width if given == "--width" else height} gives an image {name} of {v} px '
+                              f'with the rig\'s aspect ratio; the {name} must be in {lo}..{hi} px (pass both '
+                              f'--width and --height)')
+    return w, h
+
+
+# ------------------------------------------------------------------------------------------------ command
 def register(subparsers) -> None:
     p = subparsers.add_parser(
         'sim', help='write an image-level rosbag2/MCAP bag from the simulated rig',
         description='Simulate the rig (room, fixation servo, both cameras) along a trajectory and write '
-                    'a rosbag2/MCAP bag with the topics of DESIGN.md §3 plus BAG_DIR/rig.yaml.')
+                    'a rosbag2/MCAP bag with the topics of DESIGN.md §3 plus BAG_DIR/rig.yaml. Every option is '
+                    'checked before anything is simulated (exit code 2, one line); a run that fails part way '
+                    'removes its incomplete bag directory (exit code 1).')
     p.add_argument('--trajectory', choices=NAMES, default='paper', help='trajectory (default: paper)')
-    p.add_argument('--out', required=True, type=Path, metavar='BAG_DIR', help='bag directory to create')
+    p.add_argument('--out', required=True, metavar='BAG_DIR',
+                   help='bag directory to create (must not exist; its parent must be a writable directory)')
     p.add_argument('--rig', type=Path, help='rig file (default: config/rig.yaml)')
-    p.add_argument('--seed', type=int, default=0, help='seed of textures, noise and servo (default 0)')
-    p.add_argument('--fps', type=float, default=30.0, help='frame rate (default 30)')
-    p.add_argument('--width', type=int, help='image width (intrinsics scaled, angle of view kept)')
-    p.add_argument('--height', type=int, help='image height (intrinsics scaled)')
-    p.add_argument('--hfov', type=float, help='horizontal angle of view in degrees (replaces the intrinsics)')
+    p.add_argument('--seed', type=int, default=0, help=f'seed of textures, noise and servo, 0..{SEED_MAX} (default 0)')
+    p.add_argument('--fps', type=float, default=30.0,
+                   help=f'frame rate in [{FPS_RANGE[0]:g}, {FPS_RANGE[1]:g}] (default 30)')
+    p.add_argument('--width', type=int,
+                   help=f'image width, {SIZE_RANGE[0]}..{SIZE_RANGE[1]} px (intrinsics scaled, angle of view kept; '
+                        'alone, the height follows the rig\'s aspect ratio; default: the rig file\'s)')
+    p.add_argument('--height', type=int, help=f'image height, {SIZE_RANGE[0]}..{SIZE_RANGE[1]} px (intrinsics '
+                                              'scaled)')
+    p.add_argument('--hfov', type=float, help=f'horizontal angle of view in degrees, in [{HFOV_RANGE[0]:g}, '
+                                              f'{HFOV_RANGE[1]:g}] (replaces the intrinsics)')
     p.add_argument('--encoding', choices=('mono8', 'rgb8'), default='mono8')
-    p.add_argument('--noise', type=float, default=2.0, help='sensor noise sigma in grey levels (default 2)')
-    p.add_argument('--speed', type=float, help='rig speed in m/s (default: the trajectory\'s)')
+    p.add_argument('--noise', type=float, default=2.0,
+                   help=f'sensor noise sigma in grey levels, in [0, {NOISE_RANGE[1]:g}] (default 2)')
+    p.add_argument('--speed', type=float, help=f'rig speed in m/s, in [{SPEED_RANGE[0]:g}, {SPEED_RANGE[1]:g}] '
+                                               '(default: the trajectory\'s)')
     g = p.add_mutually_exclusive_group()
-    g.add_argument('--duration', type=float, help='stop after this many seconds')
-    g.add_argument('--steps', type=int, help='paper trajectory: stop at this step mark (0..130)')
-    p.add_argument('--texel', type=float, default=0.002, help='texture resolution in m (default 0.002)')
+    g.add_argument('--duration', type=float, help=f'stop after this many seconds, in (0, {DURATION_MAX:g}]')
+    g.add_argument('--steps', type=int,
+                   help=f'paper trajectory: stop at this step mark ({STEPS_RANGE[0]}..{STEPS_RANGE[1]})')
+    p.add_argument('--texel', type=float, default=0.002,
+                   help=f'texture resolution in m, in [{TEXEL_RANGE[0]:g}, {TEXEL_RANGE[1]:g}] (default 0.002)')
     p.add_argument('--wheel-odom-std', type=float, metavar='S',
                    help='also write /fixego/wheel/odom (nav_msgs/Odometry, one per frame): the true base_link '
-                        'velocity plus seeded Gaussian noise of std S m/s, covariance S^2 (default: off)')
+                        'velocity plus seeded Gaussian noise of std S m/s, covariance S^2; S in '
+                        f'[0, {WHEEL_ODOM_STD_MAX:g}] (default: off)')
     p.add_argument('--vergence-std', type=float, metavar='REL',
                    help='also write /fixego/vergence (geometry_msgs/PoseWithCovarianceStamped, one message at the '
                         'first frame): the right fixation point in the rig frame, its distance off by seeded '
                         'Gaussian relative error of std REL (e.g. 0.02 = 2 %%), as the start-up vergence step '
-                        'would measure it (default: off)')
+                        f'would measure it; REL in [0, {VERGENCE_STD_MAX:g}) (default: off)')
     p.add_argument('--no-progress', action='store_true', help='no progress bar on stderr')
+    one_line_errors(p)
     p.set_defaults(func=run)
 
 
-def run(args: argparse.Namespace) -> int:
-    from fixego_ros.geometry.rig import RigError, default_rig_path, load_rig
-    from fixego_ros.sim.bag_writer import write_bag
-    from fixego_ros.sim.run import SimSettings, resize_rig, rig_with_hfov
-
-    try:
-        rig = load_rig(args.rig or default_rig_path())
-    except RigError as e:
-        print(f'fixego sim: {e}', file=sys.stderr)
-        return 2
-    if args.width or args.height:
-        w = args.width or round(rig.right.width * args.height / rig.right.height)
-        h = args.height or round(rig.right.height * args.width / rig.right.width)
-        rig = resize_rig(rig, w, h)
-    if args.hfov:
+def check_args(args: argparse.Namespace):
+    """Every option, before anything is simulated or created: (rig, settings, out); :class:`OptionError`."""
+    check_int(args.seed, '--seed', 0, SEED_MAX)
+    check_float(args.fps, '--fps', *FPS_RANGE, unit='frames per second')
+    if args.hfov is not None:
+        check_float(args.hfov, '--hfov', *HFOV_RANGE, unit='degrees')
+    check_float(args.noise, '--noise', *NOISE_RANGE, unit='grey levels')
+    if args.speed is not None:
+        check_float(args.speed, '--speed', *SPEED_RANGE, unit='m/s')
+    if args.duration is not None:
+        check_float(args.duration, '--duration', 0.0, DURATION_MAX, lo_open=True, unit='s')
+    if args.steps is not None:
+        check_int(args.steps, '--steps', *STEPS_RANGE, note=' (paper loop step marks)')
+        if args.trajectory != 'paper':
+            raise OptionError(f'--steps applies to the paper trajectory only, got --trajectory {args.trajectory} '
+                              '(use --duration)')
+    check_float(args.texel, '--texel', *TEXEL_RANGE, unit='m')
+    if args.wheel_odom_std is not None:
+        check_float(args.wheel_odom_std, '--wheel-odom-std', 0.0, WHEEL_ODOM_STD_MAX, unit='m/s')
+    if args.vergence_std is not None:
+        check_float(args.vergence_std, '--vergence-std', 0.0, VERGENCE_STD_MAX, hi_open=True,
+                    unit='(relative error)')
+    if args.out is not None and (not args.out or not args.out.strip()):
+        raise OptionError('--out must name a directory to create, got an empty path')
+    rig = read_rig(args.rig)
+    size = image_size(rig, args.width, args.height)
+    if size is not None:
+        rig = resize_rig(rig, *size)
+    if args.hfov is not None:
         rig = rig_with_hfov(rig, args.hfov)
-    if args.steps is not None and args.trajectory != 'paper':
-        print('fixego sim: --steps applies to the paper trajectory only (use --duration)', file=sys.stderr)
-        return 2
-    if args.wheel_odom_std is not None and not (0 <= args.wheel_odom_std < float('inf')):
-        print(f'fixego sim: --wheel-odom-std must be a finite number >= 0, got {args.wheel_odom_std}',
-              file=sys.stderr)
-        return 2
-    if args.vergence_std is not None and not (0 <= args.vergence_std < float('inf')):
-        print(f'fixego sim: --vergence-std must be a finite number >= 0, got {args.vergence_std}', file=sys.stderr)
-        return 2
-    if args.out.exists():
-        print(f'fixego sim: {args.out} exists already (bags are never overwritten)', file=sys.stderr)
-        return 2
     settings = SimSettings(trajectory=args.trajectory, seed=args.seed, fps=args.fps, encoding=args.encoding,
                            noise_sigma=args.noise, speed=args.speed, duration=args.duration, steps=args.steps,
                            texel=args.texel)
-    s = write_bag(args.out, rig, settings, progress=not args.no_progress, wheel_odom_std=args.wheel_odom_std,
-                  vergence_std=args.vergence_std)
+    out = check_new_dir(args.out, '--out')     # the probe creates and removes the directory
+    frames = None if args.duration is None else math.floor(args.duration * args.fps + 1e-9) + 1  # at most this
+    if frames is None or (frames > MAX_FRAMES and args.trajectory != 'random'):   # (random lasts --duration)
+        frames = build_trajectory(settings).frame_count(settings.fps)
+    if frames > MAX_FRAMES:
+        raise OptionError(f'--fps {args.fps:g} over the {frames / settings.fps:.0f} s of the trajectory gives '
+                          f'{frames} frames; at most {MAX_FRAMES} (lower --fps or --duration, or raise --speed)')
+    return rig, settings, out
+
+
+class Interrupted(KeyboardInterrupt):
+    """SIGINT or SIGTERM arrived while writing: unwinds like Ctrl-C, so the partial bag is removed."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+
+@contextlib.contextmanager
+def _signals_interrupt() -> Iterator[None]:
+    """SIGINT and SIGTERM raise :class:`Interrupted` in the main thread, once (SIGTERM's default would end the
+    process on the spot and leave a half-written bag); the previous handlers come back afterwards."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    fired = False
+
+    def handler(signum: int, _frame) -> None:
+        nonlocal fired
+        if not fired:
+            fired = True
+            raise Interrupted(signum)
+
+    previous = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, signal.SIG_DFL if h is None else h)
+
+
+class _LineTracker:
+    """sys.stderr that remembers whether its last text ended a line (a progress bar's line may still be open)."""
+
+    def __init__(self, stream) -> None:
+        self.stream, self.open = stream, False
+
+    def write(self, text: str) -> int:
+        if text:
+            self.open = not text.endswith('\n')
+        return self.stream.write(text)
+
+    def __getattr__(self, name: str):
+        return getattr(self.stream, name)
+
+
+@contextlib.contextmanager
+def _tracked_stderr() -> Iterator[_LineTracker]:
+    tracker = _LineTracker(sys.stderr)
+    sys.stderr = tracker       # type: ignore[assignment]
+    try:
+        yield tracker
+    finally:
+        sys.stderr = tracker.stream
+
+
+def _remove_partial(out: Path) -> str:
+    """Remove the incomplete bag directory ``out``; what happened, for the error line."""
+    if not out.exists() and not out.is_symlink():
+        return 'nothing was left behind'
+    try:
+        shutil.rmtree(out)
+    except OSError as e:
+        return f'the incomplete bag directory {out} could NOT be removed ({_why(e)}): delete it before a re-run'
+    return f'the incomplete bag directory {out} was removed'
+
+
+def _say(err: _LineTracker, text: str) -> None:
+    """One ``fixego sim: ...`` line on stderr, on a line of its own (after an open progress bar)."""
+    err.write(f'{chr(10) if err.open else ""}{PROG}: {text}\n')
+    err.flush()
+
+
+def run(args: argparse.Namespace) -> int:
+    """``fixego sim``; see the module docstring for the exit codes."""
+    from fixego_ros.sim.bag_writer import write_bag
+
+    try:
+        rig, settings, out = check_args(args)
+    except (OptionError, ValueError) as e:
+        print(f'{PROG}: {" ".join(str(e).split())}', file=sys.stderr)
+        return 2
+    with _tracked_stderr() as err:
+        try:
+            with _signals_interrupt():
+                s = write_bag(out, rig, settings, progress=not args.no_progress,
+                              wheel_odom_std=args.wheel_odom_std, vergence_std=args.vergence_std)
+        except KeyboardInterrupt as e:
+            signum = getattr(e, 'signum', signal.SIGINT)
+            _say(err, f'interrupted by {signal.Signals(signum).name}: stopped; {_remove_partial(out)}')
+            return 128 + signum
+        except FileExistsError as e:     # made by someone else since the probe: not ours to remove
+            _say(err, f'writing {out} failed: {" ".join(str(e).split())}')
+            return 1
+        except (OSError, ValueError, RuntimeError, MemoryError) as e:
+            what = ' '.join(str(e).split()) or type(e).__name__
+            _say(err, f'writing {out} failed: {what}; {_remove_partial(out)}')
+            return 1
+        except BaseException:
+            _say(err, f'writing {out} failed (a bug: traceback below); {_remove_partial(out)}')
+            raise
     print(f'wrote {s.path}: {s.frames} frames ({s.duration_s:.1f} s), {s.messages} messages, '
           f'{s.bytes / 1e6:.1f} MB in {s.wall_s:.1f} s; fixation re-selections right {s.reselections["right"]}, '
           f'left {s.reselections["left"]}')
     return 0
+
+

@@ -23,6 +23,7 @@ from fixego_ros.geometry.rotation import Pose
 from fixego_ros.sim.world import Plane, World
 
 ENCODINGS = ('mono8', 'rgb8')
+NOISE_MAX = 255.0   # grey levels: the largest sensor noise sigma (a larger one only saturates; NaN/inf corrupt)
 
 
 def world_to_camera(rig: Rig, side: str, rig_pose: Pose, pan_reading: float,
@@ -108,6 +109,9 @@ class Renderer:
                  seed: int = 0, near: float = 0.05, mipmap: bool = True, warm: bool = True) -> None:
         if encoding not in ENCODINGS:
             raise ValueError(f'encoding must be one of {ENCODINGS}, got {encoding!r}')
+        if not (np.isfinite(noise_sigma) and 0.0 <= noise_sigma <= NOISE_MAX):
+            raise ValueError(f'noise sigma must be a finite number in [0, {NOISE_MAX:g}] grey levels, got '
+                             f'{noise_sigma!r}')
         self.world, self.rig, self.encoding = world, rig, encoding
         self.noise_sigma = float(noise_sigma)
         self.mipmap = mipmap

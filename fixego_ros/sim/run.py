@@ -1,11 +1,14 @@
 """The ROS-free simulation loop behind ``fixego sim``: trajectory + servo model + renderer, frame by frame.
 
-Also holds the settings record and the rig resizing shared by the bag writer and the live node.
+Also holds the settings record, its limits (``fixego sim`` refuses values outside them before doing anything;
+:class:`SimSettings` raises ValueError for them) and the rig resizing shared by the bag writer and the live node.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
+import numbers
 from collections.abc import Iterator
 from dataclasses import dataclass
 
@@ -13,12 +16,32 @@ import numpy as np
 
 from fixego_ros.geometry.rig import Rig, make_rig
 from fixego_ros.geometry.rotation import RIG_TO_BASE, Pose, rig_pose_to_base_link
-from fixego_ros.sim.render import Renderer
+from fixego_ros.sim.render import ENCODINGS, NOISE_MAX, Renderer
 from fixego_ros.sim.servo_model import FixationServo, ServoParams, ServoState
-from fixego_ros.sim.trajectories import DT, Trajectory, make_trajectory, relative_poses, steps_duration
-from fixego_ros.sim.world import World, make_room
+from fixego_ros.sim.trajectories import (
+    DT,
+    NAMES,
+    PAPER_STEPS,
+    Trajectory,
+    make_trajectory,
+    relative_poses,
+    steps_duration,
+)
+from fixego_ros.sim.world import TEXEL_RANGE, World, make_room
 
 EPOCH = 1_700_000_000.0  # s: bag stamps start here, so output is deterministic
+
+# Limits of the settings (closed intervals). Outside them a run overflows, exhausts memory, never ends or
+# writes NaN/inf into the bag; the image size and angle of view are where the servo still finds a fixation point.
+FPS_RANGE = (0.1, 1000.0)        # frames per second
+SPEED_RANGE = (0.01, 100.0)      # m/s (the paper loop at 0.01 m/s takes 500 s)
+DURATION_MAX = 3600.0            # s; a duration is > 0
+SEED_MAX = 2**32 - 1             # seeds are 0..SEED_MAX (as sim_rig_node's)
+SIZE_RANGE = (24, 8192)          # px, image width and height
+HFOV_RANGE = (1.0, 170.0)        # deg, horizontal angle of view
+NOISE_RANGE = (0.0, NOISE_MAX)   # grey levels
+STEPS_RANGE = (0, PAPER_STEPS)   # paper loop step marks
+MAX_FRAMES = 1_000_000           # frames of one run (every pose is held in memory; 1000 fps x 3600 s would not fit)
 
 
 @dataclass(frozen=True)
@@ -36,12 +59,51 @@ class SimSettings:
     texel: float = 0.002
     epoch: float = EPOCH
 
+    def __post_init__(self) -> None:
+        problems = self.problems()
+        if problems:
+            raise ValueError('SimSettings: ' + '; '.join(problems))
+
+    def problems(self) -> list[str]:
+        """Every field outside its limit (module constants), as ``field must be ..., got value``."""
+        out = []
+
+        def within(name: str, value, lo: float, hi: float, lo_open: bool = False) -> None:
+            ok = isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value) \
+                and (value > lo if lo_open else value >= lo) and value <= hi
+            if not ok:
+                out.append(f'{name} must be a finite number in {"(" if lo_open else "["}{lo:g}, {hi:g}], got '
+                           f'{value!r}')
+
+        if self.trajectory not in NAMES:
+            out.append(f'trajectory must be one of {", ".join(NAMES)}, got {self.trajectory!r}')
+        if self.encoding not in ENCODINGS:
+            out.append(f'encoding must be one of {", ".join(ENCODINGS)}, got {self.encoding!r}')
+        if not (isinstance(self.seed, numbers.Integral) and 0 <= self.seed <= SEED_MAX):
+            out.append(f'seed must be an integer in 0..{SEED_MAX}, got {self.seed!r}')
+        within('fps', self.fps, *FPS_RANGE)
+        within('noise_sigma', self.noise_sigma, *NOISE_RANGE)
+        within('texel', self.texel, *TEXEL_RANGE)
+        within('epoch', self.epoch, 0.0, 4e9)
+        if self.speed is not None:
+            within('speed', self.speed, *SPEED_RANGE)
+        if self.duration is not None:
+            within('duration', self.duration, 0.0, DURATION_MAX, lo_open=True)
+        if self.steps is not None and not (isinstance(self.steps, numbers.Integral) and STEPS_RANGE[0] <= self.steps
+                                           <= STEPS_RANGE[1]):
+            out.append(f'steps must be an integer in {STEPS_RANGE[0]}..{STEPS_RANGE[1]}, got {self.steps!r}')
+        return out
+
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
 
 
 def resize_rig(rig: Rig, width: int, height: int) -> Rig:
     """The same rig at another resolution (angle of view kept: intrinsics scaled with the image)."""
+    for name, v in (('width', width), ('height', height)):
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
+            raise ValueError(f'image {name} must be a positive integer, got {v!r}')
+
     def scale(cam):
         sx, sy = width / cam.width, height / cam.height
         return dataclasses.replace(cam, width=int(width), height=int(height), fx=cam.fx * sx, fy=cam.fy * sy,
@@ -51,6 +113,8 @@ def resize_rig(rig: Rig, width: int, height: int) -> Rig:
 
 def rig_with_hfov(rig: Rig, hfov_deg: float) -> Rig:
     """Two identical pinhole cameras of the given horizontal angle of view, keeping resolution and baseline."""
+    if not (math.isfinite(hfov_deg) and 0.0 < hfov_deg < 180.0):
+        raise ValueError(f'horizontal angle of view must be a finite number in (0, 180) deg, got {hfov_deg!r}')
     base = make_rig(rig.right.width, rig.right.height, hfov_deg, float(np.linalg.norm(rig.c_L)))
     return dataclasses.replace(rig, right=base.right, left=base.left)
 

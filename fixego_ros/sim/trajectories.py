@@ -13,6 +13,7 @@ moves continuously (constant speed with short start/stop ramps); the times at wh
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -23,6 +24,10 @@ DT = 0.002  # s, grid of the precomputed trajectory
 # rig axes (x right, y down, z forward) in the world when facing north
 RIG_IN_WORLD = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
 NAMES = ('paper', 'straight', 'circle', 'random', 'walk')
+PAPER_STEPS = 130   # step marks 0..PAPER_STEPS of the paper loop
+# the fine grid of a trajectory has at most this many samples (20000 s): a vanishing speed or a huge duration
+# would otherwise allocate without bound
+MAX_GRID_POINTS = 10_000_000
 TRIPOD_HEIGHT = 1.2
 HEAD_HEIGHT = 1.6
 # centre of the area every trajectory stays in (the room's boxes stand outside a 2 m radius of it)
@@ -62,9 +67,13 @@ class Trajectory:
 
         return Pose(attitude(lerp(self.yaw), lerp(self.pitch), lerp(self.roll)), lerp(self.xyz))
 
+    def frame_count(self, fps: float) -> int:
+        """Number of frames :meth:`sample` gives at ``fps``."""
+        return int(np.floor(self.duration * fps + 1e-9)) + 1
+
     def sample(self, fps: float) -> tuple[np.ndarray, list[Pose]]:
         """Frame times ``0, 1/fps, ...`` up to the end, and the rig pose at each."""
-        n = int(np.floor(self.duration * fps + 1e-9)) + 1
+        n = self.frame_count(fps)
         stamps = np.arange(n) / float(fps)
         return stamps, [self.pose_at(s) for s in stamps]
 
@@ -80,6 +89,9 @@ class Trajectory:
 
 
 def _grid(duration: float) -> np.ndarray:
+    if not (math.isfinite(duration) and 0.0 <= duration <= MAX_GRID_POINTS * DT):
+        raise ValueError(f'trajectory duration must be finite and within [0, {MAX_GRID_POINTS * DT:g}] s, got '
+                         f'{duration!r} (speed too low or duration too long)')
     n = int(np.ceil(duration / DT - 1e-9)) + 1
     return np.arange(n) * DT
 
@@ -226,7 +238,12 @@ def walk(speed: float = 1.0, radius: float = 1.5, laps: float = 1.0, step_hz: fl
 
 def make_trajectory(name: str, speed: float | None = None, seed: int = 0,
                     duration: float | None = None) -> Trajectory:
-    """Trajectory by name (``NAMES``); ``speed`` in m/s overrides the default; ``duration`` truncates."""
+    """Trajectory by name (``NAMES``); ``speed`` in m/s overrides the default; ``duration`` truncates.
+    ValueError for an unknown name or a speed or duration that is not a finite number > 0."""
+    if speed is not None and not (math.isfinite(speed) and speed > 0):
+        raise ValueError(f'trajectory speed must be a finite number > 0 m/s, got {speed!r}')
+    if duration is not None and not (math.isfinite(duration) and duration > 0):
+        raise ValueError(f'trajectory duration must be a finite number > 0 s, got {duration!r}')
     kw = {} if speed is None else {'speed': float(speed)}
     if name == 'paper':
         traj = paper(**kw)

@@ -15,6 +15,7 @@ period).
 from __future__ import annotations
 
 import functools
+import math
 from dataclasses import dataclass, field
 
 import cv2
@@ -245,9 +246,27 @@ def _box_planes(box: Box, index: int, texel: float, rng: np.random.Generator) ->
     return [make_plane(o, u, v, texel, rng, f'box{index}_{n}', index) for o, u, v, n in faces]
 
 
+# texture resolution in m: finer than TEXEL_RANGE[0] the room's textures take gigabytes (4x per halving);
+# coarser than TEXEL_RANGE[1] a wall is a few texels and soon no corner is left to fixate on
+TEXEL_RANGE = (0.001, 1.0)
+
+
+def check_texel(texel: float) -> float:
+    """``texel`` as a float in :data:`TEXEL_RANGE`, or ValueError (NaN or 1e-9 would exhaust memory)."""
+    try:
+        t = float(texel)
+    except (TypeError, ValueError):
+        t = math.nan
+    if not (math.isfinite(t) and TEXEL_RANGE[0] <= t <= TEXEL_RANGE[1]):
+        raise ValueError(f'texel must be a finite size in [{TEXEL_RANGE[0]:g}, {TEXEL_RANGE[1]:g}] m, got {texel!r}')
+    return t
+
+
 @functools.lru_cache(maxsize=4)
 def make_room(seed: int = 0, texel: float = 0.002, spec: RoomSpec = RoomSpec()) -> World:
-    """The default room; cached per (seed, texel, spec) because building textures takes ~1 s."""
+    """The default room; cached per (seed, texel, spec) because building textures takes ~1 s. ``texel`` must be
+    in :data:`TEXEL_RANGE` (ValueError otherwise)."""
+    texel = check_texel(texel)
     rng = np.random.default_rng([int(seed), 0x5EED])
     planes = _room_planes(spec, texel, rng)
     for i, b in enumerate(spec.boxes):
