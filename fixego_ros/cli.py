@@ -41,9 +41,13 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     first = argv[0] if argv and not argv[0].startswith('-') else None
     known = any(first in names for names in COMMANDS.values())
-    parser = build_parser(first if known else None)
-    args = parser.parse_args(argv)
-    return int(args.func(args) or 0)
+    try:
+        parser = build_parser(first if known else None)
+        args = parser.parse_args(argv)
+        return int(args.func(args) or 0)
+    except KeyboardInterrupt:       # before (or outside) a sub-command's own handling: one line, no traceback
+        print('fixego: interrupted', file=sys.stderr)
+        return 130
 
 
 if __name__ == '__main__':

@@ -189,3 +189,122 @@ def test_cli_errors_exit_2(tmp_path, capsys):
     write_tum(tmp_path / 'late.tum', stamps + 100.0, gt)
     assert main(['eval', str(tmp_path / 'late.tum'), str(tmp_path / 'gt.tum')]) == 2
     assert not (tmp_path / 'eval.json').exists()
+
+
+# --- absurd input (issue 15) ---------------------------------------------------------------------------
+
+def _eval_cli(*args, timeout: float = 120.0):
+    """``fixego eval`` in a child process: a hang (NumPy's SVD on inf/NaN may never return) fails, not blocks."""
+    import subprocess
+    import sys
+    return subprocess.run([sys.executable, '-m', 'fixego_ros.cli', 'eval', *map(str, args)], capture_output=True,
+                          text=True, timeout=timeout)
+
+
+def _tum(path, rows) -> None:
+    path.write_text(''.join(' '.join(str(v) for v in row) + '\n' for row in rows))
+
+
+@pytest.mark.parametrize('value', ['nan', 'NaN', 'inf', '-inf', '1e999'])
+@pytest.mark.parametrize('which', ['estimate', 'ground_truth'])
+def test_cli_non_finite_values_fail_naming_file_and_line(tmp_path, capsys, value, which):
+    """NaN/inf (1e999 overflows to inf) is not a position: exit 2 with one line naming the file and line."""
+    stamps, gt = helix(10)
+    write_tum(tmp_path / 'gt.tum', stamps, gt)
+    write_tum(tmp_path / 'est.tum', stamps, gt)
+    bad = tmp_path / ('est.tum' if which == 'estimate' else 'gt.tum')
+    lines = bad.read_text().splitlines()
+    fields = lines[5].split()
+    fields[2] = value
+    lines[5] = ' '.join(fields)
+    bad.write_text('\n'.join(lines) + '\n')
+    assert main(['eval', str(tmp_path / 'est.tum'), str(tmp_path / 'gt.tum')]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f'{bad}:6:' in err[0] and 'non-finite' in err[0]
+    assert not (tmp_path / 'eval.json').exists()
+
+
+@pytest.mark.parametrize('case', ['one position of 1e160', 'positions near the float limit', 'huge quaternions'])
+def test_cli_absurd_finite_values_still_evaluate_and_plot(tmp_path, case):
+    """Finite but absurd values (a diverged estimate): the evaluation completes, measures beyond a float are
+    n/a (null in the JSON), the figure renders; no traceback, no NumPy warning, no hang."""
+    rows = [[0.1 * i, 0.1 * i, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0] for i in range(20)]
+    _tum(tmp_path / 'gt.tum', rows)
+    est = [list(r) for r in rows]
+    if case == 'one position of 1e160':
+        est[5][1] = 1e160
+    elif case == 'positions near the float limit':
+        for i, r in enumerate(est):
+            r[1:4] = [1.7e308 if i % 2 else -1.7e308, -1.7e308 if i % 3 else 1.7e308, 1e300]
+    else:
+        for r in est:
+            r[4:8] = [0.0, 0.0, 1e200, 1e200]
+    _tum(tmp_path / 'est.tum', est)
+    p = _eval_cli(tmp_path / 'est.tum', tmp_path / 'gt.tum', '--raw', tmp_path / 'est.tum', '--anchor-first',
+                  '--rpe-delta-m', '0.5', '--out', tmp_path / 'out')
+    assert p.returncode == 0, p.stderr
+    assert 'Traceback' not in p.stderr and 'Warning' not in p.stderr, p.stderr
+    report = json.loads((tmp_path / 'out' / 'eval.json').read_text())       # strict JSON: no NaN/Infinity
+    assert (tmp_path / 'out' / 'eval.png').read_bytes()[:8] == b'\x89PNG\r\n\x1a\n'
+    pe = report['estimate']['position_error_m']
+    if case == 'one position of 1e160':
+        assert pe['max'] == pytest.approx(1e160, rel=1e-9)          # the error itself is a float: reported
+        assert pe['rmse'] is None and 'n/a' in p.stdout              # its square is not
+    elif case == 'positions near the float limit':
+        assert pe['mean'] is None and 'n/a' in p.stdout
+    else:          # read as 90 deg about z: anchored in its first pose, the estimate runs along -y, the truth x
+        assert report['estimate']['path_length_m']['ratio'] == pytest.approx(1.0)
+        assert pe['terminal'] == pytest.approx(1.9 * np.sqrt(2.0))
+
+
+def test_plot_renders_values_beyond_what_matplotlib_can_scale(tmp_path):
+    from fixego_ros.evaluation.metrics import Evaluation
+    from fixego_ros.evaluation.plot import plot_evaluation
+
+    n = 6
+    xyz = np.array([[1.7e308 * (-1) ** i, -1.7e308, 0.0] for i in range(n)])
+    err = np.array([np.inf, 1e308, np.nan, 1.0, 2.0, 3.0])
+    ev = Evaluation(summary={'position_error_m': {'mean': None, 'terminal': 3e300}}, stamps=np.arange(n, dtype=float),
+                    est_xyz=xyz, gt_xyz=np.zeros((n, 3)), position_error=err)
+    out = plot_evaluation(tmp_path / 'p.png', {'refined': ev}, gt_xyz=np.zeros((n, 3)), title='absurd')
+    assert out.read_bytes()[:8] == b'\x89PNG\r\n\x1a\n'
+
+
+def test_tum_quaternions_of_any_scale_read_as_their_rotation(tmp_path):
+    path = tmp_path / 'q.tum'
+    _tum(path, [[1.0, 0, 0, 0, 0, 0, 1e200, 1e200], [2.0, 0, 0, 0, 0, 0, 1e-200, 1e-200], [3.0, 0, 0, 0, 0, 0, 1, 1]])
+    _, poses = read_tum(path)
+    assert np.allclose(poses[0].R, poses[2].R) and np.allclose(poses[1].R, poses[2].R)
+    assert np.allclose(poses[2].R, rot_z(np.pi / 2))
+
+
+def test_write_tum_is_atomic(tmp_path, monkeypatch):
+    """An interrupted write (Ctrl-C, disk full) leaves the previous file, never half a trajectory."""
+    import fixego_ros.evaluation.tum as tum
+    stamps, gt = helix(10)
+    path = tmp_path / 'est.tum'
+    write_tum(path, stamps, gt)
+    before = path.read_bytes()
+
+    def interrupted(stamp, pose):
+        if stamp > stamps[4]:
+            raise KeyboardInterrupt
+        return format_tum_line(stamp, pose)
+
+    monkeypatch.setattr(tum, 'format_tum_line', interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        write_tum(path, stamps, [Pose(p.R, p.t + 1.0) for p in gt])
+    assert path.read_bytes() == before and [p.name for p in tmp_path.iterdir()] == ['est.tum']
+
+
+def test_cli_ctrl_c_is_one_line_and_130(tmp_path, capsys, monkeypatch):
+    import fixego_ros.evaluation.metrics as metrics
+    stamps, gt = helix(10)
+    write_tum(tmp_path / 'gt.tum', stamps, gt)
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(metrics, 'evaluate', interrupted)
+    assert main(['eval', str(tmp_path / 'gt.tum'), str(tmp_path / 'gt.tum')]) == 130
+    assert capsys.readouterr().err == 'fixego eval: interrupted\n'

@@ -162,17 +162,17 @@ FRAMES, DT, T0 = 20, 0.1, 1000.0
 def bag_dir(tmp_path_factory) -> Path:
     """20 x (a 512x256 mono8 Image, best effort; a String, reliable), 0.1 s apart: ~2.7 MB in 3 MCAP chunks."""
     pytest.importorskip('rclpy')
-    from rosbags.rosbag2 import StoragePlugin, Writer
     from rosbags.typesys import Stores, get_typestore
     from std_msgs.msg import String
 
+    from fixego_ros.bags.mcap_storage import bag_writer
     from fixego_ros.nodes.common import array_to_image, sec_to_stamp
     from fixego_ros.sim.bag_writer import _qos, canonical_cdr
 
     store = get_typestore(Stores.ROS2_JAZZY)
     out = tmp_path_factory.mktemp('play') / 'bag'
     rng = np.random.default_rng(0)
-    with Writer(out, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+    with bag_writer(out, compression=False) as w:     # uncompressed chunks, with CRCs, as the recorder writes
         image = w.add_connection(IMAGE, 'sensor_msgs/msg/Image', typestore=store, offered_qos_profiles=[_qos(True)])
         chat = w.add_connection(CHAT, 'std_msgs/msg/String', typestore=store, offered_qos_profiles=[_qos(False)])
         for i in range(FRAMES):
@@ -344,3 +344,19 @@ def test_cli_exit_codes(bag_dir, tmp_path):
     proc = _cli(str(copy), '--rate', '0', '--delay', '0.1', '--clock', '--domain-id', str(private_domain_id() + 2))
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert f'played {2 * FRAMES} messages' in proc.stdout + proc.stderr
+
+
+@pytest.mark.ros
+def test_cli_plays_the_intact_part_of_a_corrupt_bag_and_exits_2(bag_dir, tmp_path):
+    """A flipped bit inside a chunk (the recorder writes chunk CRCs): what precedes it is played, the process
+    says the bag is corrupt and exits 2 instead of 0."""
+    copy = shutil.copytree(bag_dir, tmp_path / 'bag')
+    mcap = next(copy.glob('*.mcap'))
+    data = bytearray(mcap.read_bytes())
+    data[len(data) * 2 // 5] ^= 0x10
+    mcap.write_bytes(bytes(data))
+    damaged = Bag(copy)
+    assert len(list(damaged.messages())) < 2 * FRAMES and damaged.report.corrupt
+    proc = _cli(str(copy), '--rate', '0', '--delay', '0.1', '--domain-id', str(private_domain_id() + 3))
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    assert 'corrupt' in proc.stdout + proc.stderr and 'Traceback' not in proc.stderr

@@ -3,7 +3,9 @@
 ROS-free on purpose (no rclpy import, not even lazily), so the storage side can be tested and reused
 without DDS. Writing goes through ``rosbags``' :class:`~rosbags.rosbag2.Writer` with zstd-compressed MCAP
 chunks (like rosbag2's mcap plugin with ``--compression-mode`` left unset and a zstd chunk profile), so
-``metadata.yaml`` has no rosbag2-level compression and ``ros2 bag info/play`` read it directly.
+``metadata.yaml`` has no rosbag2-level compression and ``ros2 bag info/play`` read it directly. The MCAP
+file carries real CRCs (:mod:`fixego_ros.bags.mcap_storage`): each chunk's as it is closed (so also in a
+killed recording's prefix), the data section's and the summary's at :meth:`~BagRecorder.close`.
 
 Threading: :meth:`BagRecorder.put` is called from subscription callbacks and must never stall them,
 so it only counts and appends to an unbounded queue; one writer thread owns the ``Writer`` and does
@@ -131,17 +133,17 @@ class BagRecorder:
 
     def __init__(self, path: str | Path, compression: bool = True, flush_period_s: float = 1.0,
                  typestore: Any = None) -> None:
-        from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer, WriterError
+        from rosbags.rosbag2 import WriterError
         from rosbags.typesys import Stores, get_typestore
+
+        from fixego_ros.bags.mcap_storage import bag_writer
 
         self.path = Path(path)
         self.flush_period_s = float(flush_period_s)
         self._store = typestore if typestore is not None else get_typestore(Stores.ROS2_JAZZY)
         if self.path.exists():
             raise RecordError(f'{self.path} exists already (a recording never overwrites)')
-        self._writer = Writer(self.path, version=9, storage_plugin=StoragePlugin.MCAP)
-        if compression:
-            self._writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
+        self._writer = bag_writer(self.path, compression)
         try:
             self._writer.open()
         except (WriterError, OSError) as e:

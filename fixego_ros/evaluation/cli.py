@@ -29,31 +29,47 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
+def _num(x: float | None, fmt: str, unit: str = '') -> str:
+    """``x`` formatted (in powers of ten when huge: a diverged estimate), or 'n/a' when the summary has none
+    (not computable, or beyond a float)."""
+    if x is None:
+        return 'n/a'
+    return f'{x:{fmt if abs(x) < 1e9 else ".3e"}}{unit}'
+
+
 def _cm(x: float | None) -> str:
-    return 'n/a' if x is None else f'{100.0 * x:.2f} cm'
+    return _num(None if x is None else 100.0 * x, '.2f', ' cm')
 
 
 def summary_lines(name: str, s: dict[str, Any]) -> list[str]:
-    """A short human summary of one evaluation summary dict."""
+    """A short human summary of one evaluation summary dict (any number may be None: printed as n/a)."""
     pe, pl, ape, rpe = s['position_error_m'], s['path_length_m'], s['ape_translation_m'], s['rpe']
-    ratio = 'n/a' if pl['ratio'] is None else f'{pl["ratio"]:.3f}'
     sim3 = ape['sim3']
-    scale = f' (scale {sim3["scale"]:.3f})' if sim3.get('scale') is not None else ''
-    rot = rpe['rotation_deg'].get('rmse')
+    scale = f' (scale {_num(sim3["scale"], ".3f")})' if 'scale' in sim3 else ''
     return [
         f'{name}: {s["poses"]["associated"]} of {s["poses"]["estimate"]} poses associated '
-        f'({s["poses"]["ground_truth"]} in ground truth), {s["duration_s"]:.2f} s; '
-        f'path {pl["estimate"]:.3f} m vs {pl["ground_truth"]:.3f} m (ratio {ratio})',
+        f'({s["poses"]["ground_truth"]} in ground truth), {_num(s["duration_s"], ".2f", " s")}; '
+        f'path {_num(pl["estimate"], ".3f", " m")} vs {_num(pl["ground_truth"], ".3f", " m")} '
+        f'(ratio {_num(pl["ratio"], ".3f")})',
         f'  position error, no alignment: mean {_cm(pe["mean"])}, std {_cm(pe["std"])}, max {_cm(pe["max"])}, '
         f'terminal {_cm(pe["terminal"])}',
         f'  ATE rmse: unaligned {_cm(ape["none"].get("rmse"))}, SE(3) {_cm(ape["se3"].get("rmse"))}, '
         f'Sim(3) {_cm(sim3.get("rmse"))}{scale}',
         f'  RPE rmse per frame: {_cm(rpe["translation_m"].get("rmse"))}, '
-        f'{"n/a" if rot is None else f"{rot:.3f} deg"}',
+        f'{_num(rpe["rotation_deg"].get("rmse"), ".3f", " deg")}',
     ]
 
 
 def run(args: argparse.Namespace) -> int:
+    """``fixego eval``: exit 0, 2 when the input cannot be used, 130 on Ctrl-C (one line, no traceback)."""
+    try:
+        return _run(args)
+    except KeyboardInterrupt:
+        print('fixego eval: interrupted', file=sys.stderr)
+        return 130
+
+
+def _run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from fixego_ros.evaluation.metrics import DEFAULT_MAX_DT, EvaluationError, evaluate

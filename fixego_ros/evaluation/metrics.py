@@ -24,6 +24,7 @@ import numpy as np
 from evo.core import metrics, sync
 from evo.core.filters import FilterException
 from evo.core.geometry import GeometryException
+from evo.core.lie_algebra import LieAlgebraException
 from evo.core.trajectory import PoseTrajectory3D
 
 from fixego_ros.geometry.rotation import Pose
@@ -79,20 +80,38 @@ def _evo_stats(metric: metrics.PE) -> dict[str, float | None]:
     return {k: _num(s[k]) for k in ('rmse', 'mean', 'median', 'std', 'max')}
 
 
+def _alignable(*xyz: np.ndarray) -> bool:
+    """Whether evo's Umeyama alignment can run: it squares centred positions and hands their covariance to an
+    SVD, which overflows to inf/NaN beyond ~1e154 m, and NumPy's SVD may never return on such input."""
+    for p in xyz:
+        centred = p - p.mean(axis=0)
+        if not (np.all(np.isfinite(centred)) and np.max(np.abs(centred), initial=0.0) < 1e150):
+            return False
+    return True
+
+
 def _ape(gt: PoseTrajectory3D, est: PoseTrajectory3D, align: str) -> tuple[dict[str, Any], np.ndarray | None]:
     """APE of the translation part after ``align`` in {'none', 'se3', 'sim3'}; alignment by evo (Umeyama).
     A degenerate trajectory (all points on a line) cannot be aligned: reported, not raised."""
     est = copy.deepcopy(est)
     out: dict[str, Any] = {}
     if align != 'none':
+        if not _alignable(gt.positions_xyz, est.positions_xyz):
+            return {'error': 'alignment not possible: positions too large for the SVD (beyond 1e150 m from their '
+                             'mean)'}, None
         try:
             _, _, s = est.align(gt, correct_scale=(align == 'sim3'))
         except GeometryException as e:
             return {'error': f'alignment not possible: {e}'}, None
+        except (np.linalg.LinAlgError, ValueError) as e:     # overflow to inf/NaN in the SVD (absurd positions)
+            return {'error': f'alignment not possible: {type(e).__name__}: {e}'}, None
         if align == 'sim3':
             out['scale'] = _num(s)  # evo: est is multiplied by s, so s ~ |gt| / |est|
     ape = metrics.APE(metrics.PoseRelation.translation_part)
-    ape.process_data((gt, est))
+    try:
+        ape.process_data((gt, est))
+    except (metrics.MetricsException, LieAlgebraException, np.linalg.LinAlgError, ValueError) as e:
+        return {'error': f'not computable: {type(e).__name__}: {e}'}, None
     out.update(_evo_stats(ape))
     return out, np.asarray(ape.error, dtype=float)
 
@@ -106,6 +125,8 @@ def _rpe(gt: PoseTrajectory3D, est: PoseTrajectory3D, relation: metrics.PoseRela
         rpe.process_data((gt, est))
     except (FilterException, metrics.MetricsException) as e:
         return {'error': str(e)}, np.zeros(0)
+    except (LieAlgebraException, np.linalg.LinAlgError, ValueError) as e:   # absurd poses: inf/NaN in products
+        return {'error': f'not computable: {type(e).__name__}: {e}'}, np.zeros(0)
     return {**_evo_stats(rpe), 'pairs': len(rpe.error)}, np.asarray(rpe.error, dtype=float)
 
 
@@ -124,7 +145,9 @@ def associate(est: PoseTrajectory3D, gt: PoseTrajectory3D,
 
 def _anchor_first(traj: PoseTrajectory3D) -> PoseTrajectory3D:
     """Same trajectory re-expressed in its own first frame (first pose = identity)."""
-    inv0 = np.linalg.inv(traj.poses_se3[0])
+    R, t = traj.poses_se3[0][:3, :3], traj.poses_se3[0][:3, 3]
+    inv0 = np.eye(4)                        # closed form: no LU on a matrix that may hold 1e300
+    inv0[:3, :3], inv0[:3, 3] = R.T, -R.T @ t
     return PoseTrajectory3D(poses_se3=[inv0 @ p for p in traj.poses_se3], timestamps=traj.timestamps.copy(),
                             name=traj.name)
 
@@ -139,7 +162,23 @@ def evaluate(est_stamps: Sequence[float] | np.ndarray, est_poses: Sequence[Pose]
     unaligned measures: use it when the estimate's ``odom`` is not the ground truth's (it started
     later). ``rpe_delta_m`` adds an RPE over that travelled distance (along the ground truth).
     Raises :class:`EvaluationError` when fewer than 2 poses associate.
+
+    Absurd but finite input (positions of 1e300 m, a diverged estimate) is evaluated as far as floats go: a
+    measure that overflows is None in the summary (``_num``), never an exception or a NumPy warning.
     """
+    with np.errstate(over='ignore', invalid='ignore', divide='ignore', under='ignore'):
+        return _evaluate(est_stamps, est_poses, gt_stamps, gt_poses, max_dt=max_dt, anchor_first=anchor_first,
+                         rpe_delta_m=rpe_delta_m, name=name)
+
+
+def _norms(v: np.ndarray) -> np.ndarray:
+    """Row norms that do not overflow before the result does (|(1e160, 0, 0)| is 1e160, not inf)."""
+    return np.hypot(np.hypot(v[:, 0], v[:, 1]), v[:, 2])
+
+
+def _evaluate(est_stamps: Sequence[float] | np.ndarray, est_poses: Sequence[Pose],
+              gt_stamps: Sequence[float] | np.ndarray, gt_poses: Sequence[Pose], *, max_dt: float,
+              anchor_first: bool, rpe_delta_m: float | None, name: str) -> Evaluation:
     est_full = to_evo(est_stamps, est_poses, name)
     gt_full = to_evo(gt_stamps, gt_poses, 'ground truth')
     est, gt = associate(est_full, gt_full, max_dt)
@@ -147,12 +186,12 @@ def evaluate(est_stamps: Sequence[float] | np.ndarray, est_poses: Sequence[Pose]
     if n < 2:
         raise EvaluationError(f'{name}: only {n} pose(s) associate with the ground truth within {max_dt} s '
                               f'(need >= 2); check the stamps or --max-dt')
-    start_offset = float(np.linalg.norm(est.positions_xyz[0] - gt.positions_xyz[0]))
+    start_offset = float(_norms(est.positions_xyz[:1] - gt.positions_xyz[:1])[0])
     if anchor_first:
         est, gt = _anchor_first(est), _anchor_first(gt)
 
     # the papers' measures: no alignment at all
-    err = np.linalg.norm(est.positions_xyz - gt.positions_xyz, axis=1)
+    err = _norms(est.positions_xyz - gt.positions_xyz)
     len_est, len_gt = float(est.path_length), float(gt.path_length)
     position = {**_stats(err), 'terminal': _num(err[-1]),
                 'terminal_percent_of_path': _num(100.0 * err[-1] / len_gt) if len_gt > 0 else None}

@@ -22,9 +22,27 @@ COLORS = {'ground truth': 'black', 'refined': 'tab:blue', 'estimate': 'tab:blue'
 _CYCLE = ('tab:green', 'tab:red', 'tab:purple', 'tab:brown', 'tab:pink', 'tab:olive', 'tab:cyan')
 
 
+LIMIT = 1e300   # beyond (m, or cm on the error axis) matplotlib's axis limits overflow: drawn at +-LIMIT instead
+
+
+def _drawable(values: np.ndarray) -> tuple[np.ndarray, bool]:
+    """``values`` clipped to +-LIMIT (NaN left out of the line by matplotlib), and whether any was clipped."""
+    values = np.asarray(values, dtype=float)
+    with np.errstate(invalid='ignore'):
+        clipped = bool(np.any(np.abs(values) > LIMIT))
+    return np.clip(values, -LIMIT, LIMIT), clipped
+
+
+def _cm(x: float | None) -> str:
+    if x is None:
+        return 'n/a'
+    return f'{100 * x:{".1f" if abs(x) < 1e7 else ".2e"}} cm'
+
+
 def _label(name: str, ev: Evaluation) -> str:
+    """Legend entry; a measure the summary has no number for (beyond a float, e.g. positions of 1e300) is n/a."""
     pe = ev.summary['position_error_m']
-    return f'{name} (mean {100 * pe["mean"]:.1f} cm, terminal {100 * pe["terminal"]:.1f} cm)'
+    return f'{name} (mean {_cm(pe["mean"])}, terminal {_cm(pe["terminal"])})'
 
 
 def plot_evaluation(path: str | os.PathLike, estimates: Mapping[str, Evaluation], *,
@@ -36,7 +54,8 @@ def plot_evaluation(path: str | os.PathLike, estimates: Mapping[str, Evaluation]
     ``gt_xyz`` (full ground truth, (N, 3)) is drawn when given, else the associated ground truth of the
     first estimate. Axes follow base_link/odom (x forward, y left): x is drawn to the right, y up, with
     equal aspect so the path's shape is true. The error axis is time since the first stamp (the
-    estimates may associate different frames), in cm.
+    estimates may associate different frames), in cm. Absurd values (a diverged estimate) still give a figure:
+    beyond +-:data:`LIMIT` they are drawn at the limit and the title says so.
     """
     if not estimates and gt_xyz is None:
         raise ValueError('nothing to plot: no estimate and no ground truth')
@@ -46,8 +65,9 @@ def plot_evaluation(path: str | os.PathLike, estimates: Mapping[str, Evaluation]
 
     first = next(iter(estimates.values()), None)
     gt = gt_xyz if gt_xyz is not None else (first.gt_xyz if first is not None else None)
+    clipped = False
     if gt is not None and len(gt):
-        gt = np.asarray(gt, dtype=float)
+        gt, clipped = _drawable(gt)
         ax_xy.plot(gt[:, 0], gt[:, 1], color=COLORS['ground truth'], lw=1.6, label='ground truth')
         ax_xy.plot(gt[0, 0], gt[0, 1], 'o', color='black', ms=5)
 
@@ -59,9 +79,13 @@ def plot_evaluation(path: str | os.PathLike, estimates: Mapping[str, Evaluation]
     for k, (name, ev) in enumerate(estimates.items()):
         color = COLORS.get(name) or next(spare, None)
         z = 3 + len(estimates) - k  # the first estimate (the refined one) on top
-        ax_xy.plot(ev.est_xyz[:, 0], ev.est_xyz[:, 1], color=color, lw=1.2, label=name, zorder=z)
-        ax_xy.plot(ev.est_xyz[-1, 0], ev.est_xyz[-1, 1], 'x', color=color, ms=7, zorder=z)
-        ax_err.plot(ev.stamps - t0, 100.0 * ev.position_error, color=color, lw=1.2, label=_label(name, ev), zorder=z)
+        xyz, clip_xyz = _drawable(ev.est_xyz)
+        with np.errstate(over='ignore'):
+            err, clip_err = _drawable(100.0 * ev.position_error)
+        clipped = clipped or clip_xyz or clip_err
+        ax_xy.plot(xyz[:, 0], xyz[:, 1], color=color, lw=1.2, label=name, zorder=z)
+        ax_xy.plot(xyz[-1, 0], xyz[-1, 1], 'x', color=color, ms=7, zorder=z)
+        ax_err.plot(ev.stamps - t0, err, color=color, lw=1.2, label=_label(name, ev), zorder=z)
 
     ax_xy.set_aspect('equal', adjustable='datalim')
     ax_xy.set_xlabel('x (m, forward at start)')
@@ -78,6 +102,8 @@ def plot_evaluation(path: str | os.PathLike, estimates: Mapping[str, Evaluation]
     if estimates:
         ax_err.legend(loc='upper left', fontsize=8)
 
+    if clipped:
+        title = f'{title + ": " if title else ""}values beyond {LIMIT:g} drawn at {LIMIT:g}'
     if title:
         fig.suptitle(title)
     fig.tight_layout()

@@ -43,13 +43,25 @@ def format_tum_line(stamp: float, pose: Pose) -> str:
 
 def write_tum(path: str | os.PathLike, stamps: Sequence[float] | np.ndarray, poses: Sequence[Pose],
               header: bool = True) -> Path:
-    """Write a whole trajectory (creates parent folders); returns the path."""
+    """Write a whole trajectory (creates parent folders); returns the path.
+
+    Atomic: the lines go to a temporary file in the same folder, which then replaces ``path``, so an
+    interrupted or failed write (Ctrl-C, disk full) never leaves a half-written trajectory behind.
+    """
     if len(stamps) != len(poses):
         raise TumError(f'{path}: {len(stamps)} stamps but {len(poses)} poses')
-    with TumWriter(path, header=header) as w:
-        for s, p in zip(stamps, poses, strict=True):
-            w.append(float(s), p)
-    return Path(path)
+    lines = [HEADER] if header else []
+    lines += [format_tum_line(float(s), p) for s, p in zip(stamps, poses, strict=True)]
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f'.{path.name}.{os.getpid()}.tmp')
+    try:
+        with tmp.open('w', encoding='ascii', newline='\n') as f:
+            f.write(''.join(line + '\n' for line in lines))
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return path
 
 
 class TumWriter:
@@ -124,8 +136,10 @@ def read_tum(path: str | os.PathLike) -> tuple[np.ndarray, list[Pose]]:
             raise TumError(f'{where}: non-finite value in {line!r}')
         if stamps and vals[0] <= stamps[-1]:
             raise TumError(f'{where}: stamp {vals[0]!r} does not increase (previous {stamps[-1]!r})')
-        try:
-            R = from_quat_xyzw(np.array(vals[4:8]))
+        q = np.array(vals[4:8])
+        scale = float(np.max(np.abs(q)))
+        try:      # any positive multiple is the same rotation: rescaled first, so 1e200 does not overflow the norm
+            R = from_quat_xyzw(q / scale if scale > 0 else q)
         except ValueError as e:
             raise TumError(f'{where}: {e}') from None
         stamps.append(vals[0])

@@ -232,7 +232,11 @@ class BagPlayer(Node):
         self._ended = True
         self.summary = self._summary_line()
         self.get_logger().info(self.summary)
-        problems = (['bag truncated'] if self.bag.report.truncated else []) + \
+        report = self.bag.report
+        if report.corrupt:
+            self.get_logger().error(report.corrupt_line())
+            self.exit_code = 2           # played what was intact, but the recording is damaged: say so on exit
+        problems = (['bag corrupt'] if report.corrupt else ['bag truncated'] if report.truncated else []) + \
             (['topics skipped'] if self.skipped else [])
         level, text = (WARN, f'finished ({", ".join(problems)})') if problems else (OK, 'finished')
         publish_diagnostics(self, self.pub_diag, [self._status(level, text)])
@@ -252,7 +256,7 @@ class BagPlayer(Node):
             'bag_time_s': f'{st.bag_time_ns * 1e-9:.3f}' if st.bag_time_ns is not None else '-',
             'max_late_ms': f'{self.max_late_s * 1e3:.1f}',
             'skipped_topics': ', '.join(sorted(dict(self.skipped_topics))),
-            'truncated': self.bag.report.truncated or 'no'}
+            'truncated': self.bag.report.truncated or 'no', 'corrupt': self.bag.report.corrupt or 'no'}
         return diagnostic_status('fixego bag_player', 'bag_player', level, message, values)
 
     def _publish_diagnostics(self) -> None:

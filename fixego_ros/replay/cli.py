@@ -5,16 +5,26 @@ qw``, the pose of ``base_link`` in ``odom`` (DESIGN.md §6). Prints what was ski
 against real time, and the ATE when the bag holds ``ground_truth/pose``. ``--speed-topic`` (off by
 default) feeds a nav_msgs/Odometry speed source recorded in the bag (e.g. ``fixego sim --wheel-odom-std``)
 to the estimator as a scale aid; ``--vergence-topic`` (off by default) does the same with a start-up
-vergence measurement (e.g. ``fixego sim --vergence-std``). Exit codes: 0 done (possibly with documented
-degradations, printed), 2 the bag or the options cannot be used.
+vergence measurement (e.g. ``fixego sim --vergence-std``).
+
+Exit codes: 0 done (possibly with documented degradations, printed); 2 the bag or the options cannot be
+used, or the bag is corrupt: then what precedes the first damaged record has been replayed and written
+like a cut recording's, and the last line on stderr says ``BAG: corrupt: where: what``; 128 + the signal
+number (130 Ctrl-C, 143 SIGTERM) when interrupted: the estimator process is ended, one line is printed, and
+no output file is left half written (TUM files are replaced atomically). Errors are one line, never a
+traceback.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
+import signal
 import sys
+import threading
+from collections.abc import Iterator
 from pathlib import Path
 
 PROG = 'fixego replay'
@@ -111,7 +121,53 @@ def settings_from_args(args: argparse.Namespace, rig):
                                        vergence_topic=args.vergence_topic or '')
 
 
+class Interrupted(KeyboardInterrupt):
+    """SIGINT or SIGTERM arrived: unwinds like Ctrl-C (the replay ends its worker on the way out)."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+
+@contextlib.contextmanager
+def _signals_interrupt() -> Iterator[None]:
+    """SIGINT and SIGTERM raise :class:`Interrupted` in the main thread, once: a second signal during the
+    (bounded) cleanup is ignored, so it cannot turn a clean stop into a traceback. SIGTERM's default would kill
+    the process on the spot and orphan the estimator process."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    fired = False
+
+    def handler(signum: int, _frame) -> None:
+        nonlocal fired
+        if not fired:
+            fired = True
+            raise Interrupted(signum)
+
+    previous = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, signal.SIG_DFL if h is None else h)
+
+
 def run(args: argparse.Namespace) -> int:
+    """``fixego replay``; see the module docstring for the exit codes."""
+    bars: list = []          # the progress bar, so an interruption ends its line before saying so
+    try:
+        with _signals_interrupt():
+            return _run(args, bars)
+    except KeyboardInterrupt as e:
+        for bar in bars:
+            bar.finish()
+        signum = getattr(e, 'signum', signal.SIGINT)
+        print(f'{PROG}: interrupted by {signal.Signals(signum).name}', file=sys.stderr, flush=True)
+        return 128 + signum
+
+
+def _run(args: argparse.Namespace, bars: list) -> int:
     import numpy as np
 
     from fixego_ros.bags.reader import Bag, BagError
@@ -144,6 +200,7 @@ def run(args: argparse.Namespace) -> int:
         return fail(str(e))
     counts = [bag.topics[t].count for t in (topics.name(f'{s}/image_raw') for s in SIDES) if t in bag.topics]
     bar = Progress(sum(c or 0 for c in counts), PROG, enabled=not (args.no_progress or args.quiet), unit='images')
+    bars.append(bar)
     try:
         res = replay(bag, rig, settings, topics, progress=bar.update, workers=args.workers)
     except (ReplayError, BagError) as e:
@@ -159,7 +216,8 @@ def run(args: argparse.Namespace) -> int:
         return fail(f'cannot write {out}: {e}')
 
     for line in res.notes:
-        print(f'{PROG}: note: {line}', file=sys.stderr)
+        if line != res.corrupt:          # said last, as the error it is
+            print(f'{PROG}: note: {line}', file=sys.stderr)
     c = res.counts
     say(f'replayed {bag.path}: {c["images"]} images, {c["frames"]} frames ({c["stereo_frames"]} stereo), '
         f'{len(res.stamps)} poses over {res.bag_duration_s:.2f} s in {res.wall_s:.2f} s '
@@ -174,9 +232,13 @@ def run(args: argparse.Namespace) -> int:
         say(f'vergence {settings.vergence_topic}: {c["vergence"]} measurement(s) given to the estimator')
     say(f'wrote {out} and {raw_out}')
     if res.gt_stamps:
-        return _evaluate(args, res, say, fail)
-    say('no ground truth in the bag: no ATE')
-    return 0
+        code = _evaluate(args, res, say, fail)
+    else:
+        say('no ground truth in the bag: no ATE')
+        code = 0
+    if res.corrupt:
+        return fail(f'{bag.path}: {res.corrupt}; {out} holds the {len(res.stamps)} poses estimated before it')
+    return code
 
 
 def _evaluate(args: argparse.Namespace, res, say, fail) -> int:

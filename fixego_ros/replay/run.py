@@ -15,6 +15,11 @@ encoding or size, non-finite joint states and stamps that go backwards are skipp
 (:attr:`ReplayResult.counts`); a cut recording is replayed up to the cut (:attr:`ReplayResult.notes`).
 What makes a replay impossible raises :class:`ReplayError` with a one-line reason.
 
+A corrupt bag (:mod:`fixego_ros.bags.reader`: a CRC, the compression or the framing of a record fails) is
+replayed up to its first damaged record, like a cut one, and :attr:`ReplayResult.corrupt` says so: the frames
+before the damage come from records that passed their checks, so they are kept ("loses nothing"), but the
+result is flagged, and ``fixego replay`` exits with 2 after writing it.
+
 Scale aid (off by default, :attr:`ReplaySettings.speed`): nav_msgs/Odometry messages on the speed topic
 are converted (:mod:`fixego_ros.pipeline.odometry`) and fed to ``Estimator.add_velocity`` in bag order,
 through the same queue as the frames (so ``workers=2`` sees the same interleaving); they do not drive the
@@ -32,7 +37,8 @@ from __future__ import annotations
 import math
 import time
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -128,6 +134,7 @@ class ReplayResult:
     counts: Counter = field(default_factory=Counter)         # what was read, skipped and why
     steps: Counter = field(default_factory=Counter)          # estimator step statuses
     notes: list[str] = field(default_factory=list)           # degradations, in the order they happened
+    corrupt: str = ''        # '' or the bag's corruption line (also in notes): what precedes it was replayed
     stage_ms: dict[str, list[float]] = field(default_factory=dict)
     wall_s: float = 0.0
     bag_duration_s: float = 0.0
@@ -190,26 +197,53 @@ def _update(estimator: Estimator, stamp: float, obs) -> _Estimate:
                      rig_pose_to_base_link(r.pose_raw), (time.perf_counter() - t0) * 1e3, r.prefix_scale)
 
 
+@dataclass
+class _Failed:
+    """The estimator process failed (an exception in the estimator): the one line the parent reports."""
+
+    message: str
+
+
 def _estimator_worker(factory: type[Estimator], rig: Rig, config: EstimatorConfig, inbox, outbox) -> None:
     """Second process: estimate observations (and take velocity samples and fixation points) from ``inbox`` in
     order until None, results (and refused points) to ``outbox``. ``factory`` is the parent's estimator class,
-    so both processes run the same one."""
-    estimator = factory(rig, config)
-    batch: list[_Estimate | _Refused] = []
-    while (item := inbox.get()) is not None:
-        if isinstance(item, VelocitySample):
-            estimator.add_velocity(item.stamp, item.v_rig, item.cov_rig)
-            continue
-        if isinstance(item, _FixationPoint):
-            if (refused := _add_point(estimator, item)) is not None:
-                batch.append(refused)
-            continue
-        batch.append(_update(estimator, *item))
-        if len(batch) >= 16:
-            outbox.put(batch)
-            batch = []
-    outbox.put(batch)
-    outbox.put(None)
+    so both processes run the same one.
+
+    The parent owns this process: Ctrl-C is ignored here (the terminal sends it to the whole process group; the
+    parent ends us), and we exit on our own when the parent is gone (killed without cleaning up), so no
+    orphan waits for ever on a queue. An exception is sent to the parent as :class:`_Failed`, not printed."""
+    import multiprocessing as mp
+    import queue
+    import signal
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    parent = mp.parent_process()
+    try:
+        estimator = factory(rig, config)
+        batch: list[_Estimate | _Refused] = []
+        while True:
+            try:
+                item = inbox.get(timeout=1.0)
+            except queue.Empty:
+                if parent is not None and not parent.is_alive():
+                    return
+                continue
+            if item is None:
+                break
+            if isinstance(item, VelocitySample):
+                estimator.add_velocity(item.stamp, item.v_rig, item.cov_rig)
+                continue
+            if isinstance(item, _FixationPoint):
+                if (refused := _add_point(estimator, item)) is not None:
+                    batch.append(refused)
+                continue
+            batch.append(_update(estimator, *item))
+            if len(batch) >= 16:
+                outbox.put(batch)
+                batch = []
+        outbox.put(batch)
+        outbox.put(None)
+    except Exception as e:  # reported by the parent in one line; the worker must not print a traceback
+        outbox.put(_Failed(' '.join(f'{type(e).__name__}: {e}'.split())))
 
 
 class _InProcess:
@@ -236,7 +270,10 @@ class _InProcess:
 
 
 class _Subprocess:
-    """The estimator in its own process. Every wait is bounded: a worker that dies or stalls raises."""
+    """The estimator in its own process. Every wait is bounded: a worker that dies, fails or stalls raises
+    :class:`ReplayError`; :meth:`abort` (any error, Ctrl-C) ends it and never leaves the parent waiting on a
+    queue at exit (a terminated worker leaves unread data in the inbox pipe, and a queue joins its feeder
+    thread at exit unless told not to)."""
 
     def __init__(self, rig: Rig, config: EstimatorConfig, timeout_s: float = 120.0) -> None:
         import multiprocessing as mp
@@ -244,7 +281,8 @@ class _Subprocess:
         self.inbox, self.outbox = ctx.Queue(), ctx.Queue()
         self.proc = ctx.Process(target=_estimator_worker, args=(Estimator, rig, config, self.inbox, self.outbox),
                                 daemon=True, name='fixego-replay-estimator')
-        self.proc.start()
+        with _sigint_ignored():            # inherited through exec: a Ctrl-C while the child boots is the parent's
+            self.proc.start()
         self.timeout_s = timeout_s
         self.done: list[_Estimate] = []
         self.refused: list[_Refused] = []     # known once finished
@@ -259,30 +297,59 @@ class _Subprocess:
         self.inbox.put(_FixationPoint(stamp, side, point, cov))
 
     def finish(self) -> list[_Estimate]:
+        """All results, in order; the worker has exited when this returns."""
         import queue
         self.inbox.put(None)
-        try:
-            while True:
-                try:
-                    batch = self.outbox.get(timeout=self.timeout_s)
-                except queue.Empty:
-                    raise ReplayError(f'the estimator process gave no result for {self.timeout_s:.0f} s '
-                                      f'(alive: {self.proc.is_alive()})') from None
-                if batch is None:
-                    break
-                self.done.extend(e for e in batch if isinstance(e, _Estimate))
-                self.refused.extend(e for e in batch if isinstance(e, _Refused))
-        finally:
-            self.proc.join(timeout=5.0)
-            if self.proc.is_alive():
-                self.proc.terminate()
-                self.proc.join(timeout=5.0)
+        quiet_since = time.monotonic()
+        while True:
+            try:
+                batch = self.outbox.get(timeout=0.5)
+            except queue.Empty:
+                if not self.proc.is_alive():
+                    raise ReplayError(f'the estimator process ended unexpectedly (exit code {self.proc.exitcode})'
+                                      ) from None
+                if time.monotonic() - quiet_since > self.timeout_s:
+                    raise ReplayError(f'the estimator process gave no result for {self.timeout_s:.0f} s') from None
+                continue
+            if batch is None:
+                break
+            if isinstance(batch, _Failed):
+                raise ReplayError(f'the estimator failed: {batch.message}')
+            quiet_since = time.monotonic()
+            self.done.extend(e for e in batch if isinstance(e, _Estimate))
+            self.refused.extend(e for e in batch if isinstance(e, _Refused))
+        self.proc.join(timeout=5.0)
+        self.abort()                       # no-op when it has exited, as it should have
         return self.done
 
     def abort(self) -> None:
+        """End the worker (bounded: terminate, then kill) and let the queues go without joining their threads."""
+        for q in (self.inbox, self.outbox):
+            q.cancel_join_thread()
         if self.proc.is_alive():
             self.proc.terminate()
-            self.proc.join(timeout=5.0)
+            self.proc.join(timeout=2.0)
+        if self.proc.is_alive():
+            self.proc.kill()
+            self.proc.join(timeout=2.0)
+        for q in (self.inbox, self.outbox):
+            q.close()
+
+
+@contextmanager
+def _sigint_ignored() -> Iterator[None]:
+    """SIGINT ignored while a child process is started (the disposition survives exec, so the child boots
+    immune to the Ctrl-C the terminal sends to the whole process group); no-op outside the main thread."""
+    import signal
+    import threading
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, signal.SIG_DFL if previous is None else previous)
 
 
 class _Timer:
@@ -462,6 +529,8 @@ def replay(bag: Bag, rig: Rig, settings: ReplaySettings, topics: ReplayTopics = 
 
     res.wall_s = time.perf_counter() - wall0
     res.notes = bag.report.lines() + res.notes
+    res.corrupt = bag.report.corrupt_line()
+    damaged = f' ({res.corrupt})' if res.corrupt else ''
     s = sync.stats
     res.counts.update({'sync_frames': s.frames, 'stereo_frames': s.stereo_frames,
                        'single_camera_frames': s.single_camera_frames, 'late_images': s.late_images,
@@ -470,7 +539,7 @@ def replay(bag: Bag, rig: Rig, settings: ReplaySettings, topics: ReplayTopics = 
         res.counts[f'reselections:{side}'] = len(trackers[side].reselections)
     if res.counts['images'] == 0:
         raise ReplayError(f'{bag.path}: no image on {topics.name("right/image_raw")} or '
-                          f'{topics.name("left/image_raw")} could be read')
+                          f'{topics.name("left/image_raw")} could be read{damaged}')
     if not res.stamps:
         raise ReplayError(f'{bag.path}: no frame could be estimated ({"; ".join(res.notes) or "no stereo frame"})')
     res.bag_duration_s = res.stamps[-1] - res.stamps[0]

@@ -1,7 +1,8 @@
 """Write a simulated sequence as an image-level rosbag2/MCAP bag with the topic contract of DESIGN.md §3.
 
 Storage and ``metadata.yaml`` come from ``rosbags`` (rosbag2 format version 9, with offered QoS
-profiles and RIHS01 type hashes, which is what ``ros2 bag info/play`` expect); the messages are real
+profiles and RIHS01 type hashes, which is what ``ros2 bag info/play`` expect; the MCAP file gets real
+CRCs from :mod:`fixego_ros.bags.mcap_storage`, so bit rot is detected when reading); the messages are real
 ROS 2 messages serialised to CDR by rclpy, so what a subscriber gets from ``ros2 bag play`` is
 value-identical to what the nodes would publish (alignment padding is zeroed for reproducibility,
 see :func:`canonical_cdr`).
@@ -217,9 +218,9 @@ def write_bag(out_dir: str | Path, rig: Rig, settings: SimSettings | None = None
         raise ValueError(f'wheel odometry std must be a finite number >= 0 m/s, got {wheel_odom_std}')
     if vergence_std is not None and not (np.isfinite(vergence_std) and vergence_std >= 0):
         raise ValueError(f'vergence std must be a finite relative error >= 0, got {vergence_std}')
-    from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
     from rosbags.typesys import Stores, get_typestore
 
+    from fixego_ros.bags.mcap_storage import bag_writer
     from fixego_ros.nodes.common import sec_to_stamp, vergence_to_msg
 
     out_dir = Path(out_dir)
@@ -240,8 +241,7 @@ def write_bag(out_dir: str | Path, rig: Rig, settings: SimSettings | None = None
     wall0 = time.monotonic()
     bar = Progress(len(sim), f'fixego sim {settings.trajectory}', progress)
     n_msgs = 0
-    writer = Writer(out_dir, version=9, storage_plugin=StoragePlugin.MCAP)
-    writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)   # zstd MCAP chunks, as rosbag2's
+    writer = bag_writer(out_dir)     # zstd MCAP chunks, as rosbag2's; with chunk, data and summary CRCs
     with writer:
         writer.set_custom_data('fixego_sim', ' '.join(f'{k}={v}' for k, v in settings.to_dict().items()))
         if wheel is not None:
