@@ -122,6 +122,9 @@ def _replay(*args) -> subprocess.CompletedProcess:
     (('-p', 'speed_max_age_s:=0'), 'parameter speed_max_age_s: 0 is out of range'),
     (('-p', 'preset:=paper', '-p', 'paper_region_px:=500'), 'flow parameters do not fit together'),
     ('params_file', 'estimator_node: parameter max_step_rotation_deg: -5.0 is out of range'),
+    (('-p', 'min_eig:=['), "parameter min_eig: '[' is not a YAML value"),
+    (('-p', 'vergence_topic:=/fixego/vergence'), 'not used by replay (use --vergence-topic)'),
+    (('-p', 'no_such_thing:=1'), "unknown parameter 'no_such_thing'"),
 ])
 def test_replay_refuses_bad_parameters_with_one_line(tmp_path, option, expect):
     if option == 'params_file':

@@ -18,16 +18,18 @@ traceback.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import os
 import signal
 import sys
-import threading
-from collections.abc import Iterator
 from pathlib import Path
 
+from fixego_ros.interrupt import signals_interrupt
+
 PROG = 'fixego replay'
+# node parameters that replay takes as options instead
+REPLAY_OPTION = {'vergence_topic': 'use --vergence-topic', 'rig_file': 'use --rig',
+                 'observation_topic': 'replay reads the image topics; see --remap and --namespace'}
 
 
 def register(subparsers) -> None:
@@ -84,16 +86,17 @@ def _pairs(items: list[str], what: str) -> list[tuple[str, str]]:
 
 def settings_from_args(args: argparse.Namespace, rig):
     """ReplaySettings from the node tables, the parameter files and the options (later wins)."""
-    import yaml
 
     from fixego_ros.pipeline.odometry import SPEED_PARAMS, SpeedSettings
     from fixego_ros.pipeline.params import (
         ESTIMATOR_PARAMS,
         FIXATION_PARAMS,
         FLOW_PARAMS,
+        NODE_PARAMS,
         ParamsError,
         load_params_file,
         params_getter,
+        parse_value,
     )
     from fixego_ros.replay.run import ReplaySettings
 
@@ -111,53 +114,26 @@ def settings_from_args(args: argparse.Namespace, rig):
     for name, text in _pairs(args.param, '--param'):
         owners = [n for n, table in nodes.items() if name in table]
         if not owners:
+            elsewhere = [n for n, table in NODE_PARAMS.items() if name in table]
+            if elsewhere:    # a real node parameter that only means something to a live node
+                hint = REPLAY_OPTION.get(name, 'it has no effect offline')
+                raise ParamsError(f'parameter {name} of {elsewhere[0]} is not used by replay ({hint})')
             raise ParamsError(f'unknown parameter {name!r} (see config/camera_node.yaml, flow_node.yaml, '
                               f'estimator_node.yaml)')
+        value = parse_value(name, text)
         for n in owners:     # fb_max_px exists for the fixation tracker and the flow: -p sets both
-            values[n][name] = yaml.safe_load(text)
+            values[n][name] = value
     getters = {n: params_getter(table, values[n]) for n, table in nodes.items()}
     return ReplaySettings.from_getters(rig, getters['camera_node'], getters['flow_node'], getters['estimator_node'],
                                        SpeedSettings.from_getter(getters['estimator_node']),
                                        vergence_topic=args.vergence_topic or '')
 
 
-class Interrupted(KeyboardInterrupt):
-    """SIGINT or SIGTERM arrived: unwinds like Ctrl-C (the replay ends its worker on the way out)."""
-
-    def __init__(self, signum: int) -> None:
-        super().__init__(signal.Signals(signum).name)
-        self.signum = signum
-
-
-@contextlib.contextmanager
-def _signals_interrupt() -> Iterator[None]:
-    """SIGINT and SIGTERM raise :class:`Interrupted` in the main thread, once: a second signal during the
-    (bounded) cleanup is ignored, so it cannot turn a clean stop into a traceback. SIGTERM's default would kill
-    the process on the spot and orphan the estimator process."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    fired = False
-
-    def handler(signum: int, _frame) -> None:
-        nonlocal fired
-        if not fired:
-            fired = True
-            raise Interrupted(signum)
-
-    previous = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        yield
-    finally:
-        for s, h in previous.items():
-            signal.signal(s, signal.SIG_DFL if h is None else h)
-
-
 def run(args: argparse.Namespace) -> int:
     """``fixego replay``; see the module docstring for the exit codes."""
     bars: list = []          # the progress bar, so an interruption ends its line before saying so
     try:
-        with _signals_interrupt():
+        with signals_interrupt():
             return _run(args, bars)
     except KeyboardInterrupt as e:
         for bar in bars:

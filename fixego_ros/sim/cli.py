@@ -20,11 +20,11 @@ import shutil
 import signal
 import sys
 import tempfile
-import threading
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import NoReturn
 
+from fixego_ros.interrupt import signals_interrupt
 from fixego_ros.sim.run import (
     DURATION_MAX,
     FPS_RANGE,
@@ -279,37 +279,6 @@ def check_args(args: argparse.Namespace):
     return rig, settings, out
 
 
-class Interrupted(KeyboardInterrupt):
-    """SIGINT or SIGTERM arrived while writing: unwinds like Ctrl-C, so the partial bag is removed."""
-
-    def __init__(self, signum: int) -> None:
-        super().__init__(signal.Signals(signum).name)
-        self.signum = signum
-
-
-@contextlib.contextmanager
-def _signals_interrupt() -> Iterator[None]:
-    """SIGINT and SIGTERM raise :class:`Interrupted` in the main thread, once (SIGTERM's default would end the
-    process on the spot and leave a half-written bag); the previous handlers come back afterwards."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    fired = False
-
-    def handler(signum: int, _frame) -> None:
-        nonlocal fired
-        if not fired:
-            fired = True
-            raise Interrupted(signum)
-
-    previous = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        yield
-    finally:
-        for s, h in previous.items():
-            signal.signal(s, signal.SIG_DFL if h is None else h)
-
-
 class _LineTracker:
     """sys.stderr that remembers whether its last text ended a line (a progress bar's line may still be open)."""
 
@@ -363,7 +332,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
     with _tracked_stderr() as err:
         try:
-            with _signals_interrupt():
+            with signals_interrupt():
                 s = write_bag(out, rig, settings, progress=not args.no_progress,
                               wheel_odom_std=args.wheel_odom_std, vergence_std=args.vergence_std)
         except KeyboardInterrupt as e:
