@@ -47,3 +47,10 @@ def test_float_tolerance_is_the_stated_one():
     off = replace(msg, pose=replace(msg.pose, position=replace(p, x=p.x + 100 * FLOAT_TOL * max(1.0, abs(p.x)))))
     assert _differences(msg, off)
     assert _differences(msg, replace(msg, header=replace(msg.header, frame_id='elsewhere')))
+
+
+def test_shipped_bags_carry_checked_crcs():
+    """A flipped bit in a shipped bag is found: every chunk, the data section and the summary have real CRCs."""
+    from test_bag_faults import assert_real_crcs
+    for name in ('paper', 'walk'):
+        assert_real_crcs(next((WALK.parent / name).glob('*.mcap')))
