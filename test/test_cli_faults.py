@@ -92,6 +92,15 @@ DEMO_NUMBERS = [
 for opt, raw, arg in DEMO_NUMBERS:
     CASES[f'demo{arg}'] = ([*DEMO, arg], opt, raw, 'fixego demo')
 
+PLAY = ['play', str(Path(__file__).resolve().parents[1] / 'bags' / 'walk'), '--delay', '0']
+for opt, raw, arg in [*_numeric('--rate', '1e-300 -1 nan inf 1e308'), *_numeric('--start-offset', '1e308 nan -1'),
+                      *_numeric('--delay', 'inf -1'), *_numeric('--domain-id', '-1 233 99999999999999999999')]:
+    CASES[f'play{arg}'] = ([*PLAY, arg], opt, raw, 'fixego play')
+CASES['play--remap'] = ([*PLAY, '--remap', '/fixego/left/image_raw:=bad topic!'], '--remap', None, 'fixego play')
+for opt, raw, arg in [*_numeric('--duration', 'inf 1e308 nan 0 -1'), *_numeric('--domain-id', '-1 233')]:
+    CASES[f'record{arg}'] = (['record', 'rec', arg], opt, raw, 'fixego record')
+CASES['record-topic'] = (['record', 'rec', 'bad topic!', '--duration', '1'], 'TOPIC', None, 'fixego record')
+
 # --out of each command: (value, what the error names); 'afile' is a file in the working directory
 OUT_CASES = {
     'sim': ([*SIM], [('/proc/x', '/proc/x'), ('afile/sub', 'afile'), ('', '--out'), ('afile', 'afile'),
@@ -126,6 +135,9 @@ def _all_cases() -> dict[str, tuple[list[str], str, str | None, str, str | None]
     """id -> (args, option, raw value, prog, --out value checked for absence (None: the default 'out'))."""
     out: dict[str, tuple[list[str], str, str | None, str, str | None]] = {}
     for cid, (args, opt, raw, prog) in CASES.items():
+        if prog in ('fixego play', 'fixego record'):       # no --out: record's BAG_DIR 'rec' must not appear
+            out[cid] = (args, opt, raw, prog, 'rec' if prog == 'fixego record' else None)
+            continue
         out[cid] = ([*args, '--out', 'out'], opt, raw, prog, 'out')
     for cmd, (args, values) in OUT_CASES.items():
         prog = {'sim': 'fixego sim', 'paper': 'fixego paper-sim', 'demo': 'fixego demo'}[cmd]
@@ -323,3 +335,22 @@ def test_sigterm_mid_run_removes_the_partial_bag(tmp_path):
     assert proc.returncode == 128 + signal.SIGTERM, err
     assert 'Traceback' not in err and 'SIGTERM' in err and len(err.splitlines()) == 1, err
     assert not (tmp_path / 'bag').exists()
+
+
+@pytest.mark.parametrize('args, expect', [
+    (['replay', 'WALK', '--out', ''], '--out must name a file'),
+    (['replay', 'WALK', '--out', '/proc/x/e.tum'], '--out /proc/x/e.tum: cannot write under /proc'),
+    (['replay', 'WALK', '--out', 'WALK'], 'is a directory'),
+    (['eval', 'GT', 'GT', '--rpe-delta-m', 'inf'], '--rpe-delta-m must be a finite number'),
+    (['eval', 'GT', 'GT', '--max-dt', 'inf'], '--max-dt must be a finite number'),
+])
+def test_replay_and_eval_outputs_and_numbers_checked_first(tmp_path, args, expect):
+    """Refused before the replay runs (a long bag must not fail at its end) or the evaluation starts."""
+    walk = Path(__file__).resolve().parents[1] / 'bags' / 'walk'
+    args = [str(walk) if a == 'WALK' else str(walk / 'ground_truth.tum') if a == 'GT' else a for a in args]
+    if args[0] == 'eval':
+        args += ['--out', str(tmp_path / 'ev')]
+    p = subprocess.run([sys.executable, '-m', 'fixego_ros.cli', *args], capture_output=True, text=True, timeout=120,
+                       cwd=tmp_path)
+    assert p.returncode == 2 and expect in p.stderr and 'Traceback' not in p.stderr, p.stderr
+    assert len(p.stderr.strip().splitlines()) == 1 and 'replayed' not in p.stdout

@@ -11,6 +11,12 @@ import argparse
 import sys
 from pathlib import Path
 
+from fixego_ros.cli_options import ROS_DOMAIN_IDS, OptionError, check_float, check_int, check_topic_name
+
+RATE_MIN = 1e-3          # slower than 1000x slow motion is a typo, not a playback (1e-300 never ended)
+RATE_MAX = 1e6
+OFFSET_MAX = 1e9         # s (~30 years): beyond it the nanosecond arithmetic overflows
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -31,13 +37,29 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
+def check_args(args: argparse.Namespace) -> None:
+    """Every option before the bag is opened (:class:`OptionError`): a rate that would make playback endless, an
+    offset or delay that overflows, a domain id ROS refuses, a remap that is not FROM:=TO with valid names."""
+    check_float(args.rate, '--rate', 0.0, RATE_MAX, note=' (0 = as fast as possible)')
+    check_float(args.start_offset, '--start-offset', 0.0, OFFSET_MAX, unit='s')
+    check_float(args.delay, '--delay', 0.0, OFFSET_MAX, unit='s')
+    if args.rate != 0.0 and args.rate < RATE_MIN:
+        raise OptionError(f'--rate must be 0 or at least {RATE_MIN:g} (slower playback would take ages), '
+                          f'got {args.rate!r}')
+    if args.domain_id is not None:
+        check_int(args.domain_id, '--domain-id', *ROS_DOMAIN_IDS)
+    for name in [*args.topics, *(part for r in args.remap for part in r.split(':=', 1))]:
+        check_topic_name(name, '--topics/--remap')
+
+
 def run(args: argparse.Namespace) -> int:
     from fixego_ros.bags.player import PlayError, Schedule
     from fixego_ros.bags.reader import Bag, BagError
 
     try:
+        check_args(args)
         Schedule(Bag(args.bag), args.rate, start_offset_s=args.start_offset)   # fail before starting DDS
-    except (BagError, PlayError) as e:
+    except (BagError, PlayError, OptionError) as e:
         print(f'fixego play: {e}', file=sys.stderr)
         return 2
 

@@ -12,6 +12,9 @@ import threading
 import time
 from pathlib import Path
 
+from fixego_ros.cli_options import ROS_DOMAIN_IDS, OptionError, check_float, check_int, check_topic_name
+
+DURATION_MAX = 1e7     # s (~4 months): a longer --duration is a typo for 'until Ctrl-C'
 PROG = 'fixego record'
 
 
@@ -35,11 +38,16 @@ def run(args: argparse.Namespace) -> int:
     if args.bag.exists():
         print(f'{PROG}: {args.bag} exists already; give a new directory', file=sys.stderr)
         return 2
-    if args.duration is not None and not args.duration > 0:
-        print(f'{PROG}: --duration must be > 0', file=sys.stderr)
-        return 2
-    if args.domain_id is not None and not 0 <= args.domain_id <= 232:
-        print(f'{PROG}: --domain-id must be in 0..232', file=sys.stderr)
+    try:
+        if args.duration is not None:
+            check_float(args.duration, '--duration', 0.0, DURATION_MAX, lo_open=True, unit='s',
+                        note=' (leave it out to record until Ctrl-C)')
+        if args.domain_id is not None:
+            check_int(args.domain_id, '--domain-id', *ROS_DOMAIN_IDS)
+        for t in args.topics:
+            check_topic_name(t, 'TOPIC')
+    except OptionError as e:
+        print(f'{PROG}: {e}', file=sys.stderr)
         return 2
 
     import rclpy

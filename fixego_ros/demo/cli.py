@@ -18,25 +18,13 @@ from pathlib import Path
 
 import numpy as np
 
-from fixego_ros.sim.cli import (
-    DURATION_MAX,
-    FPS_RANGE,
-    SEED_MAX,
-    SIZE_RANGE,
-    OptionError,
-    check_float,
-    check_int,
-    image_size,
-    one_line_errors,
-    prepare_out_dir,
-    read_rig,
-)
-from fixego_ros.sim.run import resize_rig
+from fixego_ros.cli_options import ROS_DOMAIN_IDS, OptionError, check_float, check_int, one_line_errors, prepare_out_dir
+from fixego_ros.sim.cli import image_size, read_rig
+from fixego_ros.sim.run import DURATION_MAX, FPS_RANGE, SEED_MAX, SIZE_RANGE, resize_rig
 from fixego_ros.sim.trajectories import NAMES
 
 PROG = 'fixego demo'
 READY_TIMEOUT_MAX = 3600.0     # s
-DOMAIN_ID_MAX = 232            # ROS 2 domain ids 0..232 (as `fixego record --domain-id`)
 
 
 def register(subparsers) -> None:
@@ -60,7 +48,7 @@ def register(subparsers) -> None:
     p.add_argument('--mode', choices=('paper', 'joint'), default='paper', help='local BA mode')
     p.add_argument('--seed', type=int, default=0, help=f'seed of the simulated world, 0..{SEED_MAX}')
     p.add_argument('--domain-id', type=int,
-                   help=f'ROS_DOMAIN_ID for every process, 0..{DOMAIN_ID_MAX} (default: inherited)')
+                   help='ROS_DOMAIN_ID for every process, {}..{} (default: inherited)'.format(*ROS_DOMAIN_IDS))
     p.add_argument('--ready-timeout', type=float, default=90.0,
                    help=f'bound on start-up in s, in (0, {READY_TIMEOUT_MAX:g}] (default 90)')
     p.add_argument('--quiet', action='store_true', help='no progress lines')
@@ -78,7 +66,7 @@ def check_args(args: argparse.Namespace):
     check_int(args.seed, '--seed', 0, SEED_MAX)
     check_float(args.ready_timeout, '--ready-timeout', 0.0, READY_TIMEOUT_MAX, lo_open=True, unit='s')
     if args.domain_id is not None:
-        check_int(args.domain_id, '--domain-id', 0, DOMAIN_ID_MAX, note=' (ROS 2 domain ids)')
+        check_int(args.domain_id, "--domain-id", *ROS_DOMAIN_IDS, note=' (ROS 2 domain ids)')
     spec = ESTIMATOR_PARAMS['window']
     try:
         spec.check(args.window)

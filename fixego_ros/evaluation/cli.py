@@ -8,6 +8,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from fixego_ros.cli_options import OptionError, check_float
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -60,6 +62,10 @@ def summary_lines(name: str, s: dict[str, Any]) -> list[str]:
     ]
 
 
+MAX_DT_MAX = 3600.0          # s: association tolerance beyond an hour associates nothing meaningful
+RPE_DELTA_MAX_M = 1e6         # m
+
+
 def run(args: argparse.Namespace) -> int:
     """``fixego eval``: exit 0, 2 when the input cannot be used, 130 on Ctrl-C (one line, no traceback)."""
     try:
@@ -80,10 +86,12 @@ def _run(args: argparse.Namespace) -> int:
         return 2
 
     max_dt = DEFAULT_MAX_DT if args.max_dt is None else args.max_dt
-    if not max_dt >= 0:
-        return fail(f'--max-dt must be >= 0, got {args.max_dt}')
-    if args.rpe_delta_m is not None and not args.rpe_delta_m > 0:
-        return fail(f'--rpe-delta-m must be > 0, got {args.rpe_delta_m}')
+    try:
+        check_float(max_dt, '--max-dt', 0.0, MAX_DT_MAX, unit='s')
+        if args.rpe_delta_m is not None:
+            check_float(args.rpe_delta_m, '--rpe-delta-m', 0.0, RPE_DELTA_MAX_M, lo_open=True, unit='m')
+    except OptionError as e:
+        return fail(str(e))
     out_dir: Path = args.out if args.out is not None else args.estimate.parent
     try:
         gt_stamps, gt_poses = read_tum(args.ground_truth)

@@ -211,7 +211,7 @@ SEED_MAX = 2**32 - 1
 
 def check_args(args: argparse.Namespace) -> list[str]:
     """Every option, before any work: the preset names; raises OptionError (one line naming the option)."""
-    from fixego_ros.sim.cli import OptionError, check_int
+    from fixego_ros.cli_options import OptionError, check_int
     names = [n.strip() for n in args.presets.split(',')]
     if not args.presets.strip() or not any(names):
         raise OptionError(f'--presets must name at least one preset of {", ".join(PRESETS)}, got {args.presets!r}')
@@ -237,7 +237,7 @@ def main(args: argparse.Namespace) -> int:
     stderr before any work; nothing created), or the report cannot be written."""
     import sys
 
-    from fixego_ros.sim.cli import OptionError, prepare_out_dir
+    from fixego_ros.cli_options import OptionError, prepare_out_dir
     try:
         names = check_args(args)
         out = prepare_out_dir(args.out, '--out')      # last: creates the folder
@@ -271,7 +271,7 @@ def main(args: argparse.Namespace) -> int:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from fixego_ros.sim.cli import one_line_errors
+    from fixego_ros.cli_options import one_line_errors
     p = sub.add_parser('paper-sim', help="the papers' numerical experiments (§4.1): JSON + plots",
                        description="The papers' numerical experiments (§4.1): report.json and one PNG per preset. "
                                    'Every option is checked before any work (exit code 2, one line).')

@@ -24,6 +24,7 @@ import signal
 import sys
 from pathlib import Path
 
+from fixego_ros.cli_options import OptionError, check_out_file
 from fixego_ros.interrupt import signals_interrupt
 
 PROG = 'fixego replay'
@@ -162,8 +163,9 @@ def _run(args: argparse.Namespace, bars: list) -> int:
             print(msg)
 
     try:
+        check_out_file(args.out)
         bag = Bag(args.bag)
-    except BagError as e:
+    except (BagError, OptionError) as e:
         return fail(str(e))
     rig_path = args.rig or bag.dir / 'rig.yaml'
     if not rig_path.exists():

@@ -7,8 +7,7 @@ removing the directory); 1 the simulation or the writing failed part way (one li
 directory is removed, so the same ``--out`` can be used again; 128 + the signal number (130 Ctrl-C,
 143 SIGTERM) when interrupted, also without leaving a partial bag. Never a traceback for these.
 
-The option checks (:func:`check_float`, :func:`check_int`, :func:`check_new_dir`, :func:`prepare_out_dir`,
-:func:`read_rig`, :func:`one_line_errors`) are shared with ``fixego demo`` and ``fixego paper-sim``.
+The option checks are :mod:`fixego_ros.cli_options`'s; :func:`read_rig` is shared with ``fixego demo``.
 """
 
 from __future__ import annotations
@@ -19,11 +18,17 @@ import math
 import shutil
 import signal
 import sys
-import tempfile
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
-from typing import NoReturn
 
+from fixego_ros.cli_options import (
+    OptionError,
+    check_float,
+    check_int,
+    check_new_dir,
+    one_line_errors,
+    why,
+)
 from fixego_ros.interrupt import signals_interrupt
 from fixego_ros.sim.run import (
     DURATION_MAX,
@@ -47,115 +52,6 @@ PROG = 'fixego sim'
 # upper limits of the optional topics' noise (fixego_ros.sim.bag_writer only refuses negative/non-finite ones)
 WHEEL_ODOM_STD_MAX = 10.0        # m/s: beyond it the "speed aid" is noise (and 1e308 overflows to inf)
 VERGENCE_STD_MAX = 1.0           # relative, exclusive: a 100 % error is no measurement (and 1e308 writes inf)
-
-
-class OptionError(ValueError):
-    """An option that cannot be used; the message is one line naming the option, its value and what is allowed."""
-
-
-# ------------------------------------------------------------------------------------------------ checks
-def one_line_errors(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
-    """argparse's own errors of ``parser`` (``--fps abc``, a missing ``--out``, ``--fps -inf`` read as an
-    option, ...) as one ``PROG: ...`` line and exit code 2, like the checks below (not usage + error)."""
-    def error(message: str) -> NoReturn:
-        parser.exit(2, f'{parser.prog}: {" ".join(message.split())} (see {parser.prog} --help)\n')
-
-    parser.error = error     # type: ignore[method-assign]
-    return parser
-
-
-def _interval(lo: float, hi: float, lo_open: bool, hi_open: bool) -> str:
-    return f'{"(" if lo_open else "["}{lo:g}, {hi:g}{")" if hi_open else "]"}'
-
-
-def check_float(value: float, option: str, lo: float, hi: float, *, lo_open: bool = False, hi_open: bool = False,
-                unit: str = '', note: str = '') -> float:
-    """``value`` if finite and within the interval, else :class:`OptionError` naming ``option`` and the value."""
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        v = math.nan
-    ok = math.isfinite(v) and (v > lo if lo_open else v >= lo) and (v < hi if hi_open else v <= hi)
-    if not ok:
-        raise OptionError(f'{option} must be a finite number in {_interval(lo, hi, lo_open, hi_open)}'
-                          f'{" " + unit if unit else ""}{note}, got {value!r}')
-    return v
-
-
-def check_int(value: int, option: str, lo: int, hi: int, *, also: Iterable[int] = (), note: str = '') -> int:
-    """``value`` if an integer in ``lo..hi`` (or one of ``also``), else :class:`OptionError`."""
-    also = tuple(also)
-    if isinstance(value, bool) or not isinstance(value, int) or not (lo <= value <= hi or value in also):
-        extra = ''.join(f' or {a}' for a in also)
-        raise OptionError(f'{option} must be an integer in {lo}..{hi}{extra}{note}, got {value!r}')
-    return value
-
-
-def _why(e: OSError) -> str:
-    return e.strerror or type(e).__name__
-
-
-def check_new_dir(text: str, option: str = '--out') -> Path:
-    """A directory that the command will create: a non-empty path that does not exist, in an existing writable
-    directory. Probed by creating and removing it, so ``/proc/x`` (which root may 'access') is refused too."""
-    if not text or not text.strip():
-        raise OptionError(f'{option} must name a directory to create, got an empty path')
-    path = Path(text)
-    if path.exists() or path.is_symlink():
-        raise OptionError(f'{option} {text}: exists already (bags are never overwritten; choose a new directory)')
-    parent = path.parent
-    if not parent.exists():
-        raise OptionError(f'{option} {text}: the parent directory {parent} does not exist')
-    if not parent.is_dir():
-        raise OptionError(f'{option} {text}: {parent} is not a directory')
-    try:
-        path.mkdir()
-    except OSError as e:
-        raise OptionError(f'{option} {text}: cannot create the directory ({_why(e)})') from None
-    try:
-        path.rmdir()
-    except OSError as e:     # pragma: no cover - we just made it
-        raise OptionError(f'{option} {text}: cannot remove the probe directory ({_why(e)})') from None
-    return path
-
-
-def prepare_out_dir(text: str, option: str = '--out') -> Path:
-    """An output folder that may exist already (then reused) or is created with its parents, and that takes a
-    file (probed with a temporary one). Call it last, after every other check; on refusal nothing it made is
-    left behind."""
-    if not text or not text.strip():
-        raise OptionError(f'{option} must name an output directory, got an empty path')
-    path = Path(text)
-    if path.exists() and not path.is_dir():
-        raise OptionError(f'{option} {text}: exists and is not a directory')
-    made: list[Path] = []
-    if not path.exists():
-        missing = [path, *(p for p in path.parents if not p.exists())]
-        blocker = next((p for p in path.parents if p.exists()), None)
-        if blocker is not None and not blocker.is_dir():
-            raise OptionError(f'{option} {text}: {blocker} is not a directory')
-        for p in reversed(missing):
-            try:
-                p.mkdir()
-            except FileExistsError:
-                continue
-            except OSError as e:
-                _remove_dirs(made)
-                raise OptionError(f'{option} {text}: cannot create {p} ({_why(e)})') from None
-            made.append(p)
-    try:
-        with tempfile.TemporaryFile(dir=path):
-            pass
-    except OSError as e:
-        _remove_dirs(made)
-        raise OptionError(f'{option} {text}: cannot write there ({_why(e)})') from None
-    return path
-
-
-def _remove_dirs(dirs: list[Path]) -> None:
-    for d in reversed(dirs):
-        with contextlib.suppress(OSError):
-            d.rmdir()
 
 
 def read_rig(path: Path | None, option: str = '--rig'):
@@ -311,7 +207,7 @@ def _remove_partial(out: Path) -> str:
     try:
         shutil.rmtree(out)
     except OSError as e:
-        return f'the incomplete bag directory {out} could NOT be removed ({_why(e)}): delete it before a re-run'
+        return f'the incomplete bag directory {out} could NOT be removed ({why(e)}): delete it before a re-run'
     return f'the incomplete bag directory {out} was removed'
 
 
