@@ -187,6 +187,16 @@ def test_rig_file_errors_name_the_file(tmp_path):
      r'rig_in_base_link\.rotation_xyzw must be a unit quaternion'),
     (lambda d: d.update(pan_tilt=[1, 2]), r'pan_tilt must be a mapping'),
     (lambda d: d['pan_tilt']['left'].update(tilt_offset='0.1'), r'pan_tilt\.left\.tilt_offset must be a number'),
+    # plausibility: typos that would otherwise give a garbage trajectory
+    (lambda d: d['right'].update(fx=1e308), r'right\.fx = 1e\+308 px is not a focal length'),
+    (lambda d: d['left'].update(fy=1e-300), r'left\.fy = 1e-300 px is not a focal length'),
+    (lambda d: d['right'].update(cx=5000.0), r'right: principal point \(5000, .*\) lies outside'),
+    (lambda d: d['right'].update(dist=[1e10, 0, 0, 0, 0]), r'right\.dist .* not a lens model'),
+    (lambda d: d['left_in_rig'].update(translation=[0.0, 0.0, 0.0]), r'a baseline of 0 m is not a rig'),
+    (lambda d: d['left_in_rig'].update(translation=[-1e300, 0.0, 0.0]),
+     r'\[-1e\+300, 0.0, 0.0\]: a baseline of .* m is not a rig'),
+    (lambda d: d['pan_tilt']['right'].update(tilt_offset=1e300), r'tilt_offset = 1e\+300 rad is beyond'),
+    (lambda d: d['right'].update(width=10**6), r'larger than 16384 px'),
 ])
 def test_rig_file_misspelt_keys_and_bad_values_are_errors_naming_the_key(mutate, match):
     """Inside the fixed blocks a misspelt key would silently fall back to a default: it is an error naming the

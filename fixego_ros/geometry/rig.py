@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import difflib
 import logging
+import math
 import numbers
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -274,6 +275,11 @@ def _pose_block(d: dict[str, Any], key: str) -> tuple[np.ndarray, np.ndarray]:
     return _vector(block, 'translation', key, 3), _rotation(block, key)
 
 
+MAX_IMAGE_SIDE = 16384          # px
+MAX_DISTORTION = 100.0          # |k1..k3, p1, p2|: beyond this no lens model is meant
+MIN_BASELINE_M, MAX_BASELINE_M = 1e-3, 100.0   # the rig's scale comes from the baseline: zero is no rig
+
+
 def _camera(d: dict[str, Any], side: str) -> CameraModel:
     c = _mapping(d, side, '')
     _known_keys(c, CAMERA_KEYS, side)
@@ -281,8 +287,22 @@ def _camera(d: dict[str, Any], side: str) -> CameraModel:
     if width != int(width) or height != int(height):
         raise RigError(f'rig file: {side}.width/height must be integers, got {c["width"]!r} x {c["height"]!r}')
     dist = _vector(c, 'dist', side, 5) if 'dist' in c else np.zeros(5)
-    return CameraModel(int(width), int(height), _number(c, 'fx', side, True), _number(c, 'fy', side, True),
-                       _number(c, 'cx', side), _number(c, 'cy', side), tuple(float(x) for x in dist))
+    fx, fy, cx, cy = (_number(c, 'fx', side, True), _number(c, 'fy', side, True), _number(c, 'cx', side),
+                      _number(c, 'cy', side))
+    # plausibility: a real camera's numbers, so a typo (an exponent, a wrong unit) is an error, not a trajectory
+    if not (width <= MAX_IMAGE_SIDE and height <= MAX_IMAGE_SIDE):
+        raise RigError(f'rig file: {side}: image {width:g} x {height:g} px is larger than {MAX_IMAGE_SIDE} px a side')
+    for k, f in (('fx', fx), ('fy', fy)):
+        if not 0.05 * width <= f <= 100.0 * width:
+            raise RigError(f'rig file: {side}.{k} = {f:g} px is not a focal length for a {width:g} px wide image '
+                           f'(expected {0.05 * width:g}..{100 * width:g}: 0.6..170 deg of view)')
+    if not (0 <= cx <= width and 0 <= cy <= height):
+        raise RigError(f'rig file: {side}: principal point ({cx:g}, {cy:g}) lies outside the {width:g} x {height:g} '
+                       'image')
+    if np.any(np.abs(dist) > MAX_DISTORTION):
+        raise RigError(f'rig file: {side}.dist {dist.tolist()}: coefficients beyond +-{MAX_DISTORTION:g} are not '
+                       'a lens model')
+    return CameraModel(int(width), int(height), fx, fy, cx, cy, tuple(float(x) for x in dist))
 
 
 def _calibration(d: dict[str, Any], side: str) -> PanTiltCalibration:
@@ -296,6 +316,9 @@ def _calibration(d: dict[str, Any], side: str) -> PanTiltCalibration:
     where = f'pan_tilt.{side}'
     _known_keys(c, PAN_TILT_KEYS, where)
     values = {k: _number(c, k, where) for k in PAN_TILT_KEYS if k in c}
+    for k in ('pan_offset', 'tilt_offset'):
+        if k in values and abs(values[k]) > math.pi:
+            raise RigError(f'rig file: {where}.{k} = {values[k]:g} rad is beyond +-pi (offsets are in radians)')
     for k in ('pan_sign', 'tilt_sign'):
         if k in values and values[k] not in (1.0, -1.0):
             raise RigError(f'rig file: {where}.{k} must be 1 or -1, got {values[k]}')
@@ -310,6 +333,10 @@ def rig_from_dict(d: Any, warnings: list[str] | None = None) -> Rig:
         raise RigError(f'rig file: top level must be a mapping with keys right, left, left_in_rig, got {d!r}')
     right, left = _camera(d, 'right'), _camera(d, 'left')
     c_L, R_L = _pose_block(d, 'left_in_rig')
+    baseline = float(np.linalg.norm(c_L))
+    if not MIN_BASELINE_M <= baseline <= MAX_BASELINE_M:
+        raise RigError(f'rig file: left_in_rig.translation {c_L.tolist()}: a baseline of {baseline:g} m is not a '
+                       f'rig ({MIN_BASELINE_M:g}..{MAX_BASELINE_M:g} m; the left camera centre, in metres)')
     if 'rig_in_base_link' in d:
         _pose_block(d, 'rig_in_base_link')      # checked; kept (in extra) as given
     calibrations = _calibration(d, 'right'), _calibration(d, 'left')
