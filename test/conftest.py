@@ -48,3 +48,16 @@ def spin_until(executor, predicate, timeout_s: float = 5.0, step_s: float = 0.02
             return True
         executor.spin_once(timeout_sec=step_s)
     return bool(predicate())
+
+
+@pytest.fixture
+def visca_rig():
+    """A VISCA camera emulator on a pty (EVI-D30, 115200 baud) and our driver connected to it."""
+    from fixego_ros.visca.driver import ViscaCamera
+    from fixego_ros.visca.emulator import ViscaEmulator
+    emu = ViscaEmulator('evi_d30', baud=115200)
+    port = emu.start()
+    cam = ViscaCamera(port, baud=115200, timeout_s=0.2, backoff_s=(0.02, 0.2)).open()
+    yield emu, cam
+    cam.close()
+    emu.stop()

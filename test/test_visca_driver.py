@@ -17,16 +17,6 @@ from fixego_ros.visca.emulator import ViscaEmulator
 from fixego_ros.visca.profiles import PROFILES, CameraProfile
 
 
-@pytest.fixture
-def rig():
-    emu = ViscaEmulator('evi_d30', baud=115200)
-    port = emu.start()
-    cam = ViscaCamera(port, baud=115200, timeout_s=0.2, backoff_s=(0.02, 0.2)).open()
-    yield emu, cam
-    cam.close()
-    emu.stop()
-
-
 def test_real_9600_timing_and_round_trips():
     emu = ViscaEmulator('evi_d30', baud=9600, start_pan_deg=-3.0, start_tilt_deg=2.0)
     try:
@@ -55,8 +45,8 @@ def test_real_9600_timing_and_round_trips():
         emu.stop()
 
 
-def test_all_commands_round_trip(rig):
-    emu, cam = rig
+def test_all_commands_round_trip(visca_rig):
+    emu, cam = visca_rig
     cam.if_clear(broadcast=True)
     cam.if_clear()
     assert cam.power_state() is True
@@ -84,8 +74,8 @@ def test_all_commands_round_trip(rig):
     assert cam.busy_sockets == {}
 
 
-def test_error_replies_are_typed(rig):
-    _, cam = rig
+def test_error_replies_are_typed(visca_rig):
+    _, cam = visca_rig
     with pytest.raises(vp.ViscaSyntaxError):
         cam.absolute(881, 0, check_range=False)       # beyond the D30's +-880
     with pytest.raises(ValueError):
@@ -115,8 +105,8 @@ def test_error_replies_are_typed(rig):
     assert cam.stats['reply_errors'] >= 7
 
 
-def test_silence_times_out_bounded_then_recovers(rig):
-    emu, cam = rig
+def test_silence_times_out_bounded_then_recovers(visca_rig):
+    emu, cam = visca_rig
     emu.faults.silent = True
     t0 = time.monotonic()
     with pytest.raises(vp.ViscaTimeoutError):
@@ -129,8 +119,8 @@ def test_silence_times_out_bounded_then_recovers(rig):
     assert cam.stats['timeouts'] == 2
 
 
-def test_garbage_and_unsolicited_bytes_are_skipped(rig):
-    emu, cam = rig
+def test_garbage_and_unsolicited_bytes_are_skipped(visca_rig):
+    emu, cam = visca_rig
     cam.goto_deg(1.0, 1.0)
     for junk in (b'\x12\x34\xff', b'\x90\x38\xff', b'\x00\x07', b'\xa0\x51\xff', b'\x90\x41\xff' * 0 + b'\x55'):
         emu.faults.inject(junk)
@@ -138,8 +128,8 @@ def test_garbage_and_unsolicited_bytes_are_skipped(rig):
     assert cam.stats['garbage_bytes'] > 0 and cam.stats['unsolicited'] >= 2
 
 
-def test_corrupt_and_dropped_bytes_never_hang(rig):
-    emu, cam = rig
+def test_corrupt_and_dropped_bytes_never_hang(visca_rig):
+    emu, cam = visca_rig
     emu.faults.drop_prob = 0.02            # ~35 % of 11-byte replies damaged one way or another
     emu.faults.corrupt_prob = 0.02
     t0 = time.monotonic()
@@ -168,8 +158,8 @@ def test_corrupt_and_dropped_bytes_never_hang(rig):
             assert time.monotonic() < deadline
 
 
-def test_disconnect_mid_command_and_reconnect(rig):
-    emu, cam = rig
+def test_disconnect_mid_command_and_reconnect(visca_rig):
+    emu, cam = visca_rig
     cam.close()
     cam = ViscaCamera(emu.link_path, baud=115200, timeout_s=0.2, backoff_s=(0.02, 0.2)).open()
     errors: list[BaseException] = []

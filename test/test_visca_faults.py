@@ -27,16 +27,6 @@ NETWORK_CHANGE = vp.network_change(1)          # 90 38 FF
 
 
 @pytest.fixture
-def rig():
-    emu = ViscaEmulator('evi_d30', baud=115200)
-    port = emu.start()
-    cam = ViscaCamera(port, baud=115200, timeout_s=0.2, backoff_s=(0.02, 0.2)).open()
-    yield emu, cam
-    cam.close()
-    emu.stop()
-
-
-@pytest.fixture
 def silent_emu():
     """A camera that reads everything and never answers: any unbounded wait on it hangs."""
     with ViscaEmulator('evi_d30', baud=115200) as emu:
@@ -169,8 +159,8 @@ def test_driver_accepts_profile_rates_and_documented_rates():
         ViscaCamera('/dev/null', baud=4800)
 
 
-def test_driver_calls_reject_nonfinite_values_before_sending(rig):
-    emu, cam = rig
+def test_driver_calls_reject_nonfinite_values_before_sending(visca_rig):
+    emu, cam = visca_rig
     before = emu.stats['rx_packets']
     calls = [
         lambda: cam.goto_deg(math.inf, 0.0), lambda: cam.goto_deg(0.0, math.nan),
@@ -204,8 +194,8 @@ def test_silent_camera_every_action_ends_bounded(silent_emu, capsys, action):
     assert silent_emu.stats['rx_packets'] >= 1             # it did talk to the camera
 
 
-def test_garbage_flood_times_out_bounded_then_recovers(rig):
-    emu, cam = rig
+def test_garbage_flood_times_out_bounded_then_recovers(visca_rig):
+    emu, cam = visca_rig
     emu.faults.inject(bytes(range(0x10, 0x7F)) * 40)       # ~4.5 kB without a terminator: ~0.4 s of line
     t0 = time.monotonic()
     with pytest.raises(vp.ViscaTimeoutError):
@@ -238,8 +228,8 @@ BAD_REPLIES = [
 
 @pytest.mark.parametrize('action,replies,kind,text', BAD_REPLIES,
                          ids=[f'{" ".join(a)}:{b"|".join(r).hex()}' for a, r, _, _ in BAD_REPLIES])
-def test_bad_reply_is_one_json_error_within_bounded_time(rig, capsys, action, replies, kind, text):
-    emu, cam = rig
+def test_bad_reply_is_one_json_error_within_bounded_time(visca_rig, capsys, action, replies, kind, text):
+    emu, cam = visca_rig
     cam.close()
     emu.faults.replace_replies(*replies)
     rc, out, err, elapsed = _cli(['ptz', '--port', emu.port, '--baud', '115200', '--timeout', '0.2', *action],
@@ -252,8 +242,8 @@ def test_bad_reply_is_one_json_error_within_bounded_time(rig, capsys, action, re
 # ------------------------------------------------------------------------------------ position range
 
 @pytest.mark.parametrize('pan,tilt', [(0x7FFF, 0), (-0x8000, 0), (881, 0), (-881, 12), (0, 301), (0, -301)])
-def test_position_outside_profile_range_is_a_counted_protocol_error(rig, pan, tilt):
-    emu, cam = rig
+def test_position_outside_profile_range_is_a_counted_protocol_error(visca_rig, pan, tilt):
+    emu, cam = visca_rig
     emu.faults.position_override = (pan, tilt)
     errors, comm = cam.stats['protocol_errors'], cam.comm_errors
     with pytest.raises(vp.ViscaProtocolError) as info:
@@ -266,8 +256,8 @@ def test_position_outside_profile_range_is_a_counted_protocol_error(rig, pan, ti
     assert cam.position() == (0, 0)                                       # nothing stale left on the line
 
 
-def test_cli_query_reports_the_out_of_range_value(rig, capsys):
-    emu, cam = rig
+def test_cli_query_reports_the_out_of_range_value(visca_rig, capsys):
+    emu, cam = visca_rig
     cam.close()
     emu.faults.position_override = (0x7FFF, 0)                           # pan 3723 deg on a +-100 deg head
     rc, out, _, _ = _cli(['ptz', '--port', emu.port, '--baud', '115200', 'query'], capsys)
@@ -312,8 +302,8 @@ def _tx_times(emu: ViscaEmulator, pkt: bytes) -> list[float]:
 
 
 @pytest.mark.parametrize('name,pkt', UNSOLICITED, ids=[n for n, _ in UNSOLICITED])
-def test_unsolicited_packet_mid_move_does_not_complete_it(rig, name, pkt):
-    emu, cam = rig
+def test_unsolicited_packet_mid_move_does_not_complete_it(visca_rig, name, pkt):
+    emu, cam = visca_rig
     emu.faults.inject_mid_motion(pkt, 0.4)
     socket = cam.absolute(264, 0, wait=True)              # 30 deg at 80 deg/s: ~0.38 s
     assert emu.pan_tilt_units() == (264, 0), 'returned before the camera finished the move'
@@ -326,8 +316,8 @@ def test_unsolicited_packet_mid_move_does_not_complete_it(rig, name, pkt):
     assert cam.position() == (264, 0)
 
 
-def test_cli_goto_survives_network_change_mid_move(rig, capsys):
-    emu, cam = rig
+def test_cli_goto_survives_network_change_mid_move(visca_rig, capsys):
+    emu, cam = visca_rig
     cam.close()
     emu.faults.inject_mid_motion(NETWORK_CHANGE, 0.5)
     rc, out, err, _ = _cli(['ptz', '--port', emu.port, '--baud', '115200', 'goto', '30', '0'], capsys)
@@ -337,8 +327,8 @@ def test_cli_goto_survives_network_change_mid_move(rig, capsys):
     assert any(p == NETWORK_CHANGE for _, k, p in emu.log if k == 'tx')
 
 
-def test_stray_completion_before_the_ack_is_not_taken(rig):
-    emu, cam = rig
+def test_stray_completion_before_the_ack_is_not_taken(visca_rig):
+    emu, cam = visca_rig
     emu.faults.inject(vp.completion(1, 0))                # 90 50 FF waiting in the input before the command
     time.sleep(0.05)
     socket = cam.absolute(264, 0, wait=True)
@@ -346,8 +336,8 @@ def test_stray_completion_before_the_ack_is_not_taken(rig):
     assert cam.stats['unsolicited'] == 1
 
 
-def test_stray_ack_on_a_running_socket_is_not_taken(rig):
-    emu, cam = rig
+def test_stray_ack_on_a_running_socket_is_not_taken(visca_rig):
+    emu, cam = visca_rig
     zoom_socket = cam.zoom_to(0x3FF, wait=False)          # ~2 s of zoom holds its socket
     emu.faults.inject(vp.ack(1, zoom_socket))
     time.sleep(0.05)
@@ -358,8 +348,8 @@ def test_stray_ack_on_a_running_socket_is_not_taken(rig):
     assert cam.busy_sockets == {} and cam.zoom_position() == 0x3FF
 
 
-def test_ack_after_network_change_and_lost_completion_recovers(rig):
-    emu, cam = rig
+def test_ack_after_network_change_and_lost_completion_recovers(visca_rig):
+    emu, cam = visca_rig
     # the zoom's completion is lost: the driver still thinks its socket is running
     emu.faults.replace_replies(vp.ack(1, 1), b'')
     assert cam.zoom_to(0x10, wait=False) == 1
