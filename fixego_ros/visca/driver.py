@@ -28,6 +28,7 @@ from typing import Any
 
 import serial
 
+from fixego_ros.cli_options import check_float
 from fixego_ros.visca import protocol as vp
 from fixego_ros.visca.profiles import CameraProfile, get_profile
 from fixego_ros.visca.protocol import Reply, ReplyKind
@@ -49,15 +50,9 @@ MAX_SETTLE_S = 10.0     # calibrate's pause between two readings at an end stop
 # ------------------------------------------------------------------------------------ validation
 
 def check_seconds(value: float, name: str, upper: float, allow_zero: bool = False) -> float:
-    """``value`` as finite seconds in (0, upper] (or [0, upper]); a NaN or infinite wait never ends."""
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        v = math.nan
-    if not (math.isfinite(v) and (v >= 0.0 if allow_zero else v > 0.0) and v <= upper):
-        interval = f'[0, {upper:g}]' if allow_zero else f'(0, {upper:g}]'
-        raise ValueError(f'{name} must be a finite number of seconds in {interval}, got {value!r}')
-    return v
+    """``value`` as finite seconds in (0, upper] (or [0, upper]); a NaN or infinite wait never ends. Raises
+    :class:`~fixego_ros.cli_options.OptionError` (a ValueError) naming ``name``."""
+    return check_float(value, name, 0.0, upper, lo_open=not allow_zero, unit='s')
 
 
 def check_timeout(value: float, name: str = 'timeout_s') -> float:
