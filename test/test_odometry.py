@@ -162,8 +162,8 @@ def test_config_file_lists_the_speed_parameters_with_their_defaults():
 
 
 # ---------------------------------------------------------------------------------------------- simulator
-SIM_ARGS = ['--trajectory', 'paper', '--steps', '8', '--width', '160', '--height', '120', '--fps', '10',
-            '--texel', '0.006', '--no-progress']
+SIM_ARGS = ['--vergence', 'off', '--trajectory', 'paper', '--steps', '8', '--width', '160', '--height', '120',
+            '--fps', '10', '--texel', '0.006', '--no-progress']
 
 
 def _read(path: Path) -> list[tuple[str, str, int, bytes]]:

@@ -17,8 +17,9 @@ from fixego_ros.geometry.rotation import from_quat_xyzw, rig_pose_to_base_link
 from fixego_ros.sim.bag_writer import topics
 from fixego_ros.sim.run import EPOCH, SimSettings, build_trajectory
 
-ARGS = ['--trajectory', 'paper', '--steps', '6', '--width', '160', '--height', '120', '--fps', '10',
-        '--texel', '0.006', '--no-progress']
+BASE = ['--trajectory', 'paper', '--width', '160', '--height', '120', '--fps', '10', '--texel', '0.006',
+        '--no-progress']
+ARGS = [*BASE, '--steps', '6', '--vergence', 'off']   # the plain bag: no vergence step (default: physical, below)
 
 
 def _msg_class(msgtype: str):
@@ -145,50 +146,88 @@ def test_same_seed_same_bytes_other_seed_other_images(bag, tmp_path):
     assert fixego(['sim', *ARGS, '--out', str(bag)]) == 2  # never overwrites
 
 
-def test_vergence_std_adds_one_noisy_right_fixation_point(bag, tmp_path):
-    """``--vergence-std`` writes a single start-up vergence measurement: the right camera's true fixation point
-    at the first frame (rig frame), its distance off by a small relative error; nothing else changes."""
+@pytest.fixture(scope='module')
+def physical_bag(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp('simbag') / 'physical'
+    assert fixego(['sim', *BASE, '--steps', '8', '--out', str(out)]) == 0   # vergence physical is the default
+    return out
+
+
+def _decode(msgs, topic: str) -> list[tuple[int, object]]:
     from rclpy.serialization import deserialize_message
+    return [(t, deserialize_message(raw, _msg_class(mt))) for top, mt, t, raw in msgs if top == topic]
 
-    from fixego_ros.sim.bag_writer import VERGENCE_TOPIC, write_bag
-    from fixego_ros.sim.run import Simulation
 
-    std = 0.01
-    verg = _write(tmp_path, 'verg', '--vergence-std', str(std))
-    a, b = _read_rosbags(bag), _read_rosbags(verg)
-    assert VERGENCE_TOPIC not in {m[0] for m in a}                   # off by default
-    assert [m for m in b if m[0] != VERGENCE_TOPIC] == a           # its own noise stream: the rest byte-identical
-    assert set(topics(vergence=True)) == {m[0] for m in b}
-    ours = [m for m in b if m[0] == VERGENCE_TOPIC]
-    assert len(ours) == 1 and b[0][0] == VERGENCE_TOPIC               # one message, before the first images
-    _, msgtype, t_ns, raw = ours[0]
-    msg = deserialize_message(raw, _msg_class(msgtype))
-    assert msgtype == 'geometry_msgs/msg/PoseWithCovarianceStamped' and msg.header.frame_id == 'rig'
-    assert t_ns == round(EPOCH * 1e9) == msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
-    # the truth, independently: the same simulation's first frame
-    rig = load_rig(verg / 'rig.yaml')
-    meta = yaml.safe_load((verg / 'sim.yaml').read_text())
-    frame = next(Simulation(rig, SimSettings(**meta['simulator'])).frames())
-    true_pt = frame.rig_pose.inverse().apply(frame.states['right'].point) - rig.center('right')
+def test_physical_vergence_bag(bag, physical_bag):
+    """By default the left head verges on the right's point at start-up (its joint states show the slew and the
+    return) and /fixego/vergence carries the measurement, stamped with a frame's stamp, before its images."""
+    from fixego_ros.sim.bag_writer import VERGENCE_TOPIC
+
+    msgs = _read_rosbags(physical_bag)
+    assert {m[0] for m in msgs} == set(topics(vergence=True))
+    meta = yaml.safe_load((physical_bag / 'sim.yaml').read_text())
+    assert meta['simulator']['vergence'] == 'physical'
+    verg = meta['vergence']
+    assert verg['mode'] == 'physical' and verg['topic'] == VERGENCE_TOPIC
+    [rec] = verg['measurements']                                       # start-up only in these 2.25 s
+    [step] = verg['steps']
+    assert step['outcome'] == 'measured' and 0.3 < step['slew_out_s'] < 1.5 and step['away_s'] < 2.5
+    ours = _decode(msgs, VERGENCE_TOPIC)
+    assert len(ours) == 1
+    t_ns, msg = ours[0]
+    image_stamps = [t for top, _, t, _ in msgs if top == '/fixego/right/image_raw']
+    assert t_ns in image_stamps and t_ns == round(rec['stamp_s'] * 1e9)    # a frame's stamp
+    assert msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec == t_ns and msg.header.frame_id == 'rig'
+    first_of_stamp = next(m[0] for m in msgs if m[2] == t_ns)
+    assert first_of_stamp == VERGENCE_TOPIC                            # before that frame's images
     p = msg.pose.pose.position
-    got = np.array([p.x, p.y, p.z]) - rig.center('right')
-    d_true, d = np.linalg.norm(true_pt), np.linalg.norm(got)
-    assert 0.5 < d_true < 20 and 0 < abs(d / d_true - 1) < 4 * std              # noisy, by a few %
-    assert np.linalg.norm(np.cross(got / d, true_pt / d_true)) < 1e-9           # on the true ray
+    point = np.array([p.x, p.y, p.z])
+    assert np.linalg.norm(point) == pytest.approx(rec['distance_m'])
+    assert rec['error_m'] == pytest.approx(rec['distance_m'] - rec['distance_true_m'])
+    assert abs(rec['error_m']) < 4 * rec['std_m'] and 1.0 < rec['distance_true_m'] < 5.0
     cov6 = np.array(msg.pose.covariance).reshape(6, 6)
-    u = got / d
-    assert u @ cov6[:3, :3] @ u == pytest.approx((std * d) ** 2)               # relative std along the ray
-    assert np.allclose(np.sort(np.linalg.eigvalsh(cov6[:3, :3]))[:2], 1e-6)    # 1 mm across it
-    assert np.all(np.diag(cov6)[3:] >= 1e6)                                     # orientation unused
-    assert meta['vergence']['topic'] == VERGENCE_TOPIC and meta['vergence']['std_rel'] == std
-    assert meta['vergence']['distance_true_m'] == pytest.approx(d_true)
-    info = yaml.safe_load((verg / 'metadata.yaml').read_text())['rosbag2_bagfile_information']
-    assert info['custom_data']['fixego_sim_vergence_std'] == str(std)
+    u = point / np.linalg.norm(point)
+    assert u @ cov6[:3, :3] @ u == pytest.approx(rec['std_m'] ** 2)
+    assert np.all(np.linalg.eigvalsh(cov6[:3, :3]) > 0) and np.all(np.diag(cov6)[3:] >= 1e6)
+    info = yaml.safe_load((physical_bag / 'metadata.yaml').read_text())['rosbag2_bagfile_information']
     qos = {t['topic_metadata']['name']: t['topic_metadata']['offered_qos_profiles'][0]
            for t in info['topics_with_message_count']}
-    assert qos[VERGENCE_TOPIC]['durability'] == 'transient_local'              # latched, as camera_node's
-    # invalid values are refused, by the CLI and by write_bag
-    assert fixego(['sim', *ARGS, '--out', str(tmp_path / 'bad'), '--vergence-std', '-0.1']) == 2
-    with pytest.raises(ValueError, match='vergence std'):
-        write_bag(tmp_path / 'bad', rig, vergence_std=float('nan'))
+    assert qos[VERGENCE_TOPIC]['durability'] == 'transient_local'      # latched, as camera_node's
+    # the left joint states: out to the right's point (tens of degrees) and back to where it looked
+    pan = np.degrees([m.position[0] for _, m in _decode(msgs, '/fixego/left/joint_states')])
+    stamps = (np.array(image_stamps) - image_stamps[0]) * 1e-9
+    k_held = int(np.argmax(pan))
+    assert pan[k_held] - pan[0] > 30.0 and stamps[k_held] < 1.5
+    assert abs(pan[-1] - pan[0]) < 5.0
+    ids = [m.point.z for _, m in _decode(msgs, '/fixego/ground_truth/left/fixation')]
+    assert ids[0] == 0 and ids[-1] == 2 and sorted(set(ids)) == [0, 1, 2]  # out: new id; back: new id again
+    # the right camera is not disturbed: its images are the plain bag's (which ends two steps earlier)
+    plain = [m for m in _read_rosbags(bag) if m[0] == '/fixego/right/image_raw']
+    assert plain == [m for m in msgs if m[0] == '/fixego/right/image_raw'][:len(plain)]
+
+
+def test_measurements_vergence_bag_only_adds_the_messages(bag, tmp_path):
+    """``--vergence measurements``: the same images and everything else as ``off``, plus the measurements."""
+    from fixego_ros.sim.bag_writer import VERGENCE_TOPIC
+
+    out = _write(tmp_path, 'meas', '--vergence', 'measurements')
+    a, b = _read_rosbags(bag), _read_rosbags(out)
+    assert [m for m in b if m[0] != VERGENCE_TOPIC] == a
+    ours = _decode(b, VERGENCE_TOPIC)
+    assert len(ours) == 1 and ours[0][0] == round(EPOCH * 1e9) and b[0][0] == VERGENCE_TOPIC   # start-up
+    meta = yaml.safe_load((out / 'sim.yaml').read_text())['vergence']
+    assert meta['mode'] == 'measurements' and 'steps' not in meta
+    assert abs(meta['measurements'][0]['error_m']) < 4 * meta['measurements'][0]['std_m']
+
+
+def test_vergence_option_is_checked(bag, tmp_path, capsys):
+    assert 'vergence' not in yaml.safe_load((bag / 'sim.yaml').read_text())      # off: the record of old
+    assert 'vergence=' not in (bag / 'metadata.yaml').read_text()
+    with pytest.raises(SystemExit) as e:                       # argparse's check, as one line (cli_options)
+        fixego(['sim', *ARGS, '--out', str(tmp_path / 'bad'), '--vergence', 'sometimes'])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and err.count('\n') == 1 and err.startswith('fixego sim: ') and 'sometimes' in err
+    with pytest.raises(SystemExit) as e:                       # replaced by --vergence
+        fixego(['sim', *ARGS, '--out', str(tmp_path / 'bad'), '--vergence-std', '0.01'])
+    assert e.value.code == 2 and '--vergence-std' in capsys.readouterr().err
     assert not (tmp_path / 'bad').exists()

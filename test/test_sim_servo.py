@@ -91,3 +91,18 @@ def test_required_readings_centre_the_point():
             pan, tilt = required_readings(rig, side, pose, X)
             pix, _ = project_points(rig, side, pose, pan, tilt, X[None])
             assert np.allclose(pix[0], rig.camera(side).center, atol=1e-6)
+
+
+def test_head_look_ahead_does_not_move_it():
+    """:meth:`Head.at` (how the vergence step reads the right head between its commands) is the head's own
+    motion, and leaves the head where it was."""
+    from fixego_ros.sim.servo_model import Head
+    head = Head(ServoParams())
+    head.place(0.0, 0.0, 0.0)
+    head.send(0.0, np.radians(40.0), np.radians(-10.0))
+    ahead = [head.at(t) for t in (0.1, 0.25, 0.5)]
+    assert (head.t, head.pan, head.tilt) == (0.0, 0.0, 0.0) and len(head.commands) == 1
+    for t, (pan, tilt) in zip((0.1, 0.25, 0.5), ahead, strict=True):
+        head.advance(t)
+        assert (pan, tilt) == pytest.approx((head.pan, head.tilt), abs=1e-9)
+    assert np.degrees(ahead[1][0]) < np.degrees(ahead[2][0]) <= 40.0 and np.degrees(ahead[0][0]) <= 80.0 * 0.1

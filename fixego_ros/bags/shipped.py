@@ -7,8 +7,10 @@ the sensor noise are high-entropy), so to stay within the 30 MB budget the bags 
 real rig's stream (640x480 at 30 Hz is ~18 MB per second):
 
 * ``paper``: the papers' stadium loop (5.0 m, 25.5 s) at 320x240 and 5.1 Hz, about one frame per
-  step of the papers' 130-step run;
-* ``walk``: the first 4 s of the wearable ``walk`` sequence (head bob, sway, wobble) at 320x240, 10 Hz.
+  step of the papers' 130-step run, with the rig's physical vergence step (``/fixego/vergence``: one
+  measurement at start-up and one per new right fixation; the left head really moves);
+* ``walk``: the first 4 s of the wearable ``walk`` sequence (head bob, sway, wobble) at 320x240, 10 Hz,
+  without vergence (as it was recorded before the step existed).
 
 Use ``--check`` to regenerate into a temporary folder and compare every message with the shipped bag: exactly
 for stamps, topics, integers and strings, within stated tolerances for floats and image bytes (other CPUs
@@ -38,9 +40,10 @@ class ShippedBag:
 
 
 SHIPPED: tuple[ShippedBag, ...] = (
-    ShippedBag('paper', SimSettings(trajectory='paper', seed=0, fps=5.1), 320, 240,
-               "the papers' stadium loop, 5.0 m in 25.5 s, ~1 frame per step of their 130-step run"),
-    ShippedBag('walk', SimSettings(trajectory='walk', seed=0, fps=10.0, duration=4.0), 320, 240,
+    ShippedBag('paper', SimSettings(trajectory='paper', seed=0, fps=5.1, vergence='physical'), 320, 240,
+               "the papers' stadium loop, 5.0 m in 25.5 s, ~1 frame per step of their 130-step run, with the "
+               "rig's vergence step"),
+    ShippedBag('walk', SimSettings(trajectory='walk', seed=0, fps=10.0, duration=4.0, vergence='off'), 320, 240,
                'the first 4 s of a wearable rig on a walking person (head bob, sway, wobble)'),
 )
 
@@ -53,20 +56,22 @@ def by_name(name: str) -> ShippedBag:
 
 
 def generate(spec: ShippedBag, out_dir: Path, progress: bool = False, wheel_odom_std: float | None = None,
-             vergence_std: float | None = None):
+             vergence: str | None = None):
     """Write ``spec`` to ``out_dir`` (must not exist) with its ground truth as TUM; returns the summary.
-    ``wheel_odom_std`` adds simulated wheel odometry, ``vergence_std`` a start-up vergence measurement (the
-    shipped bags have neither)."""
+    ``wheel_odom_std`` adds simulated wheel odometry (the shipped bags have none); ``vergence`` (a
+    ``SimSettings.vergence`` mode) replaces the spec's."""
+    from dataclasses import replace
+
     from fixego_ros.evaluation.tum import write_tum
     from fixego_ros.geometry.rig import default_rig_path, load_rig
     from fixego_ros.sim.bag_writer import write_bag
     from fixego_ros.sim.run import Simulation, resize_rig
 
+    settings = spec.settings if vergence is None else replace(spec.settings, vergence=vergence)
     rig = resize_rig(load_rig(default_rig_path()), spec.width, spec.height)
-    sim = Simulation(rig, spec.settings)
-    summary = write_bag(out_dir, rig, spec.settings, progress=progress, sim=sim, wheel_odom_std=wheel_odom_std,
-                        vergence_std=vergence_std)
-    write_tum(out_dir / 'ground_truth.tum', [spec.settings.epoch + t for t in sim.stamps], sim.ground_truth())
+    sim = Simulation(rig, settings)
+    summary = write_bag(out_dir, rig, settings, progress=progress, sim=sim, wheel_odom_std=wheel_odom_std)
+    write_tum(out_dir / 'ground_truth.tum', [settings.epoch + t for t in sim.stamps], sim.ground_truth())
     return summary
 
 

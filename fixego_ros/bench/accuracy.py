@@ -4,9 +4,9 @@ Runs ``fixego replay``'s pipeline over
 
 * the shipped ``paper`` loop and ``walk`` bags (``bags/``),
 * a rotation-poor straight run (2 m north, 320x240 at 10 Hz) and the paper loop and walk again, written
-  here by the simulator *with* simulated wheel odometry (5 cm/s noise) and a simulated start-up vergence
-  measurement (0.5 % distance noise, what the vergence step reaches in the simulator) so the scale aids
-  can be measured,
+  here by the simulator *with* simulated wheel odometry (5 cm/s noise) and the vergence measurements of
+  ``fixego sim --vergence measurements`` (at start-up and at each new right fixation, triangulated from the
+  quantised joint readings; heads undisturbed) so the scale aids can be measured,
 
 for every flow preset (``paper``, ``window``, ``full``) and refinement (``local``: the papers' 3-frame
 local BA; ``sliding``: keyframe poses with persistent landmarks; ``constant``: local BA with the
@@ -39,7 +39,6 @@ REFINEMENTS = ('local', 'sliding', 'constant')
 REFINEMENT_PARAMS = {'local': {'refinement': 'local'}, 'sliding': {'refinement': 'sliding'},
                      'constant': {'refinement': 'local', 'constant_speed': True}}
 WHEEL_STD = 0.05
-VERGENCE_STD = 0.005
 _results: dict[str, float] | None = None
 _tracks: dict[str, np.ndarray] = {}
 _tmp: tempfile.TemporaryDirectory | None = None
@@ -56,7 +55,7 @@ def _aided_bags() -> dict[str, Path]:
              'paper+aids': by_name('paper'), 'walk+aids': by_name('walk')}
     for name, spec in specs.items():
         path = Path(_tmp.name) / name.replace('+', '_')
-        generate(spec, path, wheel_odom_std=WHEEL_STD, vergence_std=VERGENCE_STD)
+        generate(spec, path, wheel_odom_std=WHEEL_STD, vergence='measurements')
         out[name] = path
     return out
 

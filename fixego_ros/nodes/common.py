@@ -40,8 +40,8 @@ from fixego_ros.pipeline.params import Getter, ParamsError, ParamSpec
 
 SENSOR_QOS: QoSProfile = qos_profile_sensor_data
 RELIABLE_QOS = QoSProfile(depth=50)
-# latched: a one-off measurement (the vergence step) that a node started later must still get
-LATCHED_QOS = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+# latched: occasional measurements (the vergence steps) whose recent ones a node started later must still get
+LATCHED_QOS = QoSProfile(depth=20, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 OK, WARN, ERROR, STALE = (DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR,
                           DiagnosticStatus.STALE)

@@ -13,8 +13,8 @@ variance or is not positive semi-definite, or when the child frame is another fr
 covariance means "unknown" in ROS: it becomes ``default_std``² on each axis. Nothing non-finite is ever
 passed on.
 
-Start-up vergence (:func:`vergence_from_msg`): the right camera's fixation point measured by the vergence
-step (camera_node, or ``fixego sim --vergence-std``) as a geometry_msgs/PoseWithCovarianceStamped in the
+Vergence (:func:`vergence_from_msg`): the right camera's fixation point measured by a vergence step (the left
+camera_node, or ``fixego sim``) as a geometry_msgs/PoseWithCovarianceStamped in the
 rig frame; the position and its 3x3 covariance block go to ``Estimator.add_fixation_point``, the
 orientation is not used. estimator_node and ``fixego replay`` share this one conversion.
 """

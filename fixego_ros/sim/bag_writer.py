@@ -21,14 +21,17 @@ true poses, :meth:`~fixego_ros.sim.run.Simulation.base_velocities`) plus seeded 
 it never reads as "unknown"). The angular part is not measured: zero with variance 1e6. The pose is left
 at identity with variance 1e6 (a speed source only).
 
-Optional (``vergence_std``, off by default, output otherwise unchanged byte for byte): ``vergence``
-(geometry_msgs/PoseWithCovarianceStamped, frame ``rig``, offered as transient local like camera_node's
-latched one), a single message with the first frame's stamp, written before that frame's images: the
-simulated start-up vergence measurement, i.e. the right camera's true fixation point at the first frame
-in the rig frame there, its distance D from the right projection centre scaled by (1 + e) with seeded
-e ~ N(0, ``vergence_std``) (relative; 1 + e floored at 0.1). Covariance: (``vergence_std`` D)² along
-the ray from the right centre (at least (1 mm)², so it stays invertible), (1 mm)² across it; the
-orientation is not measured (identity, variance 1e6).
+Vergence (``SimSettings.vergence``; ``off`` writes nothing new, so its output is unchanged byte for byte):
+``vergence`` (geometry_msgs/PoseWithCovarianceStamped, frame ``rig``, offered as transient local like
+camera_node's latched one), one message per vergence measurement (at the first frame and at each new right
+fixation, when the step succeeds), stamped with the frame the measurement refers to and written before that
+frame's images (after its wheel odometry sample): the right camera's fixation point in the rig frame at that
+stamp, triangulated from both heads' quantised joint readings and the point's noisy pixels, with its
+first-order covariance in the position block (orientation identity, variance 1e6); see
+:mod:`fixego_ros.sim.vergence_measure`. ``physical`` also moves the left head (its images, joint states and
+ground-truth fixation show the step: :mod:`fixego_ros.sim.vergence_step`); ``measurements`` leaves the heads
+alone. ``sim.yaml`` gets a ``vergence`` block: every measurement with its true distance and error, the steps
+that gave none and why, and (``physical``) each step's times.
 """
 
 from __future__ import annotations
@@ -45,6 +48,8 @@ from fixego_ros.geometry.rotation import Pose
 from fixego_ros.pipeline.odometry import MIN_STD
 from fixego_ros.progress import Progress
 from fixego_ros.sim.run import Frame, SimSettings, Simulation
+from fixego_ros.sim.vergence_measure import input_sigmas
+from fixego_ros.sim.vergence_step import VergenceStep
 
 NS = '/fixego'
 SIDES = ('right', 'left')
@@ -52,8 +57,6 @@ WHEEL_ODOM_TOPIC = f'{NS}/wheel/odom'
 UNKNOWN_VARIANCE = 1e6
 _WHEEL_NOISE_STREAM = 0x0D0   # second seed word of the wheel odometry noise (its own stream: images unchanged)
 VERGENCE_TOPIC = f'{NS}/vergence'
-VERGENCE_CROSS_STD = 1e-3     # m; vergence point std across the right fixation ray (and floor along it)
-_VERGENCE_NOISE_STREAM = 0x5E7  # second seed word of the vergence distance error (its own stream, as above)
 
 
 def topics(wheel_odom: bool = False, vergence: bool = False) -> dict[str, str]:
@@ -89,23 +92,6 @@ def wheel_odom_msg(t: float, v_base: np.ndarray, std: float):
     lin = msg.twist.twist.linear
     lin.x, lin.y, lin.z = (float(x) for x in v_base)
     return msg
-
-
-def vergence_point(rig: Rig, frame: Frame, rel_error: float, std: float) -> tuple[np.ndarray, np.ndarray, float]:
-    """(point, 3x3 covariance, true distance) in the rig frame at ``frame`` of the simulated vergence measurement:
-    the right fixation point with its distance from the right centre scaled by ``1 + rel_error`` (module
-    docstring)."""
-    point_world = np.asarray(frame.states['right'].point, dtype=float)
-    c = rig.center('right')
-    ray = frame.rig_pose.inverse().apply(point_world) - c
-    d_true = float(np.linalg.norm(ray))
-    if not (np.all(np.isfinite(ray)) and d_true > 0):
-        raise ValueError(f'no right fixation point at the first frame ({point_world.tolist()}): no vergence')
-    u = ray / d_true
-    d = d_true * max(1.0 + rel_error, 0.1)     # a huge std must not put the point behind the camera
-    along = max(std * d, VERGENCE_CROSS_STD) ** 2
-    cov = along * np.outer(u, u) + VERGENCE_CROSS_STD ** 2 * (np.eye(3) - np.outer(u, u))
-    return c + d * u, cov, d_true
 
 
 def camera_info_msg(rig: Rig, side: str, t: float):
@@ -166,10 +152,13 @@ def frame_messages(frame: Frame, rig: Rig, epoch: float, encoding: str) -> list[
 
 
 def _qos(sensor: bool, latched: bool = False):
-    """Offered QoS of a topic: sensor data, reliable, or latched (depth 1, transient local, as LATCHED_QOS)."""
+    """Offered QoS of a topic: sensor data, reliable, or latched (transient local with camera_node's depth,
+    LATCHED_QOS: a player keeps that many vergence measurements for late subscribers)."""
     from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
+
+    from fixego_ros.nodes.common import LATCHED_QOS
     infinite = QosTime(9223372036, 854775807)
-    return Qos(QosHistory.KEEP_LAST, 1 if latched else 5 if sensor else 10,
+    return Qos(QosHistory.KEEP_LAST, LATCHED_QOS.depth if latched else 5 if sensor else 10,
                QosReliability.BEST_EFFORT if sensor else QosReliability.RELIABLE,
                QosDurability.TRANSIENT_LOCAL if latched else QosDurability.VOLATILE,
                infinite, infinite, QosLiveliness.AUTOMATIC, infinite, False)
@@ -205,19 +194,38 @@ class BagSummary:
     bytes: int
     reselections: dict[str, int]
     wall_s: float
+    vergence: int = 0         # vergence measurements written
+
+
+def vergence_record(sim: Simulation, settings: SimSettings) -> dict:
+    """The ``vergence`` block of ``sim.yaml``: the model's constants, every measurement (true distance and
+    error), the steps without one and, for ``physical``, each step's times."""
+    verg = sim.vergence
+    assert verg is not None
+    p = verg.p
+    servo = sim.servos['left'].p
+    fixed, _ = input_sigmas(servo, p.pixel_sigma_px)
+    epoch = settings.epoch
+    out: dict[str, object] = {
+        'mode': settings.vergence, 'topic': VERGENCE_TOPIC, 'pixel_sigma_px': p.pixel_sigma_px,
+        'reading_sigma_deg': {'pan': float(np.degrees(fixed[0])), 'tilt': float(np.degrees(fixed[1]))},
+        'control_hz': p.control_hz, 'window_ticks': 2 * p.hold_ticks + 1,
+        'measurements': [m.record(epoch) for m in verg.measurements],
+        'failures': [{'stamp_s': float(epoch + f['t']), 'right_fixation_id': f['right_fixation_id'],
+                      'reason': f['reason']} for f in verg.failures]}
+    if isinstance(verg, VergenceStep):
+        out['steps'] = [s.record(epoch) for s in verg.steps]
+    return out
 
 
 def write_bag(out_dir: str | Path, rig: Rig, settings: SimSettings | None = None, progress: bool = True,
-              sim: Simulation | None = None, wheel_odom_std: float | None = None,
-              vergence_std: float | None = None) -> BagSummary:
+              sim: Simulation | None = None, wheel_odom_std: float | None = None) -> BagSummary:
     """Simulate ``settings`` on ``rig`` and write the bag directory ``out_dir`` (must not exist);
-    ``wheel_odom_std`` (m/s) adds the simulated wheel odometry topic, ``vergence_std`` (relative) the
-    start-up vergence measurement (module docstring)."""
+    ``wheel_odom_std`` (m/s) adds the simulated wheel odometry topic, ``settings.vergence`` the vergence
+    measurements (module docstring)."""
     settings = settings or (sim.s if sim is not None else SimSettings())
     if wheel_odom_std is not None and not (np.isfinite(wheel_odom_std) and wheel_odom_std >= 0):
         raise ValueError(f'wheel odometry std must be a finite number >= 0 m/s, got {wheel_odom_std}')
-    if vergence_std is not None and not (np.isfinite(vergence_std) and vergence_std >= 0):
-        raise ValueError(f'vergence std must be a finite relative error >= 0, got {vergence_std}')
     from rosbags.typesys import Stores, get_typestore
 
     from fixego_ros.bags.mcap_storage import bag_writer
@@ -232,40 +240,30 @@ def write_bag(out_dir: str | Path, rig: Rig, settings: SimSettings | None = None
         rng = np.random.default_rng([settings.seed, _WHEEL_NOISE_STREAM])
         v_true = sim.base_velocities()
         wheel = v_true + rng.normal(0.0, wheel_odom_std, v_true.shape) if wheel_odom_std > 0 else v_true
-    verg_error = None           # relative distance error of the vergence measurement
-    if vergence_std is not None:
-        rng = np.random.default_rng([settings.seed, _VERGENCE_NOISE_STREAM])
-        verg_error = float(rng.normal(0.0, vergence_std)) if vergence_std > 0 else 0.0
-    verg_meta: dict[str, object] = {}
+    vergence = sim.vergence is not None
     typestore = get_typestore(Stores.ROS2_JAZZY)
     wall0 = time.monotonic()
     bar = Progress(len(sim), f'fixego sim {settings.trajectory}', progress)
-    n_msgs = 0
+    n_msgs = n_verg = 0
     writer = bag_writer(out_dir)     # zstd MCAP chunks, as rosbag2's; with chunk, data and summary CRCs
     with writer:
         writer.set_custom_data('fixego_sim', ' '.join(f'{k}={v}' for k, v in settings.to_dict().items()))
         if wheel is not None:
             writer.set_custom_data('fixego_sim_wheel_odom_std', f'{wheel_odom_std}')
-        if verg_error is not None:
-            writer.set_custom_data('fixego_sim_vergence_std', f'{vergence_std}')
         conns = {topic: writer.add_connection(topic, msgtype, typestore=typestore,
                                               offered_qos_profiles=[_qos(topic.endswith('image_raw'),
                                                                          topic == VERGENCE_TOPIC)])
-                 for topic, msgtype in topics(wheel is not None, verg_error is not None).items()}
+                 for topic, msgtype in topics(wheel is not None, vergence).items()}
         for frame in sim.frames():
             stamp_ns = round((settings.epoch + frame.t) * 1e9)
+            t = settings.epoch + frame.t
             msgs = frame_messages(frame, rig, settings.epoch, settings.encoding)
-            if wheel is not None:   # before the frame's images: replay feeds it to the estimator first
-                t = settings.epoch + frame.t
+            if frame.vergence is not None:   # before the images: replay gives it to the estimator first
+                m = frame.vergence
+                msgs.insert(0, (VERGENCE_TOPIC, vergence_to_msg(sec_to_stamp(t), m.point_rig, m.cov_rig)))
+                n_verg += 1
+            if wheel is not None:            # first of all, as before
                 msgs.insert(0, (WHEEL_ODOM_TOPIC, wheel_odom_msg(t, wheel[frame.index], wheel_odom_std)))
-            if verg_error is not None and frame.index == 0:   # also before the images, after the wheel sample
-                t = settings.epoch + frame.t
-                point, cov, d_true = vergence_point(rig, frame, verg_error, vergence_std)
-                msgs.insert(0 if wheel is None else 1,
-                            (VERGENCE_TOPIC, vergence_to_msg(sec_to_stamp(t), point, cov)))
-                verg_meta = {'topic': VERGENCE_TOPIC, 'std_rel': float(vergence_std), 'stamp_s': float(t),
-                             'distance_true_m': d_true,
-                             'distance_m': float(np.linalg.norm(point - rig.center('right')))}
             for topic, msg in msgs:
                 writer.write(conns[topic], stamp_ns, canonical_cdr(msg, conns[topic].msgtype, typestore))
                 n_msgs += 1
@@ -277,9 +275,9 @@ def write_bag(out_dir: str | Path, rig: Rig, settings: SimSettings | None = None
             else [float(settings.epoch + m) for m in sim.trajectory.marks]}
     if wheel is not None:
         meta['wheel_odometry'] = {'topic': WHEEL_ODOM_TOPIC, 'std_m_s': float(wheel_odom_std)}
-    if verg_error is not None:
-        meta['vergence'] = verg_meta
+    if vergence:
+        meta['vergence'] = vergence_record(sim, settings)
     (out_dir / 'sim.yaml').write_text(yaml.safe_dump(meta, sort_keys=False))
     size = sum(f.stat().st_size for f in out_dir.iterdir() if f.is_file())
     return BagSummary(out_dir, len(sim), n_msgs, float(sim.stamps[-1]), size,
-                      {s: sv.reselections for s, sv in sim.servos.items()}, time.monotonic() - wall0)
+                      {s: sv.reselections for s, sv in sim.servos.items()}, time.monotonic() - wall0, n_verg)

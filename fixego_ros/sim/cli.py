@@ -47,11 +47,12 @@ from fixego_ros.sim.run import (
     rig_with_hfov,
 )
 from fixego_ros.sim.trajectories import NAMES
+from fixego_ros.sim.vergence_measure import VERGENCE_MODES
 
 PROG = 'fixego sim'
-# upper limits of the optional topics' noise (fixego_ros.sim.bag_writer only refuses negative/non-finite ones)
+# upper limit of the wheel odometry noise (fixego_ros.sim.bag_writer only refuses negative/non-finite ones)
 WHEEL_ODOM_STD_MAX = 10.0        # m/s: beyond it the "speed aid" is noise (and 1e308 overflows to inf)
-VERGENCE_STD_MAX = 1.0           # relative, exclusive: a 100 % error is no measurement (and 1e308 writes inf)
+VERGENCE_DEFAULT = 'physical'    # the rig verges at start-up and at each new right fixation, as a real one does
 
 
 def read_rig(path: Path | None, option: str = '--rig'):
@@ -122,11 +123,13 @@ def register(subparsers) -> None:
                    help='also write /fixego/wheel/odom (nav_msgs/Odometry, one per frame): the true base_link '
                         'velocity plus seeded Gaussian noise of std S m/s, covariance S^2; S in '
                         f'[0, {WHEEL_ODOM_STD_MAX:g}] (default: off)')
-    p.add_argument('--vergence-std', type=float, metavar='REL',
-                   help='also write /fixego/vergence (geometry_msgs/PoseWithCovarianceStamped, one message at the '
-                        'first frame): the right fixation point in the rig frame, its distance off by seeded '
-                        'Gaussian relative error of std REL (e.g. 0.02 = 2 %%), as the start-up vergence step '
-                        f'would measure it; REL in [0, {VERGENCE_STD_MAX:g}) (default: off)')
+    p.add_argument('--vergence', choices=VERGENCE_MODES, default=VERGENCE_DEFAULT,
+                   help='the rig\'s vergence step, at the first frame and at each new right fixation: physical = '
+                        'the left head verges on the right\'s fixation point and back (its images and joint states '
+                        'show it) and /fixego/vergence (geometry_msgs/PoseWithCovarianceStamped) gets the point '
+                        'triangulated from both heads\' quantised joint readings and noisy pixels; measurements = '
+                        'the same messages, heads undisturbed (the images of off); off = neither '
+                        f'(default: {VERGENCE_DEFAULT})')
     p.add_argument('--no-progress', action='store_true', help='no progress bar on stderr')
     one_line_errors(p)
     p.set_defaults(func=run)
@@ -151,9 +154,6 @@ def check_args(args: argparse.Namespace):
     check_float(args.texel, '--texel', *TEXEL_RANGE, unit='m')
     if args.wheel_odom_std is not None:
         check_float(args.wheel_odom_std, '--wheel-odom-std', 0.0, WHEEL_ODOM_STD_MAX, unit='m/s')
-    if args.vergence_std is not None:
-        check_float(args.vergence_std, '--vergence-std', 0.0, VERGENCE_STD_MAX, hi_open=True,
-                    unit='(relative error)')
     if args.out is not None and (not args.out or not args.out.strip()):
         raise OptionError('--out must name a directory to create, got an empty path')
     rig = read_rig(args.rig)
@@ -164,7 +164,7 @@ def check_args(args: argparse.Namespace):
         rig = rig_with_hfov(rig, args.hfov)
     settings = SimSettings(trajectory=args.trajectory, seed=args.seed, fps=args.fps, encoding=args.encoding,
                            noise_sigma=args.noise, speed=args.speed, duration=args.duration, steps=args.steps,
-                           texel=args.texel)
+                           texel=args.texel, vergence=args.vergence)
     out = check_new_dir(args.out, '--out')     # the probe creates and removes the directory
     frames = None if args.duration is None else math.floor(args.duration * args.fps + 1e-9) + 1  # at most this
     if frames is None or (frames > MAX_FRAMES and args.trajectory != 'random'):   # (random lasts --duration)
@@ -230,7 +230,7 @@ def run(args: argparse.Namespace) -> int:
         try:
             with signals_interrupt():
                 s = write_bag(out, rig, settings, progress=not args.no_progress,
-                              wheel_odom_std=args.wheel_odom_std, vergence_std=args.vergence_std)
+                              wheel_odom_std=args.wheel_odom_std)
         except KeyboardInterrupt as e:
             signum = getattr(e, 'signum', signal.SIGINT)
             _say(err, f'interrupted by {signal.Signals(signum).name}: stopped; {_remove_partial(out)}')
@@ -245,9 +245,10 @@ def run(args: argparse.Namespace) -> int:
         except BaseException:
             _say(err, f'writing {out} failed (a bug: traceback below); {_remove_partial(out)}')
             raise
+    verg = '' if settings.vergence == 'off' else f'; vergence ({settings.vergence}) measurements {s.vergence}'
     print(f'wrote {s.path}: {s.frames} frames ({s.duration_s:.1f} s), {s.messages} messages, '
           f'{s.bytes / 1e6:.1f} MB in {s.wall_s:.1f} s; fixation re-selections right {s.reselections["right"]}, '
-          f'left {s.reselections["left"]}')
+          f'left {s.reselections["left"]}{verg}')
     return 0
 
 

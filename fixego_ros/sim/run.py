@@ -1,4 +1,5 @@
-"""The ROS-free simulation loop behind ``fixego sim``: trajectory + servo model + renderer, frame by frame.
+"""The ROS-free simulation loop behind ``fixego sim``: trajectory + servo model + renderer, frame by frame,
+with the rig's vergence step when the settings ask for it (:attr:`SimSettings.vergence`).
 
 Also holds the settings record, its limits (``fixego sim`` refuses values outside them before doing anything;
 :class:`SimSettings` raises ValueError for them) and the rig resizing shared by the bag writer and the live node.
@@ -27,6 +28,9 @@ from fixego_ros.sim.trajectories import (
     relative_poses,
     steps_duration,
 )
+from fixego_ros.sim.vergence_measure import VERGENCE_MODES, VergenceMeasurement, VergenceParams, VergenceSource
+from fixego_ros.sim.vergence_on_point import OnPointVergence
+from fixego_ros.sim.vergence_step import VergenceStep
 from fixego_ros.sim.world import TEXEL_RANGE, World, make_room
 
 EPOCH = 1_700_000_000.0  # s: bag stamps start here, so output is deterministic
@@ -46,7 +50,13 @@ MAX_FRAMES = 1_000_000           # frames of one run (every pose is held in memo
 
 @dataclass(frozen=True)
 class SimSettings:
-    """Everything that determines a simulated sequence (written next to the bag as ``sim.yaml``)."""
+    """Everything that determines a simulated sequence (written next to the bag as ``sim.yaml``).
+
+    ``vergence``: ``off``, ``physical`` (the left head verges on the right's point at the start and at each new
+    right fixation; :mod:`~fixego_ros.sim.vergence_step`) or ``measurements`` (the same measurements, heads
+    undisturbed; :mod:`~fixego_ros.sim.vergence_on_point`). ``off`` here, so that code and records that predate
+    it mean what they meant; ``fixego sim`` turns it on by default.
+    """
 
     trajectory: str = 'paper'
     seed: int = 0
@@ -58,6 +68,7 @@ class SimSettings:
     steps: int | None = None
     texel: float = 0.002
     epoch: float = EPOCH
+    vergence: str = 'off'
 
     def __post_init__(self) -> None:
         problems = self.problems()
@@ -77,6 +88,8 @@ class SimSettings:
 
         if self.trajectory not in NAMES:
             out.append(f'trajectory must be one of {", ".join(NAMES)}, got {self.trajectory!r}')
+        if self.vergence not in VERGENCE_MODES:
+            out.append(f'vergence must be one of {", ".join(VERGENCE_MODES)}, got {self.vergence!r}')
         if self.encoding not in ENCODINGS:
             out.append(f'encoding must be one of {", ".join(ENCODINGS)}, got {self.encoding!r}')
         if not (isinstance(self.seed, numbers.Integral) and 0 <= self.seed <= SEED_MAX):
@@ -95,7 +108,12 @@ class SimSettings:
         return out
 
     def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
+        """The fields (``sim.yaml``, the bag's ``fixego_sim`` custom data); ``vergence`` only when it is not
+        ``off``, so a bag without vergence keeps the record it had before the option (and reads back as off)."""
+        out = dataclasses.asdict(self)
+        if out['vergence'] == 'off':
+            del out['vergence']
+        return out
 
 
 def resize_rig(rig: Rig, width: int, height: int) -> Rig:
@@ -136,13 +154,18 @@ class Frame:
     gt_base: Pose  # base_link in odom (odom = base_link at frame 0)
     states: dict[str, ServoState]
     images: dict[str, np.ndarray]
+    vergence: VergenceMeasurement | None = None   # a vergence measurement referring to this frame's stamp
 
 
 class Simulation:
-    """Runs the fixation servo model of both cameras along a trajectory and renders every frame."""
+    """Runs the fixation servo model of both cameras along a trajectory and renders every frame.
+
+    With vergence on, a frame is handed out only once no measurement under way can still refer to it (a
+    measurement's window ends a few control ticks after the frame it refers to), so each frame carries its
+    measurement; :attr:`vergence` keeps the measurements, failures and (physical) step records."""
 
     def __init__(self, rig: Rig, settings: SimSettings = SimSettings(), world: World | None = None,
-                 servo_params: ServoParams | None = None) -> None:
+                 servo_params: ServoParams | None = None, vergence_params: VergenceParams | None = None) -> None:
         self.rig, self.s = rig, settings
         self.world = world if world is not None else make_room(settings.seed, settings.texel)
         self.trajectory = build_trajectory(settings)
@@ -155,6 +178,12 @@ class Simulation:
         self.servos['right'].partner = self.servos['left']
         self.servos['left'].partner = self.servos['right']
         self.stamps, self.poses = self.trajectory.sample(settings.fps)
+        modes: dict[str, type[VergenceStep] | type[OnPointVergence]] = {'physical': VergenceStep,
+                                                                         'measurements': OnPointVergence}
+        self.vergence: VergenceSource | None = None
+        if settings.vergence in modes:
+            self.vergence = modes[settings.vergence](rig, self.servos, self.trajectory.pose_at, self.stamps,
+                                                     vergence_params or VergenceParams(), settings.seed)
 
     def __len__(self) -> int:
         return len(self.stamps)
@@ -176,8 +205,26 @@ class Simulation:
 
     def frames(self) -> Iterator[Frame]:
         gt = self.ground_truth()
+        verg = self.vergence
+        held: list[Frame] = []
+        n_measured = 0
         for k, (t, pose) in enumerate(zip(self.stamps, self.poses, strict=True)):
-            states = {side: (servo.start(t, pose) if k == 0 else servo.step(t, pose))
-                      for side, servo in self.servos.items()}
+            right = self.servos['right']
+            states = {'right': right.start(t, pose) if k == 0 else right.step(t, pose)}
+            if verg is None:
+                left = self.servos['left']
+                states['left'] = left.start(t, pose) if k == 0 else left.step(t, pose)
+            else:
+                states['left'] = verg.frame(k, float(t), pose, states['right'])
             images = {side: self.renderer.render(side, pose, st.pan, st.tilt) for side, st in states.items()}
-            yield Frame(k, float(t), pose, gt[k], states, images)
+            held.append(Frame(k, float(t), pose, gt[k], states, images))
+            keep = None
+            if verg is not None:
+                for m in verg.measurements[n_measured:]:
+                    held[m.frame - held[0].index].vergence = m
+                n_measured, keep = len(verg.measurements), verg.pending_frame
+            while held and (keep is None or held[0].index < keep):
+                yield held.pop(0)
+        if verg is not None:
+            verg.finish()
+        yield from held

@@ -8,10 +8,15 @@ one: a first-order lag with speed limits and mechanical limits (pan ±100°, til
 velocity, as a tracking controller must to keep a moving point centred. The point is re-selected when
 it would leave the head's range, is occluded, or comes too close. Joint readings are quantised like
 VISCA position units (pan 8.8 units/deg, tilt 12 units/deg); the rendered image uses the true angles.
+
+The head mechanics are their own small class (:class:`Head`), so the vergence step
+(:mod:`fixego_ros.sim.vergence_step`) can read where the other head is between its commands, and the servo
+exposes the primitives that step drives (``advance``, ``valid``, ``retarget``, ``command``, ``observe``).
 """
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass, field
 
 import cv2
@@ -51,6 +56,14 @@ def required_readings(rig: Rig, side: str, rig_pose: Pose, point: np.ndarray) ->
     return rig.aim_readings(side, rig_pose.inverse().apply(np.asarray(point, dtype=float)))
 
 
+def quantized(params: ServoParams, pan: float, tilt: float) -> tuple[float, float]:
+    """Joint readings (rad) as VISCA position units report true angles (pan, tilt)."""
+    if not params.quantize:
+        return pan, tilt
+    pu, tu = params.pan_units_per_deg, params.tilt_units_per_deg
+    return (np.radians(np.round(np.degrees(pan) * pu) / pu), np.radians(np.round(np.degrees(tilt) * tu) / tu))
+
+
 @dataclass
 class ServoState:
     """What one camera's servo looks like at one frame time."""
@@ -66,6 +79,59 @@ class ServoState:
     reselected: bool = False
 
 
+class Head:
+    """The pan/tilt mechanics: a first-order lag towards the last command, with speed limits; a command takes
+    effect ``latency`` after it is sent."""
+
+    def __init__(self, params: ServoParams) -> None:
+        self.p = params
+        self.pan = self.tilt = 0.0
+        self.t = 0.0
+        self.cmd = (0.0, 0.0)
+        self.commands: list[tuple[float, float, float]] = []  # (effective time, pan, tilt)
+
+    def place(self, t: float, pan: float, tilt: float) -> None:
+        """Put the head at rest at (pan, tilt) at time ``t`` (the operator's initial aim)."""
+        self.t, self.pan, self.tilt = t, pan, tilt
+        self.cmd = (pan, tilt)
+
+    def send(self, t: float, pan: float, tilt: float) -> None:
+        """A position command sent at ``t`` (effective after the serial latency)."""
+        self.commands.append((t + self.p.latency, pan, tilt))
+
+    def advance(self, t: float) -> None:
+        """Integrate the head from ``self.t`` to ``t`` under the queued commands."""
+        p = self.p
+        vmax = np.radians([p.pan_speed_deg_s, p.tilt_speed_deg_s])
+        while self.t < t - 1e-12:
+            while self.commands and self.commands[0][0] <= self.t + 1e-12:
+                _, cp, ct = self.commands.pop(0)
+                self.cmd = (cp, ct)
+            dt = min(p.substep, t - self.t)
+            if self.commands:
+                dt = min(dt, max(self.commands[0][0] - self.t, 1e-9))
+            err = np.array([self.cmd[0] - self.pan, self.cmd[1] - self.tilt])
+            rate = np.clip(err / p.tau, -vmax, vmax)
+            step = rate * dt
+            step = np.where(np.abs(step) > np.abs(err), err, step)  # never overshoot the command
+            self.pan += float(step[0])
+            self.tilt += float(step[1])
+            self.t += dt
+        self.t = t
+
+    def copy(self) -> Head:
+        """An independent copy (its own command queue)."""
+        out = copy.copy(self)
+        out.commands = list(self.commands)
+        return out
+
+    def at(self, t: float) -> tuple[float, float]:
+        """(pan, tilt) at a later time ``t`` if no other command is sent, without moving this head."""
+        ahead = self.copy()
+        ahead.advance(t)
+        return ahead.pan, ahead.tilt
+
+
 class FixationServo:
     """One camera's fixation servo; call :meth:`start` once, then :meth:`step` at increasing frame times."""
 
@@ -77,23 +143,35 @@ class FixationServo:
             home_deg = (22.5, 0.0) if side == 'right' else (-22.5, 0.0)
         self.home = (np.radians(home_deg[0]), np.radians(home_deg[1]))
         self.rng = np.random.default_rng([int(seed), 0 if side == 'right' else 1, 0x5E4])
-        self.pan = self.tilt = 0.0
-        self.t = 0.0
+        self.head = Head(params)
         self.fixation_id = -1
         self.point = np.full(3, np.nan)
-        self._commands: list[tuple[float, float, float]] = []  # (effective time, pan, tilt)
-        self._cmd = (0.0, 0.0)
         self._last_target: tuple[float, float, float] | None = None
         self._vel = np.zeros(2)
         self.reselections = 0
         self.partner: FixationServo | None = None  # the other camera: its point is not chosen again
+        self.resume_point: np.ndarray | None = None  # own point to return to while verging on the partner's
+
+    def own_point(self) -> np.ndarray:
+        """The camera's own fixation point: the one it returns to while a vergence step has it elsewhere."""
+        return self.resume_point if self.resume_point is not None else self.point
+
+    @property
+    def pan(self) -> float:
+        return self.head.pan
+
+    @property
+    def tilt(self) -> float:
+        return self.head.tilt
 
     # --- geometry helpers -------------------------------------------------------------------------
     def _limits_ok(self, pan: float, tilt: float) -> bool:
         return (abs(pan) <= np.radians(self.p.pan_limit_deg - self.p.reselect_margin_pan_deg)
                 and abs(tilt) <= np.radians(self.p.tilt_limit_deg - self.p.reselect_margin_tilt_deg))
 
-    def _valid(self, rig_pose: Pose, point: np.ndarray) -> bool:
+    def valid(self, rig_pose: Pose, point: np.ndarray) -> bool:
+        """Whether this camera can fixate world ``point``: depth range, head range (with the re-selection
+        margins) and an unoccluded view."""
         eye = camera_center_world(self.rig, self.side, rig_pose)
         depth = float(np.linalg.norm(point - eye))
         if not self.p.min_depth <= depth <= self.p.max_depth:
@@ -104,10 +182,7 @@ class FixationServo:
 
     def quantized(self, pan: float, tilt: float) -> tuple[float, float]:
         """Readings as VISCA position units would report them."""
-        if not self.p.quantize:
-            return pan, tilt
-        pu, tu = self.p.pan_units_per_deg, self.p.tilt_units_per_deg
-        return (np.radians(np.round(np.degrees(pan) * pu) / pu), np.radians(np.round(np.degrees(tilt) * tu) / tu))
+        return quantized(self.p, pan, tilt)
 
     # --- fixation point selection -----------------------------------------------------------------
     def select(self, rig_pose: Pose, pan: float, tilt: float) -> np.ndarray | None:
@@ -138,14 +213,15 @@ class FixationServo:
             if len({h[1] for h in hits}) != 1 or hits[0][1] < 0:
                 continue
             point = eye + hits[0][0] * rays[0]
-            if self.partner is not None and np.all(np.isfinite(self.partner.point)) and \
-                    np.linalg.norm(point - self.partner.point) < self.p.min_separation:
+            other = self.partner.own_point() if self.partner is not None else None
+            if other is not None and np.all(np.isfinite(other)) and \
+                    np.linalg.norm(point - other) < self.p.min_separation:
                 continue
-            if self._valid(rig_pose, point):
+            if self.valid(rig_pose, point):
                 return point
         return None
 
-    def _reselect(self, rig_pose: Pose, first: bool) -> bool:
+    def reselect(self, rig_pose: Pose, first: bool = False) -> bool:
         """Choose a new point around the home direction (then nearby directions); False if none found."""
         hp, ht = self.home
         for dp, dt in ((0, 0), (15, 0), (-15, 0), (0, -10), (30, 0), (-30, 0), (45, -10), (-45, -10),
@@ -153,54 +229,47 @@ class FixationServo:
             pan, tilt = hp + np.radians(dp), ht + np.radians(dt)
             point = self.select(rig_pose, pan, tilt)
             if point is not None:
-                self.point = point
-                self.fixation_id += 1
+                self.retarget(point)
                 if not first:
                     self.reselections += 1
-                self._last_target = None
-                self._vel[:] = 0.0
                 return True
         return False
+
+    def retarget(self, point: np.ndarray) -> None:
+        """Fixate world ``point`` from now on: a new fixation id (one id = one static point), and the
+        controller forgets the old target's velocity."""
+        self.point = np.asarray(point, dtype=float).copy()
+        self.fixation_id += 1
+        self._last_target = None
+        self._vel[:] = 0.0
 
     # --- dynamics ---------------------------------------------------------------------------------
     def start(self, t: float, rig_pose: Pose) -> ServoState:
         """Pick the first fixation point and put the head exactly on it (the operator's initial aim)."""
-        self.t = t
-        if not self._reselect(rig_pose, first=True):
+        if not self.reselect(rig_pose, first=True):
             raise RuntimeError(f'{self.side}: no usable fixation point near the home direction')
-        self.pan, self.tilt = required_readings(self.rig, self.side, rig_pose, self.point)
-        self._cmd = (self.pan, self.tilt)
+        self.head.place(t, *required_readings(self.rig, self.side, rig_pose, self.point))
         return self._control(t, rig_pose, reselected=True)
 
-    def _advance(self, t: float) -> None:
-        """Integrate the head from ``self.t`` to ``t`` under the queued commands."""
-        p = self.p
-        vmax = np.radians([p.pan_speed_deg_s, p.tilt_speed_deg_s])
-        while self.t < t - 1e-12:
-            while self._commands and self._commands[0][0] <= self.t + 1e-12:
-                _, cp, ct = self._commands.pop(0)
-                self._cmd = (cp, ct)
-            dt = min(p.substep, t - self.t)
-            if self._commands:
-                dt = min(dt, max(self._commands[0][0] - self.t, 1e-9))
-            err = np.array([self._cmd[0] - self.pan, self._cmd[1] - self.tilt])
-            rate = np.clip(err / p.tau, -vmax, vmax)
-            step = rate * dt
-            step = np.where(np.abs(step) > np.abs(err), err, step)  # never overshoot the command
-            self.pan += float(step[0])
-            self.tilt += float(step[1])
-            self.t += dt
-        self.t = t
+    def advance(self, t: float) -> None:
+        """Move the head on to time ``t`` under the commands sent so far."""
+        self.head.advance(t)
 
     def step(self, t: float, rig_pose: Pose) -> ServoState:
         """Advance the head to frame time ``t``, report its state there, then send the next command."""
-        self._advance(t)
+        self.advance(t)
         reselected = False
-        if not self._valid(rig_pose, self.point):
-            reselected = self._reselect(rig_pose, first=False)
+        if not self.valid(rig_pose, self.point):
+            reselected = self.reselect(rig_pose, first=False)
         return self._control(t, rig_pose, reselected)
 
     def _control(self, t: float, rig_pose: Pose, reselected: bool) -> ServoState:
+        self.command(t, rig_pose)
+        return self.observe(t, rig_pose, reselected)
+
+    def command(self, t: float, rig_pose: Pose) -> None:
+        """One control period at ``t``: measure the fixation point's direction (with pixel noise) and send the
+        head a command that leads it by its estimated velocity."""
         p = self.p
         target = np.array(required_readings(self.rig, self.side, rig_pose, self.point))
         cam = self.rig.camera(self.side)
@@ -215,7 +284,10 @@ class FixationServo:
         cmd = target + self._vel * (p.tau + p.latency + 0.5 * period)
         lim = np.radians([p.pan_limit_deg, p.tilt_limit_deg])
         cmd = np.clip(cmd, -lim, lim)
-        self._commands.append((t + p.latency, float(cmd[0]), float(cmd[1])))
+        self.head.send(t, float(cmd[0]), float(cmd[1]))
+
+    def observe(self, t: float, rig_pose: Pose, reselected: bool = False) -> ServoState:
+        """The state at ``t`` (the head must have been advanced to ``t``): angles, readings, fixation pixel."""
         pr, tr = self.quantized(self.pan, self.tilt)
         pix, depth = project_points(self.rig, self.side, rig_pose, self.pan, self.tilt, self.point[None])
         pixel = pix[0] if depth[0] > 0 else np.full(2, np.nan)
