@@ -4,10 +4,15 @@ A synthetic publisher renders what the emulated camera sees (the scene shifts as
 moves, and drifts slowly as if the rig turned). The node must bring its fixation point to the centre
 and hold it within a few pixels, track the same scene point, publish joint states that match the true
 angles at the image stamps, and re-select (new id) on the ~/reselect service.
+
+Vergence steps (left node, on by default): on the simulated rig, repeated at start-up, on a request and on a
+right re-selection, each measuring the right fixation distance, never closer than the min interval; a
+trigger during a step is ignored and counted; a failing step is counted, logged once and retried.
 """
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -163,13 +168,107 @@ def test_passive_node_tracks_without_serial(ros_context, rig_file):
         peer.destroy_node()
 
 
-def test_left_node_vergence_on_start_measures_the_right_fixation_distance(ros_context, tmp_path):
-    """Simulated rig (frozen) + both camera nodes over VISCA ptys; the left node's start-up vergence step
-    publishes the right fixation point's distance, which the simulator's ray cast confirms."""
+class _Warnings:
+    """Wraps a node's logger to keep its warnings (the rest passes through)."""
+
+    def __init__(self, logger) -> None:
+        self._logger, self.texts = logger, []
+
+    def warning(self, text, *args, **kwargs):
+        self.texts.append(str(text))
+        return self._logger.warning(text, *args, **kwargs)
+
+    def __getattr__(self, name):
+        return getattr(self._logger, name)
+
+
+def _vergence_status(diags, side='left'):
+    """Key/values of the newest vergence status of a camera node on /diagnostics (None before one)."""
+    for d in reversed(diags):
+        for st in d.status:
+            if st.name == f'fixego camera_node {side}: vergence':
+                return {'level': st.level, 'message': st.message, **{kv.key: kv.value for kv in st.values}}
+    return None
+
+
+def test_vergence_is_on_by_default_but_only_the_left_active_node_runs_it(ros_context, rig_file):
+    emu = ViscaEmulator('evi_d30', baud=9600)
+    port = emu.start()
+    nodes = []
+    try:
+        right = CameraNode(context=ros_context, cli_args=['--ros-args', '-r', '__node:=r'], parameter_overrides=[
+            Parameter('side', value='right'), Parameter('port', value=port), Parameter('rig_file', value=rig_file)])
+        nodes.append(right)
+        assert right.params('vergence_enabled') is True
+        assert right.scheduler is None and right.vergence_state.startswith('off (the left camera node')
+        passive = CameraNode(context=ros_context, cli_args=['--ros-args', '-r', '__node:=p'], parameter_overrides=[
+            Parameter('side', value='left'), Parameter('rig_file', value=rig_file)])
+        nodes.append(passive)
+        assert passive.scheduler is None and 'passive' in passive.vergence_state
+        off = CameraNode(context=ros_context, cli_args=['--ros-args', '-r', '__node:=o'], parameter_overrides=[
+            Parameter('side', value='left'), Parameter('port', value=port), Parameter('rig_file', value=rig_file),
+            Parameter('vergence_enabled', value=False)])
+        nodes.append(off)
+        assert off.scheduler is None and 'false' in off.vergence_state
+    finally:
+        for n in nodes:
+            n.destroy_node()
+        emu.stop()
+
+
+def test_a_failing_vergence_step_is_counted_logged_once_and_retried(ros_context, rig_file):
+    """No right camera: each step times out waiting for it, without moving the head; the failures are counted on
+    /diagnostics (WARN, last reason), logged once, and retried after the doubling back-off; the schedule's
+    parameters change at run time."""
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+
+    emu = ViscaEmulator('evi_d30', baud=9600)
+    port = emu.start()
+    node = CameraNode(context=ros_context, parameter_overrides=[
+        Parameter('side', value='left'), Parameter('port', value=port), Parameter('rig_file', value=rig_file),
+        Parameter('vergence_wait_s', value=0.3), Parameter('vergence_retry_s', value=0.2),
+        Parameter('vergence_min_interval_s', value=0.0), Parameter('diagnostics_period_s', value=0.1)])
+    warnings = _Warnings(node.get_logger())
+    node._logger = warnings
+    probe = rclpy.create_node('diag_probe', context=ros_context)
+    diags: list[DiagnosticArray] = []
+    probe.create_subscription(DiagnosticArray, '/diagnostics', diags.append, RELIABLE_QOS)
+    ex = executor_for(ros_context, node, probe)
+    try:
+        # failures at ~0.3 s, then retried after 0.2, 0.4, 0.8 s of back-off: a 4th failure by ~2.6 s
+        assert spin_until(ex, lambda: node.scheduler.failures >= 4, timeout_s=10.0), node.vergence_state
+        s = node.scheduler
+        assert s.attempts >= 4 and s.successes == 0 and s.triggers['start'] == 1 and s.triggers['retry'] >= 3
+        failed = [t for t in warnings.texts if 'vergence step failed' in t]
+        assert len(failed) == 1 and 'not settled within 0.3 s' in failed[0]
+        assert node.vergence_time['total_interrupted_s'] == 0.0 and node.vergence_time['max_away_s'] == 0.0
+        assert spin_until(ex, lambda: int((_vergence_status(diags) or {}).get('failures', 0)) >= 3, timeout_s=3.0)
+        st = _vergence_status(diags)
+        assert st['level'] == DiagnosticStatus.WARN and st['successes'] == '0' and 'not settled' in st['last_failure']
+        assert int(st['attempts']) >= 3
+        # the retry back-off is a run-time parameter: a long one stops the retries
+        assert node.set_parameters([Parameter('vergence_retry_s', value=60.0)])[0].successful
+        assert node.scheduler.p.retry_s == 60.0
+        n = node.scheduler.attempts
+        spin_until(ex, lambda: False, timeout_s=1.0)
+        assert node.scheduler.attempts <= n + 1          # at most the one already scheduled
+    finally:
+        ex.shutdown(timeout_sec=1.0)
+        node.destroy_node()
+        probe.destroy_node()
+        emu.stop()
+
+
+def test_left_node_repeats_vergence_steps_on_start_up_request_and_right_reselection(ros_context, tmp_path):
+    """Simulated rig (frozen) + both camera nodes over VISCA ptys: the left node measures the right fixation
+    distance at start-up, on /fixego/vergence_request and when the right camera re-selects its point; the steps
+    keep the min interval; a request during a step is ignored and counted; every measurement is checked against
+    the simulator's ray cast, and a late subscriber still gets them all (transient local)."""
     import time
 
     from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import PoseWithCovarianceStamped
+    from std_msgs.msg import Empty
 
     from fixego_ros.geometry.rig import default_rig_path, load_rig
     from fixego_ros.nodes.common import LATCHED_QOS
@@ -187,10 +286,10 @@ def test_left_node_vergence_on_start_measures_the_right_fixation_distance(ros_co
     right = CameraNode(context=ros_context, cli_args=['--ros-args', '-r', '__node:=right_camera_node'],
                        parameter_overrides=[Parameter('side', value='right'),
                                             Parameter('port', value=sim.ptys['right']), *common])
+    min_interval = 1.5
     left = CameraNode(context=ros_context, cli_args=['--ros-args', '-r', '__node:=left_camera_node'],
                       parameter_overrides=[Parameter('side', value='left'), Parameter('port', value=sim.ptys['left']),
-                                           Parameter('vergence_on_start', value=True),
-                                           Parameter('vergence_timeout_s', value=30.0), *common])
+                                           Parameter('vergence_min_interval_s', value=min_interval), *common])
     probe = rclpy.create_node('vergence_probe', context=ros_context)
     ex = executor_for(ros_context, sim, right, left, probe)
     got: list[PoseWithCovarianceStamped] = []
@@ -199,34 +298,73 @@ def test_left_node_vergence_on_start_measures_the_right_fixation_distance(ros_co
     probe.create_subscription(PoseWithCovarianceStamped, '/fixego/vergence', got.append, LATCHED_QOS)
     probe.create_subscription(DiagnosticArray, '/diagnostics', diags.append, RELIABLE_QOS)
     probe.create_subscription(PointStamped, '/fixego/left/fixation', lfix.append, RELIABLE_QOS)
-    t0 = time.monotonic()
-    try:
-        assert spin_until(ex, lambda: bool(got), timeout_s=40.0, step_s=0.01), \
-            f'no /fixego/vergence; left state: {left.vergence_state}'
-        t_step = time.monotonic() - t0
-        msg = got[0]
+    request = probe.create_publisher(Empty, '/fixego/vergence_request', RELIABLE_QOS)
+    steps: list[tuple[str, float, float]] = []        # (trigger, start, end) in the left node's clock
+    state = {'step': None, 'start': 0.0}
+
+    def watch() -> None:
+        """Note each step's trigger, start and end (the node keeps only the running one)."""
+        s, v = left.scheduler, left.vergence
+        if v is not None and v is not state['step']:
+            state['step'], state['start'] = v, s.t_last_start
+        if state['step'] is not None and v is None:
+            steps.append((s.last_trigger, state['start'], s.t_last_end))
+            state['step'] = None
+
+    def until(pred, timeout_s):
+        return spin_until(ex, lambda: watch() or pred(), timeout_s=timeout_s, step_s=0.01)
+
+    def check(msg: PoseWithCovarianceStamped) -> float:
         assert msg.header.frame_id == 'rig'
         p = np.array([msg.pose.pose.position.x, msg.pose.pose.position.y, msg.pose.pose.position.z])
         cov = np.array(msg.pose.covariance).reshape(6, 6)[:3, :3]
         dist = float(np.linalg.norm(p))
         std = float(np.sqrt(p @ cov @ p) / dist)
-        # truth: the simulator's ray cast along the published direction from the right camera centre
         pose = sim.trajectory.pose_at(0.0)
         true_dist, _ = sim.renderer.world.raycast(pose.t, pose.R @ (p / dist))
-        err = dist - true_dist
-        print(f'vergence: true {true_dist:.3f} m, estimated {dist:.3f} m (err {100 * err / true_dist:+.2f} %), '
-              f'std {std:.3f} m, {t_step:.1f} s after start')
-        assert abs(err) < 0.05 * true_dist
-        assert 0.0 < std < 0.1 * true_dist
-        assert np.all(np.isfinite(np.array(msg.pose.covariance)))
-        # the left node goes back to independent fixation: a new fixation id, and a 'done' status
-        assert spin_until(ex, lambda: left.vergence is not None and left.vergence.finished, timeout_s=10.0)
-        n = len(lfix)
-        assert spin_until(ex, lambda: len(lfix) > n + 3, timeout_s=5.0)
-        assert int(lfix[-1].point.z) == max(int(f.point.z) for f in lfix)
-        assert left.tracker.reselections[-1].reason == 'vergence_end'
-        assert spin_until(ex, lambda: any(s.name.endswith('left: vergence') and s.message.startswith('done')
-                                          for d in diags for s in d.status), timeout_s=3.0)
+        print(f'vergence: true {true_dist:.3f} m, measured {dist:.3f} m ({100 * (dist - true_dist) / true_dist:+.2f}'
+              f' %), std {std:.3f} m')
+        assert abs(dist - true_dist) < 0.03 * true_dist and abs(dist - true_dist) < 4 * std
+        assert 0.0 < std < 0.1 * true_dist and np.all(np.isfinite(np.array(msg.pose.covariance)))
+        return dist
+
+    t0 = time.monotonic()
+    try:
+        # 1. start-up
+        assert until(lambda: len(got) >= 1 and left.vergence is None, 40.0), f'left: {left.vergence_state}'
+        print(f'start-up step done {time.monotonic() - t0:.1f} s after start')
+        check(got[0])
+        assert left.tracker.reselections[-1].reason == 'vergence_end'      # own point again after the step
+        # 2. a request: after the min interval; a second request during that step is ignored and counted
+        request.publish(Empty())
+        assert until(lambda: left.scheduler.running, 10.0)
+        ignored = left.scheduler.ignored
+        request.publish(Empty())
+        assert until(lambda: left.scheduler.ignored > ignored, 5.0)
+        assert until(lambda: len(got) >= 2 and left.vergence is None, 20.0), left.vergence_state
+        check(got[1])
+        # 3. the right camera re-selects its point (a new fixation id): a step for it
+        cli = probe.create_client(Trigger, '/right_camera_node/reselect')
+        assert cli.wait_for_service(timeout_sec=5.0)
+        fut = cli.call_async(Trigger.Request())
+        assert until(fut.done, 5.0) and fut.result().success
+        assert until(lambda: len(got) >= 3 and left.vergence is None, 20.0), left.vergence_state
+        check(got[2])
+        # each kind of trigger ran a step, the steps kept the min interval, and all succeeded
+        assert [trig for trig, _, _ in steps][:3] == ['start', 'request', 'right_fixation'], steps
+        for (_, _, end), (_, start, _) in itertools.pairwise(steps):
+            assert start - end >= min_interval - 1e-6, steps
+        s = left.scheduler
+        assert s.successes == 3 and s.failures == 0 and s.ignored >= 1
+        assert 0.0 < left.vergence_time['last_interrupted_s'] <= left.vergence_time['last_away_s'] < 5.0
+        assert until(lambda: (_vergence_status(diags) or {}).get('successes') == '3', 3.0)
+        st = _vergence_status(diags)
+        assert st['attempts'] == '3' and st['last_trigger'] == 'right_fixation' and float(st['last_distance_m']) > 0
+        # a subscriber that comes late gets every measurement (transient local, depth 20)
+        late: list[PoseWithCovarianceStamped] = []
+        probe.create_subscription(PoseWithCovarianceStamped, '/fixego/vergence', late.append, LATCHED_QOS)
+        assert until(lambda: len(late) >= 3, 5.0)
+        assert [m.header.stamp for m in late] == [m.header.stamp for m in got]
     finally:
         ex.shutdown(timeout_sec=1.0)
         for n in (left, right, probe):

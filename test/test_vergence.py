@@ -1,5 +1,6 @@
-"""Start-up vergence core: triangulation geometry, partner-point search on simulator images, the step's
-bounds, and the tracker's select_at."""
+"""Vergence core: triangulation geometry, partner-point search on simulator images, the averaging of frames
+(value and honest std), whole steps on rendered images with simulated heads (frozen and moving rig), the step's
+bounds and failures, the scheduler's triggers and limits, and the tracker's select_at."""
 
 from __future__ import annotations
 
@@ -14,10 +15,14 @@ from fixego_ros.sim.render import Renderer, project_points
 from fixego_ros.sim.trajectories import attitude, make_trajectory
 from fixego_ros.sim.world import World, make_plane, make_room
 from fixego_ros.tracking.fixation import FixationTracker
-from fixego_ros.tracking.servo import JointHistory
+from fixego_ros.tracking.servo import JointHistory, centring_angles
 from fixego_ros.tracking.vergence import (
     VergenceParams,
+    VergenceSample,
+    VergenceSchedule,
+    VergenceScheduler,
     VergenceStep,
+    average_samples,
     find_partner_point,
     triangulate_fixation,
     vergence_aims,
@@ -144,22 +149,310 @@ def test_textureless_and_ambiguous_scenes_are_rejected_with_a_reason():
     assert not m.ok and ('no match' in m.reason or 'ambiguous' in m.reason)
 
 
-# ------------------------------------------------------------------------------------------------ step, tracker
-def test_step_without_a_right_camera_fails_by_its_timeout():
+# ------------------------------------------------------------------------------------------------ averaging
+def _samples(X_of_t, c, times, rng, joint_sigma=0.0, moving=True, rate=0.02):
+    """Rays at each time towards the (moving, in the rig frame) point X_of_t(t), both with independent joint
+    noise of ``joint_sigma`` (rad) per axis."""
+    out = []
+    for k, t in enumerate(times):
+        X = X_of_t(t)
+        r = _unit(_unit(X) + joint_sigma * rng.standard_normal(3))
+        l = _unit(_unit(X - c) + joint_sigma * rng.standard_normal(3))
+        out.append(VergenceSample(t, r, l, (0.001 * k, 0.0, 0.002 * k, 0.0), (0.0, 0.0), (0.0, 0.0), (rate, rate),
+                                  (moving, moving)))
+    return out
+
+
+def test_average_follows_a_moving_point_and_reads_it_at_the_reference_frame():
+    c = np.array([-0.2, 0.0, 0.0])
+    X_of_t = lambda t: np.array([0.3, -0.1, 3.0 - 0.4 * t])          # noqa: E731  the rig approaches at 0.4 m/s
+    times = np.arange(12) / 30.0
+    avg = average_samples(_samples(X_of_t, c, times, np.random.default_rng(0)), c, 1e-6, 1e-6)
+    assert avg.ok and avg.frames == 12 and avg.distinct_readings == 12
+    assert avg.t in times
+    true = np.linalg.norm(X_of_t(avg.t))
+    assert avg.distance_m == pytest.approx(true, abs=2e-5)       # a line through |X(t)|, slightly curved
+    assert np.allclose(avg.point_rig, X_of_t(avg.t), atol=2e-5)
+    assert avg.rate_mps == pytest.approx(-0.4 * 3.0 / np.linalg.norm(X_of_t(avg.t)), rel=0.05)
+    assert avg.cov_rig.shape == (3, 3) and np.allclose(avg.cov_rig, avg.cov_rig.T)
+
+
+def test_average_std_is_honest_for_independent_and_common_errors():
+    """Monte Carlo: independent joint noise shrinks with the frames and the stated std follows it; a common
+    pixel error does not shrink, and the stated std does not pretend it does."""
+    c = np.array([-0.2, 0.0, 0.0])
+    X_of_t = lambda t: np.array([0.2, 0.0, 3.0 + 0.2 * t])             # noqa: E731
+    times = np.arange(10) / 30.0
+    sigma = math.radians(0.033)
+    rng = np.random.default_rng(1)
+    errs, stds = [], []
+    for _ in range(300):
+        avg = average_samples(_samples(X_of_t, c, times, rng, joint_sigma=sigma / math.sqrt(3) * math.sqrt(2)),
+                              c, 1e-7, sigma, timing_sigma_s=0.0)
+        assert avg.ok
+        errs.append(avg.distance_m - np.linalg.norm(X_of_t(avg.t)))
+        stds.append(avg.std_m)
+    single = triangulate_fixation(X_of_t(0.0), X_of_t(0.0) - c, c, sigma).std_m
+    assert np.std(errs) < 0.5 * single                       # averaging helps ...
+    assert 0.7 < np.std(errs) / np.median(stds) < 1.5        # ... and the stated std says by how much
+    # a head at rest reads exactly: its joint part is zero; a common pixel error is not divided by the frames
+    rest = average_samples(_samples(X_of_t, c, times, rng, moving=False, rate=0.0), c, 2e-4, sigma)
+    one = triangulate_fixation(X_of_t(rest.t), X_of_t(rest.t) - c, c, 2e-4).std_m
+    assert rest.std_m == pytest.approx(one, rel=0.05)
+
+
+def test_average_rejects_frames_that_disagree_and_parallel_rays():
+    c = np.array([-0.2, 0.0, 0.0])
+    times = np.arange(10) / 30.0
+    rng = np.random.default_rng(2)
+    ok = _samples(lambda t: np.array([0.0, 0.0, 3.0]), c, times[:5], rng)
+    slipped = _samples(lambda t: np.array([0.0, 0.0, 3.6]), c, times[5:], rng)   # the partner point slipped
+    avg = average_samples(ok + slipped, c, 1e-4, 1e-4)
+    assert not avg.ok and 'disagree' in avg.reason
+    far = _samples(lambda t: np.array([0.0, 0.0, 100.0]), c, times, rng)
+    avg = average_samples(far, c, 1e-4, 1e-4)
+    assert not avg.ok and 'parallel' in avg.reason
+    assert not average_samples([], c, 1e-4, 1e-4).ok
+
+
+# ------------------------------------------------------------------------------------------------ whole steps
+D30_UNIT = (math.radians(1 / 8.8), math.radians(1 / 12.0))       # VISCA pan, tilt reading quanta
+
+
+def _quantised(q):
+    return tuple(round(a / u) * u for a, u in zip(q, D30_UNIT, strict=True))
+
+
+class _SimHeads:
+    """Both heads on rendered images: the right one fixates a scene point exactly (quantised readings); the left
+    one is driven by the step (aims) or, tracking, by a one-frame servo that centres its fixation; heads turn at
+    most 80 deg/s (EVI-D30). Frames at 30 Hz; readings at the frame times."""
+
+    def __init__(self, rig, world, renderer, pose_of_t, right_deg, left_deg):
+        self.rig, self.world, self.renderer, self.pose_of_t = rig, world, renderer, pose_of_t
+        pose = pose_of_t(0.0)
+        rq = tuple(math.radians(a) for a in right_deg)
+        ray = rig.pixels_to_rig_rays('right', np.array([[rig.right.cx, rig.right.cy]]), *rq)[0]
+        with np.errstate(invalid='ignore'):
+            lam, _ = world.raycast(pose.t, pose.R @ ray)
+        self.X = pose.apply(lam * ray)              # the right fixation point (world)
+        self.left_q = tuple(math.radians(a) for a in left_deg)
+        self.tracker = FixationTracker(rig.left)
+        self.actions: list[str] = []
+
+    def right(self, t):
+        pose = self.pose_of_t(t)
+        q = _quantised(self.rig.aim_readings('right', pose.inverse().apply(self.X)))
+        px = project_points(self.rig, 'right', pose, *q, self.X[None])[0][0]
+        return q, (float(px[0]), float(px[1])), self.renderer.render('right', pose, *q)
+
+    def true_distance(self, t, point_rig):
+        pose = self.pose_of_t(t)
+        with np.errstate(invalid='ignore'):
+            lam, _ = self.world.raycast(pose.t, pose.R @ _unit(point_rig))
+        return lam
+
+    def _move(self, target):
+        step = math.radians(80.0) / 30.0
+        self.left_q = _quantised(tuple(a + float(np.clip(b - a, -step, step))
+                                       for a, b in zip(self.left_q, target, strict=True)))
+
+    def run(self, step, frames, right_id=lambda t: 0):
+        for k in range(frames):
+            t = k / 30.0
+            rq, rpx, rimg = self.right(t)
+            step.add_right_joints(t, *rq)
+            step.add_right_image(t, rimg)
+            step.add_right_fixation(t, rpx, right_id(t))
+            step.left_history.add(t, *self.left_q)
+            limg = self.renderer.render('left', self.pose_of_t(t), *self.left_q)
+            act = step.on_left_image(t, limg, t + 0.001)
+            self.actions.append(act.kind)
+            if act.kind == 'hold':
+                self._move(act.aim)
+            else:
+                if act.reselect:
+                    self.tracker.request_reselect('vergence_end')
+                st = (self.tracker.select_at(limg, act.select, t, 'vergence') if act.select is not None
+                      else self.tracker.update(limg, t))
+                step.on_left_fixation(t, st.pixel, st.fixation_id, st.reselected)
+                if st.valid:
+                    self._move(centring_angles(self.rig.left, st.pixel, *self.left_q))
+            step.poll(t + 0.002)
+            if step.finished:
+                return k
+        return frames
+
+
+@pytest.mark.parametrize('speed', [0.0, 0.2])
+def test_a_whole_step_measures_within_one_percent(room, speed):
+    """Frozen and moving (0.2 m/s sideways) rig: the step leaves the left's own point, finds and fixates the right
+    fixation point, averages 20 settled frames, returns; the distance is within 1 % (and its stated std)."""
+    rig, world, renderer = room
+    pose0 = make_trajectory('paper').pose_at(0.0)
+    pose_of_t = lambda t: Pose(pose0.R, pose0.t + pose0.R @ np.array([speed * t, 0.0, 0.0]))   # noqa: E731
+    heads = _SimHeads(rig, world, renderer, pose_of_t, (22.5, 0.0), (-22.5, 0.0))
+    hist = JointHistory()
+    step = VergenceStep(rig, hist, VergenceParams(prior_depth_m=3.0), left_range=((-1.7, 1.7), (-0.4, 0.4)))
+    end = heads.run(step, 150)
+    assert step.finished and step.succeeded, step.status
+    r = step.result
+    true = heads.true_distance(r.stamp, r.point_rig)
+    assert 2.0 < true < 4.0
+    err = r.distance_m - true
+    print(f'speed {speed}: true {true:.3f} m, measured {r.distance_m:.3f} m ({100 * err / true:+.2f} %), std '
+          f'{r.std_m:.3f} m, {r.frames} frames ({r.distinct_readings} distinct readings), interrupted '
+          f'{step.interrupted_s:.2f} s, away {step.away_s:.2f} s')
+    assert abs(err) < 0.01 * true
+    assert abs(err) < 3 * r.std_m and r.std_m < 0.02 * true
+    n = step.p.frames
+    assert r.frames == n if speed == 0.0 else n // 2 <= r.frames <= n     # moving: some frames too fast, skipped
+    # the head was driven away (hold) and came back; the left's own point is selected again at the end
+    assert 'hold' in heads.actions and heads.actions[-1] == 'track'
+    kinds = [what for what, _ in step.timeline]
+    assert kinds[0] == 'aiming' and 'converging' in kinds and kinds[-1] == 'ended'
+    assert 0.0 < step.interrupted_s <= step.away_s < 4.0
+    assert end < 150
+
+
+def test_a_right_reselection_while_averaging_uses_the_frames_before_it_or_fails(room):
+    rig, world, renderer = room
+    pose0 = make_trajectory('paper').pose_at(0.0)
+    results = {}
+    for cut in (8, 0):        # frames of the partner point gathered (after settling) before the right re-selects
+        heads = _SimHeads(rig, world, renderer, lambda t: pose0, (22.5, 0.0), (-22.5, 0.0))
+        step = VergenceStep(rig, JointHistory(), VergenceParams(prior_depth_m=3.0, frames=30, settle_frames=3))
+        state = {'t_cut': None}
+
+        def right_id(t, step=step, state=state, cut=cut):
+            if step.phase != 'converging':
+                return 0 if state['t_cut'] is None or t < state['t_cut'] else 1
+            if state['t_cut'] is None and len(step._samples(list(step.left_frames))) >= cut:
+                state['t_cut'] = t
+            return 0 if state['t_cut'] is None or t < state['t_cut'] else 1
+
+        heads.run(step, 200, right_id)
+        results[cut] = step
+    long, short = results[8], results[0]
+    assert long.succeeded and any(what == 'cut short' for what, _ in long.timeline)
+    assert 8 <= long.result.frames < 30
+    assert not short.succeeded and 're-selected' in short.reason and short.finished
+
+
+@pytest.mark.parametrize(('pan_max', 'max_turn_deg', 'why'), [(0.2, 60.0, "beyond the left head's range"),
+                                                               (1.7, 30.0, 'too long a trip')])
+def test_a_point_out_of_range_or_too_far_fails_before_the_head_leaves(room, pan_max, max_turn_deg, why):
+    """The right point is ~50 deg from where the left head looks: beyond a head limited to pan 11 deg, or further
+    than a 30 deg trip: refused without moving the head (no interruption)."""
+    rig, world, renderer = room
+    pose0 = make_trajectory('paper').pose_at(0.0)
+    heads = _SimHeads(rig, world, renderer, lambda t: pose0, (22.5, 0.0), (-22.5, 0.0))
+    step = VergenceStep(rig, JointHistory(), VergenceParams(max_turn_deg=max_turn_deg),
+                        left_range=((-1.7, pan_max), (-0.4, 0.4)))
+    heads.run(step, 30)
+    assert step.finished and not step.succeeded and why in step.reason
+    assert 'hold' not in heads.actions and step.interrupted_s == 0.0 and step.away_s == 0.0
+
+
+def test_step_without_a_right_camera_fails_by_its_wait_timeout():
     rig = make_rig(320, 240)
     hist = JointHistory()
     hist.add(0.0, 0.0, 0.0)
-    step = VergenceStep(rig, hist, VergenceParams(timeout_s=1.0))
+    step = VergenceStep(rig, hist, VergenceParams(wait_timeout_s=1.0))
     img = np.zeros((240, 320), np.uint8)
     for k in range(10):
         act = step.on_left_image(0.1 * k, img, 0.1 * k)
         assert act.kind == 'track' and act.select is None
     assert step.status.startswith('running: waiting')
     step.on_left_image(1.5, img, 1.5)
-    assert step.status.startswith('failed: timeout') and 'waiting' in step.status
-    assert step.finished and step.result is None   # never moved the head: nothing to return from
+    assert step.status.startswith('failed: both fixations not settled within 1 s')
+    assert step.finished and step.result is None and step.away_s == 0.0   # never moved the head
 
 
+def test_step_timeouts_fire_from_poll_without_images():
+    """A head that never arrives: the aim, then the step, then the return are each bounded, images or not."""
+    rig = make_rig(320, 240)
+    step = VergenceStep(rig, JointHistory(), VergenceParams(timeout_s=1.0, aim_timeout_s=0.5))
+    step.t_start, step.phase, step.t_left, step.home = 0.0, 'aiming', 0.0, (0.0, 0.0)
+    step._aim = (0.5, 0.0)
+    step.poll(0.4)
+    assert step.phase == 'aiming'
+    step.poll(1.2)
+    assert step.phase == 'returning' and 'timeout after 1 s in phase aiming' in step.reason
+    step.poll(1.5)
+    assert not step.finished
+    step.poll(1.8)
+    assert step.finished and step.needs_reselect and step.away_s == pytest.approx(1.8)
+
+
+# ------------------------------------------------------------------------------------------------ scheduler
+def test_scheduler_start_up_right_fixation_request_and_period_triggers():
+    s = VergenceScheduler(VergenceSchedule(period_s=30.0, min_interval_s=5.0, retry_s=2.0), now=100.0)
+    assert s.due(100.0) == 'start'
+    s.started('start', 100.0)
+    assert s.due(100.5) is None
+    s.finished(True, 102.0)
+    assert s.due(102.0) is None and s.pending is None
+    assert not s.on_right_fixation(7, 103.0)           # the first id seen is no change
+    assert not s.on_right_fixation(7, 103.5)
+    assert s.on_right_fixation(8, 104.0)                # a new right point: due once the min interval is over
+    assert s.due(106.9) is None and s.due(107.0) == 'right_fixation'
+    s.started('right_fixation', 107.0)
+    s.finished(True, 109.0)
+    assert s.trigger('request', 110.0) and s.due(113.9) is None and s.due(114.0) == 'request'
+    s.started('request', 114.0)
+    s.finished(True, 116.0)
+    assert s.due(143.9) is None and s.due(144.0) == 'period'          # 30 s after the last start
+    assert s.attempts == 3 and s.successes == 3 and s.failures == 0
+    assert s.triggers['start'] == 1 and s.triggers['right_fixation'] == 1 and s.triggers['request'] == 1
+
+
+def test_scheduler_ignores_and_counts_triggers_while_a_step_runs_and_coalesces_waiting_ones():
+    s = VergenceScheduler(VergenceSchedule(min_interval_s=5.0), now=0.0)
+    s.started(s.due(0.0), 0.0)
+    s.on_right_fixation(0, 0.1)
+    assert not s.on_right_fixation(1, 0.5) and not s.trigger('request', 0.6)
+    assert s.ignored == 2 and s.pending is None
+    s.finished(True, 2.0)
+    assert s.due(10.0) is None                      # the ignored ones are not run later
+    assert s.trigger('request', 3.0) and s.on_right_fixation(2, 4.0)
+    assert s.due(7.0) == 'request'                  # two waiting triggers: one step
+    s.started('request', 7.0)
+    assert s.pending is None and s.due(30.0) is None
+
+
+def test_scheduler_min_interval_counts_from_steps_that_left_the_own_point():
+    s = VergenceScheduler(VergenceSchedule(min_interval_s=5.0, retry_s=30.0), now=0.0)
+    s.started(s.due(0.0), 0.0)
+    s.finished(True, 2.0)                                     # left its own point: the min interval runs from here
+    s.trigger('request', 3.0)
+    s.started(s.due(7.0), 7.0)
+    s.finished(False, 17.0, left_own_point=False)             # waited in vain (the rig turned): interrupted nothing
+    assert s.trigger('request', 17.5) and s.due(17.5) == 'request'      # no min interval after it
+    s.started('request', 17.5)
+    s.finished(False, 19.0, left_own_point=True)              # failed after leaving: the min interval applies
+    assert s.trigger('request', 19.5) and s.due(23.9) is None and s.due(24.0) == 'request'
+
+
+def test_scheduler_retries_a_failure_with_back_off_or_at_the_next_trigger():
+    s = VergenceScheduler(VergenceSchedule(min_interval_s=1.0, retry_s=2.0, retry_max_s=5.0), now=0.0)
+    s.started(s.due(0.0), 0.0)
+    s.finished(False, 1.0)
+    assert s.due(2.9) is None and s.due(3.0) == 'retry'          # back-off 2 s
+    s.started('retry', 3.0)
+    s.finished(False, 4.0)
+    assert s.due(7.9) is None and s.due(8.0) == 'retry'          # doubled: 4 s
+    s.started('retry', 8.0)
+    s.finished(False, 9.0)
+    assert s.due(13.9) is None and s.due(14.0) == 'retry'        # capped at 5 s
+    assert s.trigger('request', 10.0) and s.due(10.0) == 'request'   # a trigger comes first (min interval 1 s)
+    s.started('request', 10.0)
+    s.finished(True, 11.0)
+    assert s.failures_in_a_row == 0 and s.due(100.0) is None and s.t_retry is None
+    assert (s.attempts, s.successes, s.failures) == (4, 1, 3) and s.triggers['retry'] == 2
+
+
+# ------------------------------------------------------------------------------------------------ tracker
 def test_tracker_select_at_starts_a_new_fixation_at_the_given_pixel():
     from fixego_ros.bench.servo import SyntheticView
     rig = make_rig(320, 240)

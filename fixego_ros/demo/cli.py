@@ -1,10 +1,13 @@
 """``fixego demo``: the live pipeline on the simulated rig, end to end, as separate processes over DDS.
 
 Starts ``sim_rig_node`` (two emulated VISCA heads on pseudo-terminals, rendered images), one
-``camera_node`` per head on its pty, ``flow_node`` and ``estimator_node``; waits until poses flow,
+``camera_node`` per head on its pty (the left one runs its vergence steps, on by default: the rig measures
+its own scale), ``flow_node`` and ``estimator_node``; waits until poses flow,
 resets the estimator and starts the rig on its trajectory; when the rig stops, stops every node and
 writes a report folder: TUM files (refined, raw, ground truth), ATE/RPE (evo), the trajectory plot and
-error per step, latency image -> pose and dropped frames, and every node's log.
+error per step, the scale error (estimated / true path length - 1), the vergence steps (measurements seen,
+the left camera node's attempts/successes and interruption), latency image -> pose and dropped frames, and
+every node's log.
 """
 
 from __future__ import annotations
@@ -116,9 +119,11 @@ def _say(args: argparse.Namespace, text: str) -> None:
 
 def _run(args: argparse.Namespace, out: Path, rig_path: Path, launcher) -> int:
     import rclpy
+    from geometry_msgs.msg import PoseWithCovarianceStamped
     from rclpy.executors import SingleThreadedExecutor
 
     from fixego_ros.demo.launcher import NodeSpec, wait_for
+    from fixego_ros.nodes.common import LATCHED_QOS, stamp_to_sec
     from fixego_ros.nodes.demo_recorder import Recorder
 
     pty_file = out / 'ptys.json'
@@ -152,6 +157,10 @@ def _run(args: argparse.Namespace, out: Path, rig_path: Path, launcher) -> int:
 
     rclpy.init()
     node = Recorder()
+    # the rig's vergence measurements (the left camera node verges by default): counted for the report
+    vergence_stamps: list[float] = []
+    node.create_subscription(PoseWithCovarianceStamped, '/fixego/vergence',
+                             lambda m: vergence_stamps.append(stamp_to_sec(m.header.stamp)), LATCHED_QOS)
     ex = SingleThreadedExecutor()
     ex.add_node(node)
     spin = lambda s: ex.spin_once(timeout_sec=s)  # noqa: E731
@@ -188,7 +197,7 @@ def _run(args: argparse.Namespace, out: Path, rig_path: Path, launcher) -> int:
         spin(0.3)
         launcher.stop_all()
         from fixego_ros.demo.report import write_report
-        report = write_report(out, node, t_reset, vars(args))
+        report = write_report(out, node, t_reset, vars(args), vergence_stamps)
     finally:
         ex.shutdown()
         node.destroy_node()

@@ -1,4 +1,5 @@
-"""The demo's report folder: TUM files, evo ATE/RPE, the papers' per-step error, latency and drops."""
+"""The demo's report folder: TUM files, evo ATE/RPE, the papers' per-step error, the scale error, the rig's
+vergence steps, latency and drops."""
 
 from __future__ import annotations
 
@@ -24,10 +25,26 @@ def _ms(values: list[float]) -> dict[str, float]:
             'mean': float(a.mean())}
 
 
-def write_report(out: Path, rec, t_start: float, run_args: dict[str, Any]) -> dict[str, Any]:
+VERGENCE_STATUS = 'fixego camera_node left: vergence'
+VERGENCE_KEYS = ('attempts', 'successes', 'failures', 'ignored_triggers', 'last_failure', 'last_distance_m',
+                 'last_std_m', 'max_interrupted_s', 'total_interrupted_s', 'max_away_s')
+
+
+def vergence_summary(statuses: dict[str, dict[str, str]], stamps: list[float], t_start: float) -> dict[str, Any]:
+    """The rig's vergence steps: the measurements seen on /fixego/vergence (in all, and since the run started)
+    and the left camera node's counts from its last /diagnostics status."""
+    st = statuses.get(VERGENCE_STATUS, {})
+    out: dict[str, Any] = {'measurements': len(stamps), 'measurements_in_run': sum(1 for t in stamps if t >= t_start),
+                           'state': st.get('state', 'no status (left camera node not seen)')}
+    out.update({k: st[k] for k in VERGENCE_KEYS if k in st})
+    return out
+
+
+def write_report(out: Path, rec, t_start: float, run_args: dict[str, Any],
+                 vergence_stamps: list[float] | None = None) -> dict[str, Any]:
     """Write ``estimate.tum``, ``estimate.raw.tum``, ``ground_truth.tum``, ``report.json``, ``trajectory.png``
     under ``out`` from what the recorder saw at or after ``t_start``; returns the report (with a
-    ``console`` summary)."""
+    ``console`` summary). ``vergence_stamps``: stamps of the /fixego/vergence measurements seen."""
     keep = [(i, t, p) for i, (t, p) in enumerate(rec.poses) if t >= t_start]
     est = [(t, p) for _, t, p in keep]
     latency = [rec.latency_s[i] for i, _, _ in keep if i < len(rec.latency_s)]
@@ -47,6 +64,7 @@ def write_report(out: Path, rec, t_start: float, run_args: dict[str, Any]) -> di
         'latency_image_to_pose_ms': _ms(latency),
         'paper_table1_cm': PAPER_TABLE1,
         'diagnostics': dict(rec.statuses),      # each node's last /diagnostics status
+        'vergence': vergence_summary(rec.statuses, list(vergence_stamps or []), t_start),
     }
     evals = {}
     for label, traj in (('refined', est), ('raw', raw)):
@@ -57,7 +75,11 @@ def write_report(out: Path, rec, t_start: float, run_args: dict[str, Any]) -> di
             report[label] = {'error': str(e)}
             continue
         evals[label] = ev
-        report[label] = ev.summary
+        report[label] = dict(ev.summary)
+        pl = ev.summary.get('path_length_m', {})
+        if pl.get('ground_truth'):
+            # the metric scale the rig measured (vergence): estimated / true path length - 1
+            report[label]['scale_error'] = float(pl['estimate']) / float(pl['ground_truth']) - 1.0
     if evals and truth:
         gt_xyz = np.array([p.t for _, p in truth])
         plot_evaluation(out / 'trajectory.png', evals, gt_stamps=np.array([t for t, _ in truth]),
@@ -79,7 +101,13 @@ def write_report(out: Path, rec, t_start: float, run_args: dict[str, Any]) -> di
         lines.append(f'  {label:8s} position error mean {100 * pe["mean"]:.2f} cm (std {100 * pe["std"]:.2f}), '
                      f'terminal {100 * pe["terminal"]:.2f} cm; ATE SE(3) '
                      + (f'{100 * se3:.2f} cm' if se3 is not None else 'n/a')
-                     + f'; path length {pl["estimate"]:.2f} / {pl["ground_truth"]:.2f} m')
+                     + f'; path length {pl["estimate"]:.2f} / {pl["ground_truth"]:.2f} m'
+                     + (f' (scale error {100 * s["scale_error"]:+.1f} %)' if 'scale_error' in s else ''))
+    v = report['vergence']
+    lines.append(f'  vergence: {v["measurements"]} measurements ({v["measurements_in_run"]} during the run); left '
+                 f'camera steps {v.get("successes", "?")}/{v.get("attempts", "?")} done, interrupted at most '
+                 f'{v.get("max_interrupted_s", "?")} s' + (f'; last failure: {v["last_failure"]}'
+                                                          if v.get('last_failure') else ''))
     lines.append('  papers (real images): raw 17.51 cm mean / ~35 cm terminal; local BA 3.36 cm / ~4 cm')
     report['console'] = '\n'.join(lines)
     (out / 'report.json').write_text(json.dumps({k: v for k, v in report.items() if k != 'console'}, indent=1))

@@ -6,19 +6,23 @@ in passive mode also ``<side>/joint_states``; publishes ``<side>/joint_states`` 
 ``<side>/fixation`` (geometry_msgs/PointStamped: x, y = pixel, z = fixation id; nothing is published
 for a frame without a valid fixation) and ``/diagnostics``. Services ``~/reselect``, ``~/home``.
 
-Start-up vergence (scale aid, off by default; ``vergence_on_start:=true`` on the *left* node, active mode):
-the left node also subscribes ``/fixego/right/{image_raw,fixation,joint_states}``, drives its head so the
-right fixation ray's epipolar curve is in view, finds the right fixation point in its image
-(:func:`fixego_ros.tracking.vergence.find_partner_point`), fixates it with its own tracker and servo, and
-once both fixations have settled triangulates it with the two heads' joint readings at one image stamp.
-It publishes ``/fixego/vergence`` (geometry_msgs/PoseWithCovarianceStamped, frame ``rig``, transient
-local), drives its head back and selects its own point again. One attempt, bounded by
-``vergence_timeout_s``; the outcome is a ``vergence`` status on ``/diagnostics``. The right node needs no
-change: if it re-selects during the step, the step fails (its fixation id changed).
+Vergence steps (the rig's own scale aid, on by default: ``vergence_enabled``; the *left* node in active mode
+runs them, the right node needs no change): the left node drives its head so the right fixation ray's epipolar
+curve is in view, finds the right fixation point in its image
+(:func:`fixego_ros.tracking.vergence.find_partner_point`), fixates it with its own tracker and servo, and once
+both fixations have settled triangulates it from the two heads' joint readings over ``vergence_frames`` image
+stamps (:func:`~fixego_ros.tracking.vergence.average_samples`). Each step publishes one ``/fixego/vergence``
+(geometry_msgs/PoseWithCovarianceStamped, frame ``rig``, transient local, depth 20), then the head goes back and
+selects its own point again. When (:class:`~fixego_ros.tracking.vergence.VergenceScheduler`): at start-up, on each
+new right fixation id (``/fixego/right/fixation``), on ``/fixego/vergence_request`` (std_msgs/Empty; the
+estimator asks when its scale has grown uncertain), every ``vergence_period_s`` if > 0; never within
+``vergence_min_interval_s`` of the previous step; a failure is retried at the next trigger or after
+``vergence_retry_s`` (doubling). Every phase is bounded; the counts are a ``vergence`` status on ``/diagnostics``.
 
 Parameters (:data:`fixego_ros.pipeline.params.CAMERA_NODE_PARAMS`) are checked at start and on ``ros2 param
-set``; the tracker thresholds, servo gains, limit re-selection, joint wait and diagnostics period change at
-run time, the rest (side, port, profile, rig, template size, vergence step) is read-only.
+set``; the tracker thresholds, servo gains, limit re-selection, joint wait, diagnostics period and vergence schedule
+(period, min interval, retry) change at run time, the rest (side, port, profile, rig, template size, the vergence
+step itself) is read-only.
 """
 
 from __future__ import annotations
@@ -31,6 +35,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PointStamped, PoseWithCovarianceStamped
 from rclpy.node import Node
 from sensor_msgs.msg import Image, JointState
+from std_msgs.msg import Empty
 from std_srvs.srv import Trigger
 
 from fixego_ros.geometry.rig import default_rig_path, load_rig
@@ -58,7 +63,13 @@ from fixego_ros.pipeline.messages import pan_tilt
 from fixego_ros.pipeline.params import CAMERA_NODE_PARAMS, Getter, ParamsError, fixation_params
 from fixego_ros.tracking.fixation import FixationTracker, LimitCheck
 from fixego_ros.tracking.servo import FixationServo, JointHistory, ServoLoop, ServoParams, Target
-from fixego_ros.tracking.vergence import VergenceParams, VergenceStep
+from fixego_ros.tracking.vergence import (
+    VergenceParams,
+    VergenceResult,
+    VergenceSchedule,
+    VergenceScheduler,
+    VergenceStep,
+)
 from fixego_ros.visca.driver import ViscaCamera
 from fixego_ros.visca.profiles import get_profile
 
@@ -68,6 +79,8 @@ LIVE_TRACKER = ('search_radius_px', 'min_corner_score', 'ncc_min', 'fb_max_px', 
 LIVE_SERVO = ('servo_gain', 'servo_deadband_px', 'servo_move_time_s', 'servo_max_command_rate_hz',
               'servo_feedforward')
 LIVE_NODE = ('limit_margin_deg', 'limit_reselect_offset_px', 'joint_max_wait_s', 'diagnostics_period_s')
+# when vergence steps run (the scheduler's limits); the step itself is read-only
+LIVE_VERGENCE = ('vergence_period_s', 'vergence_min_interval_s', 'vergence_retry_s')
 
 
 def servo_params(g: Getter) -> ServoParams:
@@ -148,7 +161,7 @@ class CameraNode(Node):
         self.diag_timer = self.create_timer(float(g('diagnostics_period_s')), self._publish_diagnostics)
         self.stats = {'frames': 0, 'frames_without_fixation': 0, 'joint_states': 0, 'joint_states_dropped': 0}
         self._setup_vergence(g)
-        self.params.start(self._apply_params, LIVE_TRACKER + LIVE_SERVO + LIVE_NODE)
+        self.params.start(self._apply_params, LIVE_TRACKER + LIVE_SERVO + LIVE_NODE + LIVE_VERGENCE)
         self.get_logger().info(
             f'{self.side} camera: {"passive" if self.passive else f"VISCA on {port}"}, profile {self.profile.name}'
             + ('' if self.profile.verified else ' (UNVERIFIED numbers: run `fixego ptz calibrate`)'))
@@ -200,11 +213,11 @@ class CameraNode(Node):
             self._pending.append(msg.header.stamp)
             self._flush_joints()
         joints = self.history.at(t, max_extrapolation_s=0.1)
-        act = None
-        if self.vergence is not None and not self.vergence.finished:
+        act, step = None, self.vergence
+        if step is not None and not step.finished:
             self._vergence_stamps[t] = msg.header.stamp
-            act = self.vergence.on_left_image(t, gray, self._now())
-            self._vergence_report()
+            act = step.on_left_image(t, gray, self._now())
+            self._vergence_tick()
             if act.kind == 'hold':     # the step drives the head: no tracking, no fixation published
                 if self.loop is not None and act.aim is not None:
                     self.loop.set_target(self._aim_target(act.aim))
@@ -214,13 +227,14 @@ class CameraNode(Node):
         if act is not None and act.select is not None:
             st = self.tracker.select_at(gray, act.select, t, 'vergence')
         else:
-            if joints is not None and not (self.vergence is not None and self.vergence.phase == 'converging'):
+            if joints is not None and not (step is not None and step.phase == 'converging'):
                 offset = self.limits.check(*joints)
                 if offset is not None:
                     self.tracker.request_reselect('limit', offset)
             st = self.tracker.update(gray, t)
-        if act is not None and self.vergence is not None:
-            self.vergence.on_left_fixation(t, st.pixel, st.fixation_id, st.reselected)
+        if step is not None and step is self.vergence:
+            step.on_left_fixation(t, st.pixel, st.fixation_id, st.reselected)
+            self._vergence_tick()
         if st.reselected:
             self.servo.reset()
             self.get_logger().info(f'fixation {st.fixation_id} selected at ({st.pixel[0]:.1f}, '
@@ -287,6 +301,8 @@ class CameraNode(Node):
         self.joint_max_wait_s = float(g('joint_max_wait_s'))
         if 'diagnostics_period_s' in changes:
             set_timer_period(self.diag_timer, float(g('diagnostics_period_s')))
+        if changes.keys() & set(LIVE_VERGENCE) and self.scheduler is not None:
+            self.scheduler.p = self._vergence_schedule(g)
 
     # ---------------------------------------------------------------------------------------- services
     def _srv_reselect(self, request, response):
@@ -307,36 +323,60 @@ class CameraNode(Node):
         return response
 
     # ---------------------------------------------------------------------------------------- vergence
-    def _setup_vergence(self, g) -> None:
-        self.vergence: VergenceStep | None = None
+    def _vergence_params(self, g: Getter, prior_depth_m: float | None = None) -> VergenceParams:
+        return VergenceParams(min_depth_m=float(g('vergence_min_depth_m')),
+                              max_depth_m=float(g('vergence_max_depth_m')), prior_depth_m=prior_depth_m,
+                              ncc_min=float(g('vergence_ncc_min')),
+                              margin_min=float(g('vergence_margin_min')),
+                              pixel_sigma_px=float(g('vergence_pixel_sigma_px')),
+                              joint_sigma_deg=float(g('vergence_joint_sigma_deg')),
+                              settle_px=float(g('vergence_settle_px')), frames=int(g('vergence_frames')),
+                              max_rate_deg_s=float(g('vergence_max_rate_deg_s')),
+                              max_turn_deg=float(g('vergence_max_turn_deg')),
+                              timeout_s=float(g('vergence_timeout_s')), wait_timeout_s=float(g('vergence_wait_s')))
+
+    @staticmethod
+    def _vergence_schedule(g: Getter) -> VergenceSchedule:
+        return VergenceSchedule(period_s=float(g('vergence_period_s')), retry_s=float(g('vergence_retry_s')),
+                                min_interval_s=float(g('vergence_min_interval_s')))
+
+    def _setup_vergence(self, g: Getter) -> None:
+        """Left node in active mode only: the scheduler, the right camera's topics (kept: a step needs the right's
+        recent fixations, images and joints when it starts), the request topic and the publisher."""
+        self.vergence: VergenceStep | None = None          # the step running now
+        self.scheduler: VergenceScheduler | None = None
         self.vergence_state = 'off'
-        self._vergence_reported = ''
-        self._vergence_stamps: dict[float, object] = {}
-        self._vergence_subs: list = []
+        self.vergence_last: VergenceResult | None = None   # the last measurement
+        self.vergence_failure = ''                         # the last failure's reason
+        self.vergence_time = {'last_interrupted_s': 0.0, 'max_interrupted_s': 0.0, 'total_interrupted_s': 0.0,
+                              'last_away_s': 0.0, 'max_away_s': 0.0}
+        self._vergence_stamps: dict[float, object] = {}     # left image stamps of the running step
+        self._vergence_published = False
+        self.vergence_timeline = ''                        # the last step's phases and events (s from leaving)
         self.pub_vergence = None
-        if not bool(g('vergence_on_start')):
+        if not bool(g('vergence_enabled')):
+            self.vergence_state = 'off (vergence_enabled is false)'
             return
         if self.side != 'left':
-            self.vergence_state = 'off (vergence is performed by the left camera node)'
-            self.get_logger().warning('vergence_on_start is only used by the left camera node: ignored')
+            self.vergence_state = 'off (the left camera node runs the vergence steps)'
             return
         if self.loop is None:
-            self.vergence_state = 'failed: passive mode (no head to move)'
-            self.get_logger().warning('vergence step not possible in passive mode (no serial port): skipped')
+            self.vergence_state = 'off (passive mode: no head to move)'
+            self.get_logger().info('vergence steps off in passive mode (no serial port to move the head)')
             return
-        p = VergenceParams(min_depth_m=float(g('vergence_min_depth_m')), max_depth_m=float(g('vergence_max_depth_m')),
-                           ncc_min=float(g('vergence_ncc_min')), margin_min=float(g('vergence_margin_min')),
-                           pixel_sigma_px=float(g('vergence_pixel_sigma_px')),
-                           joint_sigma_deg=float(g('vergence_joint_sigma_deg')),
-                           settle_px=float(g('vergence_settle_px')), timeout_s=float(g('vergence_timeout_s')))
-        self.vergence = VergenceStep(self.rig, self.history, p)
+        self.right_history = JointHistory()
+        self.scheduler = VergenceScheduler(self._vergence_schedule(g), self._now())
+        self.vergence_state = 'idle'
         self.pub_vergence = self.create_publisher(PoseWithCovarianceStamped, '/fixego/vergence', LATCHED_QOS)
-        self._vergence_subs = [
-            self.create_subscription(Image, '/fixego/right/image_raw', self._on_right_image, SENSOR_QOS),
-            self.create_subscription(PointStamped, '/fixego/right/fixation', self._on_right_fixation, RELIABLE_QOS),
-            self.create_subscription(JointState, '/fixego/right/joint_states', self._on_right_joints, RELIABLE_QOS)]
-        self._vergence_timer = self.create_timer(0.05, self._vergence_report)
-        self.get_logger().info('start-up vergence step armed (left fixates the right camera\'s point once)')
+        self.create_subscription(Image, '/fixego/right/image_raw', self._on_right_image, SENSOR_QOS)
+        self.create_subscription(PointStamped, '/fixego/right/fixation', self._on_right_fixation, RELIABLE_QOS)
+        self.create_subscription(JointState, '/fixego/right/joint_states', self._on_right_joints, RELIABLE_QOS)
+        self.create_subscription(Empty, '/fixego/vergence_request', self._on_vergence_request, RELIABLE_QOS)
+        self._vergence_timer = self.create_timer(0.05, self._vergence_tick)
+        period = float(g('vergence_period_s'))
+        self.get_logger().info('vergence steps armed: at start-up, on each new right fixation point, on '
+                               '/fixego/vergence_request' + (f', every {period:g} s' if period > 0 else '')
+                               + f'; at least {float(g("vergence_min_interval_s")):g} s apart')
 
     def _on_right_image(self, msg: Image) -> None:
         if self.vergence is None or not self.vergence.wants_right_images:
@@ -349,7 +389,11 @@ class CameraNode(Node):
             self.vergence.add_right_image(stamp_to_sec(msg.header.stamp), gray)
 
     def _on_right_fixation(self, msg: PointStamped) -> None:
-        if self.vergence is not None and math.isfinite(msg.point.x) and math.isfinite(msg.point.y):
+        if not (math.isfinite(msg.point.x) and math.isfinite(msg.point.y) and math.isfinite(msg.point.z)):
+            return
+        if self.scheduler is not None:
+            self.scheduler.on_right_fixation(int(msg.point.z), self._now())
+        if self.vergence is not None:
             self.vergence.add_right_fixation(stamp_to_sec(msg.header.stamp), (msg.point.x, msg.point.y),
                                              int(msg.point.z))
 
@@ -358,57 +402,106 @@ class CameraNode(Node):
             pan, tilt = pan_tilt(msg, 'right')
         except ValueError:
             return
-        if self.vergence is not None and math.isfinite(pan) and math.isfinite(tilt):
-            self.vergence.add_right_joints(stamp_to_sec(msg.header.stamp), pan, tilt)
+        if math.isfinite(pan) and math.isfinite(tilt):
+            self.right_history.add(stamp_to_sec(msg.header.stamp), pan, tilt)
+
+    def _on_vergence_request(self, msg: Empty) -> None:
+        if self.scheduler is not None:
+            self.scheduler.trigger('request', self._now())
+
+    def _head_range(self) -> tuple[tuple[float, float], tuple[float, float]]:
+        """Readings (rad) the head can reach, a VISCA unit inside its limits."""
+        pr = self.profile
+        return ((pr.pan_rad(pr.pan_min + 1), pr.pan_rad(pr.pan_max - 1)),
+                (pr.tilt_rad(pr.tilt_min + 1), pr.tilt_rad(pr.tilt_max - 1)))
 
     def _aim_target(self, aim: tuple[float, float]) -> Target:
         pr = self.profile
         pan_u, tilt_u = pr.clamp(pr.pan_units(math.degrees(aim[0])), pr.tilt_units(math.degrees(aim[1])))
         return Target(pan_u, tilt_u, pr.pan_speed_max, pr.tilt_speed_max)
 
-    def _vergence_report(self) -> None:
-        """Poll the step (timeouts, triangulation) and report its outcome once; never blocks."""
-        v = self.vergence
-        if v is None:
+    def _vergence_tick(self) -> None:
+        """Start a step when the scheduler says so; poll the running one (timeouts, the measurement) and
+        publish its result once; close it when the head is back. Never blocks."""
+        s = self.scheduler
+        if s is None:
             return
-        v.poll(self._now())       # the result may also come from the poll inside on_left_image
-        self.vergence_state = v.status
-        if v.result is not None and self._vergence_reported != 'done':
-            self._vergence_reported = 'done'
-            self._publish_vergence(v.result)
-        elif v.status.startswith('failed') and not self._vergence_reported:
-            self._vergence_reported = 'failed'
-            self.get_logger().warning(f'vergence step {v.status}; independent fixation goes on')
-        if v.finished:
-            for sub in self._vergence_subs:
-                self.destroy_subscription(sub)
-            self._vergence_subs = []
-            self._vergence_timer.cancel()
-            self._vergence_stamps.clear()
-        elif len(self._vergence_stamps) > 400:
-            for k in sorted(self._vergence_stamps)[:200]:
-                del self._vergence_stamps[k]
+        now = self._now()
+        v = self.vergence
+        if v is not None:
+            v.poll(now)
+            if v.result is not None and not self._vergence_published:
+                self._vergence_published = True
+                self._publish_vergence(v.result)
+            if not v.finished:
+                self.vergence_state = v.status
+                if len(self._vergence_stamps) > 400:
+                    for k in sorted(self._vergence_stamps)[:200]:
+                        del self._vergence_stamps[k]
+                return
+            self._end_vergence(v, now)
+        reason = s.due(now)
+        if reason is None:
+            return
+        s.started(reason, now)
+        prior = self.vergence_last.distance_m if self.vergence_last is not None else None
+        self.vergence = VergenceStep(self.rig, self.history, self._vergence_params(self.params, prior),
+                                     self.right_history, self._head_range())
+        self._vergence_published = False
+        self.vergence_state = f'running: waiting ({reason})'
 
-    def _publish_vergence(self, res) -> None:
+    def _end_vergence(self, v: VergenceStep, now: float) -> None:
+        self.vergence = None
+        self._vergence_stamps.clear()
+        if v.needs_reselect:
+            self.tracker.request_reselect('vergence_end')
+        ok = v.succeeded
+        self.scheduler.finished(ok, now, left_own_point=v.t_left is not None)
+        t = self.vergence_time
+        t['last_interrupted_s'], t['last_away_s'] = v.interrupted_s, v.away_s
+        t['max_interrupted_s'] = max(t['max_interrupted_s'], v.interrupted_s)
+        t['max_away_s'] = max(t['max_away_s'], v.away_s)
+        t['total_interrupted_s'] += v.interrupted_s
+        t0 = v.timeline[0][1] if v.timeline else now
+        self.vergence_timeline = ', '.join(f'{what} {when - t0:.2f}' for what, when in v.timeline)
+        if ok:
+            self.vergence_state = 'idle (last step done)'
+            self.once.clear('vergence', 'vergence steps succeed again')
+            return
+        self.vergence_failure = v.reason
+        self.vergence_state = f'idle (last step failed: {v.reason})'
+        self.once.warn('vergence', f'vergence step failed: {v.reason}; independent fixation goes on, retried at the '
+                                   f'next trigger or in {self.scheduler.t_retry - now:.0f} s (further failures are '
+                                   f'counted on /diagnostics, not logged)')
+
+    def _publish_vergence(self, res: VergenceResult) -> None:
+        self.vergence_last = res
         stamp = self._vergence_stamps.get(res.stamp)
         self.pub_vergence.publish(vergence_to_msg(stamp if stamp is not None else sec_to_stamp(res.stamp),
                                                   res.point_rig, res.cov_rig))
         self.get_logger().info(
-            f'vergence: right fixation point at {res.distance_m:.3f} m (std {res.std_m:.3f} m, vergence '
-            f'{math.degrees(res.angle_rad):.2f} deg, NCC {res.match.ncc:.2f}) after {res.duration_s:.1f} s')
+            f'vergence: right fixation point at {res.distance_m:.3f} m (std {res.std_m:.3f} m from {res.frames} '
+            f'frames, vergence {math.degrees(res.angle_rad):.2f} deg, NCC {res.match.ncc:.2f}) after '
+            f'{res.duration_s:.1f} s')
 
     def _vergence_status(self):
-        v = self.vergence
+        s, r = self.scheduler, self.vergence_last
         values: dict[str, object] = {'state': self.vergence_state}
         level, message = OK, self.vergence_state
-        if v is not None and v.result is not None:
-            r = v.result
-            message = f'done: {r.distance_m:.3f} m, std {r.std_m:.3f} m'
-            values.update({'distance_m': f'{r.distance_m:.4f}', 'std_m': f'{r.std_m:.4f}',
-                           'vergence_deg': f'{math.degrees(r.angle_rad):.3f}', 'ncc': f'{r.match.ncc:.3f}',
-                           'margin': f'{r.match.margin:.3f}', 'duration_s': f'{r.duration_s:.2f}'})
-        elif self.vergence_state.startswith('failed'):
-            level = WARN
+        if s is not None:
+            values.update({'attempts': s.attempts, 'successes': s.successes, 'failures': s.failures,
+                           'ignored_triggers': s.ignored, 'last_trigger': s.last_trigger,
+                           'last_failure': self.vergence_failure, 'last_timeline': self.vergence_timeline,
+                           **{f'triggers_{k}': n for k, n in s.triggers.items()},
+                           **{k: f'{x:.3f}' for k, x in self.vergence_time.items()}})
+            message = f'{s.successes}/{s.attempts} steps done; {self.vergence_state}'
+            if s.failures_in_a_row:
+                level = WARN
+        if r is not None:
+            values.update({'last_stamp': f'{r.stamp:.3f}', 'last_distance_m': f'{r.distance_m:.4f}',
+                           'last_std_m': f'{r.std_m:.4f}', 'last_frames': r.frames,
+                           'last_vergence_deg': f'{math.degrees(r.angle_rad):.3f}', 'last_ncc': f'{r.match.ncc:.3f}',
+                           'last_duration_s': f'{r.duration_s:.2f}'})
         return diagnostic_status(f'fixego camera_node {self.side}: vergence', 'vergence', level, message, values)
 
     # ---------------------------------------------------------------------------------------- diagnostics

@@ -210,7 +210,7 @@ FIXATION_PARAMS: Table = _table(
 
 # flow_node: synchronisation, flow tracking and keyframes (thresholds read per frame change at run time)
 FLOW_PARAMS: Table = _table(
-    _str('preset', 'window', "flow points: 'paper' (3 in the central 30x30 px), 'window' (all good corners in "
+    _str('preset', 'full', "flow points: 'paper' (3 in the central 30x30 px), 'window' (all good corners in "
                              "the window), 'full' (whole image)", choices=PRESETS),
     _num('window_px', 100, 'side of the flow window centred on the fixation point (px)', ge=4, le=10000),
     _num('paper_region_px', 30, 'paper preset: side of the central region the points are drawn from (px)', ge=1,
@@ -335,20 +335,40 @@ CAMERA_NODE_PARAMS: Table = _table(
     _num('joint_max_wait_s', 0.25, 'how long an image stamp may wait for the PosInq reading after it', ge=0.0,
          le=60.0, live=True),
     _diagnostics_period(),
-    _bool('vergence_on_start', False, "left node only, active mode: at start-up fixate the right camera's point too "
-                                      'and publish its triangulated distance on /fixego/vergence (scale aid)'),
-    _num('vergence_timeout_s', 20.0, 'bound on the whole vergence step; then independent fixation goes on', gt=0.0,
-         le=3600.0),
-    _num('vergence_settle_px', 3.0, 'both fixations this close to their principal points (3 frames) to '
-                                    'triangulate', gt=0.0),
+    _bool('vergence_enabled', True, "left node only, active mode: vergence steps - the left head fixates the right "
+                                    "camera's point too and publishes its triangulated distance on /fixego/vergence "
+                                    '(scale aid) at start-up, on each new right fixation point, on '
+                                    '/fixego/vergence_request and every vergence_period_s; the right node ignores it'),
+    _num('vergence_period_s', 0.0, 'also a vergence step this often (s, from the start of the last); 0 = off', ge=0.0,
+         le=86400.0, live=True),
+    _num('vergence_min_interval_s', 5.0, 'at least this long (s) from the end of a vergence step that left the own '
+                                         'fixation to the start of the next, whatever triggers it (bounds how often '
+                                         'the own fixation is left)',
+         ge=0.0, le=86400.0, live=True),
+    _num('vergence_retry_s', 5.0, 'a failed vergence step is retried at the next trigger or after this back-off (s), '
+                                  'doubled per failure in a row up to 60 s', gt=0.0, le=3600.0, live=True),
+    _num('vergence_frames', 20, 'frames averaged into one vergence measurement once both fixations have settled',
+         ge=1, le=300),
+    _num('vergence_wait_s', 10.0, 'bound on waiting for both fixations to settle (the left keeps its own point)',
+         gt=0.0, le=3600.0),
+    _num('vergence_max_turn_deg', 60.0, 'no vergence step when the left head would have to turn further than this '
+                                        '(deg) to the right fixation point: each way takes ~this / 80 deg/s on an '
+                                        'EVI-D30, without a fixation', gt=0.0, le=360.0),
+    _num('vergence_timeout_s', 5.0, 'bound from leaving the own fixation to the measurement; then the head returns',
+         gt=0.0, le=3600.0),
+    _num('vergence_settle_px', 10.0, 'vergence: both fixations this close to their principal points (3 frames in a '
+                                     'row, then every averaged frame)', gt=0.0),
+    _num('vergence_max_rate_deg_s', 5.0, 'vergence: and both heads turning at most this fast (a moving head\'s '
+                                         'reading is quantised and its time uncertain)', gt=0.0, le=1000.0),
     _num('vergence_min_depth_m', 0.8, 'nearest depth searched along the right fixation ray', gt=0.0),
     _num('vergence_max_depth_m', 10.0, 'farthest depth searched along the right fixation ray', gt=0.0),
     _num('vergence_ncc_min', 0.8, 'partner point: best NCC below this is no match', ge=-1.0, le=1.0),
     _num('vergence_margin_min', 0.1, 'partner point: best minus second-best NCC peak below this is ambiguous',
          ge=0.0, le=2.0),
-    _num('vergence_pixel_sigma_px', 0.5, 'fixation pixel noise used for the covariance', gt=0.0),
-    _num('vergence_joint_sigma_deg', 0.033, 'joint reading noise used for the covariance (EVI-D30 unit / sqrt 12)',
-         gt=0.0),
+    _num('vergence_pixel_sigma_px', 0.3, 'vergence: pixel noise of the two fixations used for the covariance (one '
+                                         'correspondence per step: not reduced by averaging)', gt=0.0),
+    _num('vergence_joint_sigma_deg', 0.033, 'vergence: reading noise of a moving head used for the covariance (EVI-D30 '
+                                            'unit / sqrt 12; a head at rest reads exactly)', gt=0.0),
 )
 
 FLOW_NODE_PARAMS: Table = _table(
@@ -376,8 +396,18 @@ ESTIMATOR_NODE_PARAMS: Table = _table(
          live=True),
     _num('backward_reset_s', 2.0, '... as does an unbroken run of such observations lasting this long (s)', gt=0.0,
          le=3600.0, live=True),
-    _str('vergence_topic', '', "start-up vergence distances (geometry_msgs/PoseWithCovarianceStamped from "
-                               "camera_node's vergence step, usually /fixego/vergence); '' = off"),
+    _str('vergence_topic', '/fixego/vergence', "vergence measurements (geometry_msgs/PoseWithCovarianceStamped from "
+                                               "the left camera_node's repeated vergence step); '' = off"),
+    _str('vergence_request_topic', '/fixego/vergence_request', 'std_msgs/Empty published when the scale '
+                                                               'uncertainty has grown past vergence_request_rel_std '
+                                                               "(the left camera_node then verges); '' = never"),
+    _num('vergence_request_rel_std', 0.05, 'relative scale std (grown by scale_drift_per_s since the last '
+                                           'measurement) above which a vergence step is requested', gt=0.0,
+         live=True),
+    _num('vergence_request_min_interval_s', 5.0, 'at most one vergence request per this many seconds', gt=0.0,
+         live=True),
+    _num('scale_drift_per_s', 0.005, 'relative scale std added per second since the last scale measurement (the '
+                                     'speed changes; the fixations change)', ge=0.0, live=True),
     _str('odom_frame', 'odom', 'frame of the published trajectory'),
     _str('base_frame', 'base_link', 'frame of the rig body (x forward, y left, z up)'),
     _num('path_max_length', 20000, 'poses kept in /fixego/path and /fixego/path_raw (oldest dropped)', ge=1,

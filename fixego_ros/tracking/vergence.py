@@ -1,5 +1,5 @@
-"""Start-up vergence step (ROS-free): both cameras briefly fixate the same scene point, and its distance
-follows from the known baseline. A metric scale aid, off by default.
+"""Vergence steps (ROS-free): both cameras briefly fixate the same scene point, and its distance follows from
+the known baseline. The rig's own metric scale aid, repeated while it runs.
 
 Pieces:
 
@@ -11,8 +11,12 @@ Pieces:
 * :func:`triangulate_fixation` - the point on the right fixation ray closest to the left ray, its distance
   from the right camera centre (the rig origin), the first-order covariance from the rays' angular noise,
   and the vergence angle; nearly parallel rays are rejected.
-* :class:`VergenceStep` - the left camera's state machine (wait for the right camera, aim, search, converge,
-  triangulate, return), fed plain data by ``camera_node``; every phase is bounded in time.
+* :func:`average_samples` - one measurement from several frames while both heads hold the point: one frame's
+  quantised joint readings give ~1 % at 3 m; the rig moves, so the readings change and averaging helps.
+* :class:`VergenceStep` - the left camera's state machine for one step (wait for the right camera, aim, search,
+  converge, average, return), fed plain data by ``camera_node``; every phase is bounded in time.
+* :class:`VergenceScheduler` - when to run a step (start-up, a new right fixation point, a request, a period,
+  a retry after a failure; a minimum interval between steps).
 
 Frames and kinematics as DESIGN.md §2 through :class:`~fixego_ros.geometry.rig.Rig`.
 """
@@ -35,20 +39,31 @@ from fixego_ros.tracking.servo import JointHistory, centring_angles
 class VergenceParams:
     min_depth_m: float = 0.8         # epipolar search range along the right fixation ray
     max_depth_m: float = 10.0
+    prior_depth_m: float | None = None  # first aim where the right ray is this far (e.g. the last measurement)
     patch_half: int = 15             # NCC patch is (2h+1)^2 px
     ncc_min: float = 0.8             # best NCC below this: no match
     margin_min: float = 0.1          # best minus second-best NCC peak below this: ambiguous
     min_template_std: float = 4.0    # grey levels; a flatter right patch is textureless
     max_epipolar_px: float = 3.0     # refined match this far off the curve: rejected (calibration/mismatch)
     min_angle_deg: float = 0.5       # vergence angle below this: rays too parallel to triangulate
-    pixel_sigma_px: float = 0.5      # fixation pixel noise (each camera)
+    pixel_sigma_px: float = 0.3      # fixation pixel noise (each camera; one correspondence per step)
     joint_sigma_deg: float = 0.033   # joint reading noise (EVI-D30: 1 unit = 0.114 deg, /sqrt(12))
-    settle_px: float = 3.0           # both fixations this close to their principal points ...
-    settle_frames: int = 3           # ... for this many consecutive frames
-    timeout_s: float = 20.0          # the whole step (waiting, aiming, search, convergence)
+    timing_sigma_s: float = 0.02     # time uncertainty of a reading at an image stamp (x head speed: its error)
+    select_px: float = 60.0          # a match this close to the centre is fixated directly (no centring move)
+    max_turn_deg: float = 60.0       # no step when the left head would have to turn further (interruption bound)
+    settle_px: float = 10.0          # both fixations this close to their principal points ...
+    max_rate_deg_s: float = 5.0      # ... and both heads turning at most this fast (readings of fast heads are off)
+    motion_window_s: float = 0.05    # head speed at a stamp: from its readings this long before and after
+    settle_frames: int = 3           # ... for this many consecutive frames, then
+    frames: int = 20                 # this many settled frames are averaged into one measurement
+    hold_timeout_s: float = 1.0      # bound on settling, and on gathering (then what is there, >= settle_frames)
+    max_scatter: float = 5.0         # frames scattering more than this many stds about their fit: rejected
+    wait_timeout_s: float = 10.0     # waiting for a settled right fixation (the left keeps its own point)
+    timeout_s: float = 5.0           # from leaving the own point to the measurement (then the head returns)
     aim_tolerance_deg: float = 0.3   # the head counts as arrived within this of an aim
-    aim_settle_s: float = 0.1        # and an image this long after arriving is searched
-    aim_timeout_s: float = 4.0       # one aim (or the return) may take this long
+    aim_settle_s: float = 0.04       # and an image this long after arriving is searched
+    aim_timeout_s: float = 3.0       # one head move (aim, centring, return) may take this long (EVI-D30: 200 deg
+                                     # at 80 deg/s is 2.5 s)
     stamp_slop_s: float = 0.02       # right fixation matched to a left image stamp within this
 
 
@@ -63,6 +78,7 @@ class Triangulation:
     gap_m: float = 0.0        # closest distance between the rays
     ok: bool = True
     reason: str = ''
+    jacobian: np.ndarray | None = None   # 3x4: point_rig over two small rotations of the right ray, then the left
 
 
 def _ray_point(r: np.ndarray, l: np.ndarray, c: np.ndarray) -> tuple[float, float, float]:
@@ -82,12 +98,15 @@ def _perp_basis(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return e1, np.cross(v, e1)
 
 
-def triangulate_fixation(ray_r: np.ndarray, ray_l: np.ndarray, c_l: np.ndarray, pixel_sigma_rad: float,
+def triangulate_fixation(ray_r: np.ndarray, ray_l: np.ndarray, c_l: np.ndarray,
+                         pixel_sigma_rad: float | tuple[float, float],
                          min_angle_rad: float = math.radians(0.5)) -> Triangulation:
     """Triangulate the right fixation point from the right ray (centre 0) and the left ray (centre ``c_l``),
-    all in the rig frame. ``pixel_sigma_rad``: angular std of each ray (per axis, both rays). The point is
-    taken on the right ray (it is the right camera's fixation point); the covariance is first order in the
-    four ray angles. Nearly parallel rays, or a point behind a camera, give ``ok=False`` with a reason."""
+    all in the rig frame. ``pixel_sigma_rad``: angular std of each ray per axis (one for both, or right, left).
+    The point is taken on the right ray (it is the right camera's fixation point); the covariance is first
+    order in the four ray angles. Nearly parallel rays, or a point behind a camera, give ``ok=False`` with a
+    reason."""
+    sig_r, sig_l = (pixel_sigma_rad, pixel_sigma_rad) if np.isscalar(pixel_sigma_rad) else pixel_sigma_rad
     r = np.asarray(ray_r, float).reshape(3)
     r = r / np.linalg.norm(r)
     l = np.asarray(ray_l, float).reshape(3)
@@ -115,9 +134,9 @@ def triangulate_fixation(ray_r: np.ndarray, ray_l: np.ndarray, c_l: np.ndarray, 
             ss, _, _ = _ray_point(rr, ll, c)
             out.append(ss * rr)
         J[:, k] = (out[0] - out[1]) / (2 * eps)
-    cov = pixel_sigma_rad ** 2 * (J @ J.T)
+    cov = sig_r ** 2 * (J[:, :2] @ J[:, :2].T) + sig_l ** 2 * (J[:, 2:] @ J[:, 2:].T)
     std = float(math.sqrt(max(float(r @ cov @ r), 0.0)))
-    return Triangulation(point, float(s), std, angle, cov, gap)
+    return Triangulation(point, float(s), std, angle, cov, gap, jacobian=J)
 
 
 # ------------------------------------------------------------------------------------------------ search
@@ -295,6 +314,110 @@ def _ecc_refine(template: np.ndarray, gray: np.ndarray, est: np.ndarray, h: int,
     return out if np.all(np.isfinite(out)) else None
 
 
+# ------------------------------------------------------------------------------------------------ averaging
+@dataclass(frozen=True)
+class VergenceSample:
+    """One frame with both fixations settled on the point: the two rig-frame rays at one image stamp, and how
+    fast each head turned around it (a moving head's reading is quantised and its time uncertain)."""
+
+    t: float
+    ray_r: np.ndarray                            # right fixation ray (rig frame at t)
+    ray_l: np.ndarray                            # left fixation ray (rig frame at t)
+    readings: tuple[float, float, float, float]  # left pan, tilt, right pan, tilt (rad) at t
+    right_pixel: tuple[float, float]
+    left_pixel: tuple[float, float]
+    rates: tuple[float, float] = (0.0, 0.0)      # angular speed of the right, left head around t (rad/s)
+    moving: tuple[bool, bool] = (True, True)     # False: the head's readings did not change around t (exact)
+
+
+@dataclass(frozen=True)
+class AveragedFixation:
+    """The right fixation point from several frames (see :func:`average_samples`)."""
+
+    ok: bool
+    reason: str
+    t: float = math.nan                  # stamp of the reference frame (nearest the frames' weighted mean time)
+    point_rig: np.ndarray | None = None  # on the right ray of that frame, at the fitted distance
+    distance_m: float = math.nan
+    std_m: float = math.nan              # std of distance_m (see average_samples)
+    cov_rig: np.ndarray | None = None
+    angle_rad: float = math.nan          # vergence angle of the reference frame
+    frames: int = 0
+    distinct_readings: int = 0           # frames whose joint readings differ from every other frame's
+    scatter_m: float = math.nan          # RMS of the distances about the fitted line
+    rate_mps: float = 0.0                # fitted rate of change of the distance (the rig moves)
+    right_pixel: tuple[float, float] | None = None
+    left_pixel: tuple[float, float] | None = None
+
+
+def _joint_sigma(joint_sigma_rad: float, timing_sigma_s: float, rate: float, moving: bool) -> float:
+    """Angular std of one head's reading at an image stamp: its quantisation while it moves (a head at rest reads
+    exactly where it stands), and the reading's time uncertainty times its speed."""
+    return math.hypot(joint_sigma_rad if moving else 0.0, rate * timing_sigma_s)
+
+
+def average_samples(samples: list[VergenceSample], c_l: np.ndarray, pixel_sigma_rad: float, joint_sigma_rad: float,
+                    min_angle_rad: float = math.radians(0.5), max_scatter: float = 5.0,
+                    timing_sigma_s: float = 0.02) -> AveragedFixation:
+    """Combine frames into one measurement of the right fixation point. The rig may move meanwhile, so the
+    distance is fitted as a line in time (each frame weighted by its first-order variance) and read at the
+    frame nearest the weighted mean time; the point is that distance along that frame's right ray.
+
+    Variance of the fitted distance, honestly: the pixel part is one correspondence, found once and then tracked,
+    so averaging does not reduce it; the joint-reading part (quantisation, and reading time x head speed) is
+    independent only between frames whose readings differ (a head at rest repeats its reading); and that part
+    is never taken below what the frames' own scatter about the line says. Frames scattering more than
+    ``max_scatter`` times their first-order std (a partner point lost or slipped) are rejected."""
+    if not samples:
+        return AveragedFixation(False, 'no frame with both fixations settled')
+    tris = [triangulate_fixation(s.ray_r, s.ray_l, c_l, 1.0, min_angle_rad) for s in samples]
+    bad = next((tri for tri in tris if not tri.ok), None)
+    if bad is not None:
+        return AveragedFixation(False, bad.reason, frames=len(samples))
+    n = len(samples)
+    t = np.array([s.t for s in samples])
+    d = np.array([tri.distance_m for tri in tris])
+    sig_j = np.array([[_joint_sigma(joint_sigma_rad, timing_sigma_s, s.rates[k], s.moving[k]) for k in (0, 1)]
+                      for s in samples])
+    a = np.zeros((n, 2))            # variance of the distance per unit angular variance of the right, left ray
+    for i, tri in enumerate(tris):
+        u = tri.point_rig / np.linalg.norm(tri.point_rig)
+        g = u @ tri.jacobian
+        a[i] = g[:2] @ g[:2], g[2:] @ g[2:]
+    v_pix = pixel_sigma_rad ** 2 * a.sum(axis=1)
+    v_joint = (sig_j ** 2 * a).sum(axis=1)
+    w = 1.0 / np.maximum(v_pix + v_joint, 1e-18)
+    ref = int(np.argmin(np.abs(t - float(w @ t) / float(w.sum()))))
+    k = 2 if n >= 3 and float(np.ptp(t)) > 1e-6 else 1
+    X = np.column_stack([np.ones(n), t - t[ref]])[:, :k]
+    Ainv = np.linalg.inv(X.T @ (w[:, None] * X))
+    c = (Ainv @ (X.T * w))[0]                       # the fitted distance is sum(c * d)
+    coef = Ainv @ (X.T @ (w * d))
+    resid = d - X @ coef
+    distinct = len({tuple(round(x, 9) for x in s.readings) for s in samples})
+    var_pix = float(np.abs(c) @ np.sqrt(v_pix)) ** 2
+    var_joint = float((c * c) @ v_joint) * n / distinct
+    var_scatter = 0.0
+    if n > k:
+        chi2_dof = float(w @ (resid * resid)) / (n - k)
+        if math.sqrt(chi2_dof) > max_scatter:
+            return AveragedFixation(False, f'the frames disagree (distances scatter {math.sqrt(chi2_dof):.1f} times '
+                                           f'their std)', frames=n)
+        var_scatter = chi2_dof * float((c * c) @ (v_pix + v_joint))
+    var = var_pix + max(var_joint, var_scatter)
+    s_ref = samples[ref]
+    tri = triangulate_fixation(s_ref.ray_r, s_ref.ray_l, c_l,
+                               (math.hypot(pixel_sigma_rad, sig_j[ref, 0]), math.hypot(pixel_sigma_rad, sig_j[ref, 1])),
+                               min_angle_rad)
+    u = tri.point_rig / np.linalg.norm(tri.point_rig)
+    P = np.eye(3) - np.outer(u, u)
+    cov = P @ tri.cov_rig @ P + var * np.outer(u, u)
+    dist = float(coef[0])
+    return AveragedFixation(True, '', float(t[ref]), dist * u, dist, math.sqrt(var), cov, tri.angle_rad, n, distinct,
+                            float(np.sqrt(np.mean(resid * resid))), float(coef[1]) if k == 2 else 0.0,
+                            s_ref.right_pixel, s_ref.left_pixel)
+
+
 # ------------------------------------------------------------------------------------------------ step
 @dataclass(frozen=True)
 class Action:
@@ -308,7 +431,7 @@ class Action:
 
 @dataclass
 class VergenceResult:
-    stamp: float
+    stamp: float                  # the reference left image's stamp
     point_rig: np.ndarray
     distance_m: float
     std_m: float
@@ -317,7 +440,11 @@ class VergenceResult:
     right_pixel: tuple[float, float]
     left_pixel: tuple[float, float]
     match: PartnerMatch
-    duration_s: float
+    duration_s: float             # from the step's start (including the wait for the right camera)
+    frames: int = 1
+    distinct_readings: int = 1
+    scatter_m: float = 0.0
+    rate_mps: float = 0.0
 
 
 @dataclass
@@ -328,22 +455,35 @@ class _Frame:
 
 
 class VergenceStep:
-    """The left camera's start-up vergence, one attempt. Phases: ``waiting`` (for a settled right fixation
-    with its image and joints), ``aiming`` (head driven to an aim from :func:`vergence_aims`, then the partner
-    point is searched on an image taken after it arrived), ``centring`` (head driven straight at the match,
-which is then found again near the centre), ``converging`` (the tracker holds the partner
-    point, the usual servo centres it; triangulation once both fixations are settled), ``returning`` (head
-    back to where it looked before), then ``done`` or ``failed``. The caller feeds the right camera's
-    messages and each left frame, and calls :meth:`poll` (also from a timer, so timeouts fire without
-    images). :attr:`result` is set once on success; :attr:`reason` on failure."""
+    """One vergence step of the left camera. Phases: ``waiting`` (until both fixations have settled - near their
+    principal points, both heads turning slowly - and the right one has its image and joints; the left keeps its
+    own point meanwhile), ``aiming`` (head driven to an aim - first where the
+    right ray is at ``prior_depth_m``, then those of :func:`vergence_aims` - and the partner point searched on an
+    image taken after it arrived), ``centring`` (only for a match far from the centre: head driven straight at
+    it, which is then found again), ``converging`` (the tracker holds the partner point, the usual servo centres
+    it; once both fixations have settled, ``frames`` frames are averaged by :func:`average_samples` - or fewer, at
+    least ``settle_frames``, if the right re-selects or the left loses the point first), ``returning`` (head back
+    to where it looked before), then ``ended`` with :attr:`result` or :attr:`reason`. A point beyond the left
+    head's range or further than ``max_turn_deg`` from where it looks fails before the head moves.
 
-    def __init__(self, rig: Rig, left_history: JointHistory, params: VergenceParams | None = None) -> None:
+    The caller feeds the right camera's messages and each left frame, and calls :meth:`poll` (also from a timer,
+    so timeouts fire without images). Bounds: ``wait_timeout_s`` on waiting, ``timeout_s`` from leaving the own
+    point to the measurement, ``aim_timeout_s`` on each head move (the return included), ``hold_timeout_s`` on
+    gathering frames. :attr:`interrupted_s` is the time the left published no fixation (head driven by the
+    step), :attr:`away_s` the time from leaving its own point to selecting a new one."""
+
+    def __init__(self, rig: Rig, left_history: JointHistory, params: VergenceParams | None = None,
+                 right_history: JointHistory | None = None,
+                 left_range: tuple[tuple[float, float], tuple[float, float]] | None = None) -> None:
         self.rig, self.p = rig, params or VergenceParams()
+        self.left_range = left_range   # ((pan min, max), (tilt min, max)) readings the left head can reach
         self.left_history = left_history
-        self.right_history = JointHistory()
+        self.right_history = right_history if right_history is not None else JointHistory()
         self.right_images: deque[tuple[float, np.ndarray]] = deque(maxlen=8)
         self.right_fix: deque[tuple[float, tuple[float, float], int]] = deque(maxlen=120)
         self.left_frames: deque[_Frame] = deque(maxlen=120)
+        self._own: deque[tuple[tuple[float, float] | None, int]] = deque(maxlen=8)   # left's own point (waiting)
+        self._sample_cache: dict[float, VergenceSample | str] = {}
         self.phase = 'waiting'
         self.t_start: float | None = None
         self.t_phase = 0.0
@@ -359,7 +499,14 @@ which is then found again near the centre), ``converging`` (the tracker holds th
         self._right_id: int | None = None
         self._ended = ''            # 'done' | 'failed' once the measurement part is over
         self._note = ''             # what the converging phase is waiting for (for the timeout message)
+        self._t_settled: float | None = None
+        self.t_left: float | None = None      # left its own point (first head move)
+        self.t_fixating: float | None = None  # fixates the partner point (fixation published again)
+        self.t_return: float | None = None    # head driven back
+        self.t_back: float | None = None      # own point selected again
         self.finished = False       # head back, independent fixation resumed
+        self.needs_reselect = False  # finished by poll: the caller must select the left's own point again
+        self.timeline: list[tuple[str, float]] = []   # (phase or event, node time): where a step spends its time
 
     # -------------------------------------------------------------------- inputs
     @property
@@ -378,12 +525,35 @@ which is then found again near the centre), ``converging`` (the tracker holds th
 
     @property
     def status(self) -> str:
-        """'running: <phase>' | 'done' | 'failed: <reason>' (for diagnostics)."""
-        if self._ended == 'done':
-            return 'done'
-        if self._ended == 'failed':
-            return f'failed: {self.reason}'
-        return f'running: {self.phase}'
+        """'running: <phase>' | 'running: returning (measured | failed: <reason>)' | 'done' | 'failed: <reason>'
+        (for diagnostics)."""
+        outcome = 'done' if self._ended == 'done' else f'failed: {self.reason}' if self._ended else ''
+        if not outcome:
+            return f'running: {self.phase}'
+        if not self.finished:
+            return f'running: {self.phase} ({"measured" if self._ended == "done" else outcome})'
+        return outcome
+
+    @property
+    def succeeded(self) -> bool:
+        return self._ended == 'done'
+
+    @property
+    def interrupted_s(self) -> float:
+        """Time the left camera published no fixation because the step drove its head (so far)."""
+        if self.t_left is None:
+            return 0.0
+        end = self.t_back if self.t_back is not None else self.t_phase
+        if self.t_fixating is None:
+            return end - self.t_left
+        return (self.t_fixating - self.t_left) + (end - self.t_return if self.t_return is not None else 0.0)
+
+    @property
+    def away_s(self) -> float:
+        """Time from leaving the left's own point to selecting a new one (0 when it never left)."""
+        if self.t_left is None:
+            return 0.0
+        return (self.t_back if self.t_back is not None else self.t_phase) - self.t_left
 
     # -------------------------------------------------------------------- helpers
     def _centred(self, side: str, pixel) -> bool:
@@ -397,8 +567,14 @@ which is then found again near the centre), ``converging`` (the tracker holds th
                 best = f
         return best
 
-    def _right_triple(self):
-        """Newest right (stamp, image, fixation pixel, fixation id, joints) with a centred fixation."""
+    def _right_triple(self, settled: bool = False):
+        """Newest right (stamp, image, fixation pixel, fixation id, joints) with a centred fixation; ``settled``:
+        and the newest ``settle_frames`` right fixations all centred, of that id."""
+        if settled:
+            last = list(self.right_fix)[-self.p.settle_frames:]
+            if len(last) < self.p.settle_frames or len({f[2] for f in last}) != 1 \
+                    or not all(self._centred('right', f[1]) for f in last):
+                return None
         fixes = {round(f[0], 6): f for f in self.right_fix}
         for t, img in reversed(self.right_images):
             f = fixes.get(round(t, 6))
@@ -409,16 +585,43 @@ which is then found again near the centre), ``converging`` (the tracker holds th
                 return t, img, f[1], f[2], q
         return None
 
+    @staticmethod
+    def _fmt(q) -> str:
+        return f'pan {math.degrees(q[0]):.1f} deg, tilt {math.degrees(q[1]):.1f} deg'
+
+    def _to(self, phase: str, now: float) -> None:
+        self.phase, self.t_phase = phase, now
+        self.timeline.append((phase, now))
+
+    def _own_settled(self) -> bool:
+        """The left's own fixation centred for the last ``settle_frames`` frames and both heads calm (the rig is
+        not turning faster than the servos follow, so the partner point is likely to settle)."""
+        last = list(self._own)[-self.p.settle_frames:]
+        return (len(last) == self.p.settle_frames and len({i for _, i in last}) == 1
+                and all(px is not None and self._centred('left', px) for px, _ in last)
+                and self._calm(self.left_history) and self._calm(self.right_history))
+
+    def _calm(self, history: JointHistory) -> bool:
+        """The head turned at most ``max_rate_deg_s`` over its latest readings."""
+        latest = history.latest()
+        if latest is None:
+            return False
+        m = self._motion(history, latest[0] - self.p.motion_window_s)
+        return m is not None and m[0] <= math.radians(self.p.max_rate_deg_s)
+
     def _fail(self, now: float, reason: str) -> None:
         self.reason, self._ended = reason, 'failed'
         self._start_return(now)
 
     def _start_return(self, now: float) -> None:
         self.right_images.clear()
+        self.t_phase = now
         if self.home is None:
-            self.phase, self.finished = 'ended', True
+            self._to('ended', now)
+            self.finished = True
             return
-        self.phase, self.t_phase, self._aim, self._arrived = 'returning', now, self.home, None
+        self._to('returning', now)
+        self._aim, self._arrived, self.t_return = self.home, None, now
 
     def _reached(self, now: float, aim: tuple[float, float]) -> bool:
         latest = self.left_history.latest()
@@ -428,6 +631,7 @@ which is then found again near the centre), ``converging`` (the tracker holds th
             return False
         if self._arrived is None:
             self._arrived = latest[0]
+            self.timeline.append(('arrived', now))
         return True
 
     def _next_aim(self, now: float) -> None:
@@ -438,6 +642,32 @@ which is then found again near the centre), ``converging`` (the tracker holds th
         self._aim = self._aims.pop(0)
         self._arrived = None
         self.t_phase = now
+        self.timeline.append(('aim', now))
+
+    def _reachable(self, aim: tuple[float, float]) -> bool:
+        if self.left_range is None:
+            return True
+        (p0, p1), (t0, t1) = self.left_range
+        return p0 <= aim[0] <= p1 and t0 <= aim[1] <= t1
+
+    def _plan_aims(self, ray_r: np.ndarray, home: tuple[float, float]) -> tuple[list[tuple[float, float]], str]:
+        """The aims in the left head's range and within ``max_turn_deg`` of ``home``: first where the right ray
+        is at the prior depth (the match then lands near the centre: no centring move), then those covering the
+        whole search range; or none and why."""
+        aims = vergence_aims(self.rig, ray_r, self.p.min_depth_m, self.p.max_depth_m,
+                             margin_px=self.p.patch_half + 4)
+        prior = self.p.prior_depth_m
+        if prior is not None and self.p.min_depth_m < prior < self.p.max_depth_m:
+            aims.insert(0, self.rig.aim_readings('left', ray_r * prior))
+        aims = [a for a in aims if self._reachable(a)]
+        if not aims:
+            return [], "the right fixation point is beyond the left head's range"
+        turn = [max(abs(a[0] - home[0]), abs(a[1] - home[1])) for a in aims]
+        near = [a for a, d in zip(aims, turn, strict=True) if d <= math.radians(self.p.max_turn_deg)]
+        if not near:
+            return [], (f'the right fixation point is {math.degrees(min(turn)):.0f} deg away from where the left '
+                        f'head looks (more than {self.p.max_turn_deg:g} deg: too long a trip)')
+        return near, ''
 
     # -------------------------------------------------------------------- the left camera's frames
     def _action(self) -> Action:
@@ -448,125 +678,318 @@ which is then found again near the centre), ``converging`` (the tracker holds th
     def on_left_image(self, t: float, gray: np.ndarray, now: float) -> Action:
         """Call for each left image (before tracking). ``now``: the node's clock (same time base as stamps)."""
         if self.t_start is None:
-            self.t_start = now
+            self.t_start = self.t_phase = now
         self.poll(now)
         if self.phase == 'waiting':
-            trip = self._right_triple()
+            trip = self._right_triple(settled=True)
             home = self.left_history.latest()
-            if trip is None or home is None:
+            if trip is None or home is None or not self._own_settled():
                 return Action('track')
             _, _, rpx, rid, rq = trip
-            self.home = (home[1], home[2])
             self._right_id = rid
-            self._aims = vergence_aims(self.rig, _right_ray(self.rig, rpx, rq), self.p.min_depth_m,
-                                       self.p.max_depth_m, margin_px=self.p.patch_half + 4)
-            self.phase = 'aiming'
+            self._aims, why = self._plan_aims(_right_ray(self.rig, rpx, rq), (home[1], home[2]))
+            if not self._aims:      # decided before the head leaves its own point
+                self._fail(now, why)
+                return Action('track')
+            self.home = (home[1], home[2])
+            self._to('aiming', now)
+            self.t_left = now
             self._next_aim(now)
             return self._action()
         if self.phase in ('aiming', 'centring'):
-            # search on an image taken after the head arrived; a match found from an aim is first centred
-            # by a direct head move (too fast for the tracker), then found again near the centre
-            assert self._aim is not None
-            if not self._reached(now, self._aim) or t < self._arrived + self.p.aim_settle_s:
-                if now - self.t_phase > self.p.aim_timeout_s:
-                    if self.phase == 'centring':
-                        self._fail(now, 'the head did not reach the partner point')
-                    else:
-                        self._rejections.append('head did not reach an aim')
-                        self._next_aim(now)
-                return self._action()
-            lq = self.left_history.at(t, max_extrapolation_s=0.1)
-            trip = self._right_triple()
-            if lq is None or trip is None:
-                return self._action()
-            _, rimg, rpx, rid, rq = trip
-            if rid != self._right_id:
-                self._fail(now, 'the right camera re-selected its fixation point')
-                return self._action()
-            m = find_partner_point(rimg, rpx, rq, gray, lq, self.rig, self.p)
-            self.match = m
-            if not m.ok:
-                if self.phase == 'centring':
-                    self._fail(now, f'partner point not found again after centring it ({m.reason})')
-                else:
-                    self._rejections.append(m.reason)
-                    self._next_aim(now)
-                return self._action()
-            if self.phase == 'aiming' and not self._centred('left', m.pixel):
-                self.phase, self.t_phase, self._arrived = 'centring', now, None
-                self._aim = centring_angles(self.rig.left, m.pixel, *lq, self.rig.pan_tilt_left)
-                return self._action()
-            self.phase, self.t_phase = 'converging', now
-            self.right_images.clear()
-            return Action('track', select=m.pixel)
+            return self._search(t, gray, now)
         if self.phase == 'returning':
             assert self._aim is not None
-            if (self._reached(now, self._aim) and t >= self._arrived + self.p.aim_settle_s) \
-                    or now - self.t_phase > self.p.aim_timeout_s:
-                self.phase, self.finished = 'ended', True
+            # own point again as soon as the head is back (the tracker needs no settled image to select)
+            if (self._reached(now, self._aim) and t >= self._arrived) or now - self.t_phase > self.p.aim_timeout_s:
+                self._to('ended', now)
+                self.finished, self.t_back = True, now
                 return Action('track', reselect=True)
             return self._action()
         return Action('track')
 
+    def _search(self, t: float, gray: np.ndarray, now: float) -> Action:
+        """Aiming/centring: search on an image taken after the head arrived; a match far from the centre is
+        first centred by a direct head move (too fast for the tracker), then found again near the centre."""
+        assert self._aim is not None
+        if not self._reached(now, self._aim) or t < self._arrived + self.p.aim_settle_s:
+            if now - self.t_phase > self.p.aim_timeout_s:
+                if self.phase == 'centring':
+                    self._fail(now, 'the head did not reach the partner point')
+                else:
+                    self._rejections.append(f'head did not reach the aim {self._fmt(self._aim)} (at '
+                                            f'{self._fmt(self.left_history.latest()[1:])})')
+                    self._next_aim(now)
+            return self._action()
+        lq = self.left_history.at(t, max_extrapolation_s=0.1)
+        trip = self._right_triple()
+        if lq is None or trip is None:
+            return self._action()
+        _, rimg, rpx, rid, rq = trip
+        if rid != self._right_id:
+            self._fail(now, 'the right camera re-selected its fixation point')
+            return self._action()
+        m = find_partner_point(rimg, rpx, rq, gray, lq, self.rig, self.p)
+        self.match = m
+        self.timeline.append(('searched' if m.ok else 'not found', now))
+        if not m.ok:
+            if self.phase == 'centring':
+                self._fail(now, f'partner point not found again after centring it ({m.reason})')
+            else:
+                self._rejections.append(m.reason)
+                self._next_aim(now)
+            return self._action()
+        cam = self.rig.left
+        if math.hypot(m.pixel[0] - cam.cx, m.pixel[1] - cam.cy) > self.p.select_px:
+            if self.phase == 'centring':
+                self._fail(now, 'the partner point is not near the centre after centring it')
+                return self._action()
+            aim = centring_angles(self.rig.left, m.pixel, *lq, self.rig.pan_tilt_left)
+            if not self._reachable(aim):
+                self._fail(now, "the partner point is beyond the left head's range")
+                return self._action()
+            self._to('centring', now)
+            self._arrived, self._aim = None, aim
+            return self._action()
+        self._to('converging', now)
+        self.t_fixating = now
+        self.right_images.clear()
+        return Action('track', select=m.pixel)
+
     def on_left_fixation(self, t: float, pixel: tuple[float, float] | None, fixation_id: int,
                          reselected: bool) -> None:
-        """Call after tracking each left frame (also in other phases: it is ignored there)."""
+        """Call after tracking each left frame (waiting: the left's own point; converging: the partner point)."""
+        if self.phase == 'waiting':
+            self._own.append((pixel, fixation_id))
+            return
         if self.phase != 'converging':
             return
         if self._left_id is None and reselected:
             self._left_id = fixation_id
         self.left_frames.append(_Frame(t, pixel, fixation_id))
 
+    # -------------------------------------------------------------------- timeouts, measurement
     def poll(self, now: float) -> VergenceResult | None:
-        """Timeouts, and the triangulation once both fixations have settled. Returns the result once."""
-        if self._ended or self.t_start is None:
+        """Timeouts, and the measurement once both fixations have settled. Returns the result once."""
+        if self.phase == 'returning' and now - self.t_phase > self.p.aim_timeout_s:
+            # no image came to end the return (on_left_image does that): end it here, the caller re-selects
+            self._to('ended', now)
+            self.finished, self.t_back, self.needs_reselect = True, now, True
+        if self.t_start is None:        # the step's clock starts at its first poll or image
+            self.t_start = self.t_phase = now
+        if self._ended:
             return None
-        if now - self.t_start > self.p.timeout_s:
+        if self.phase == 'waiting':
+            if now - self.t_start > self.p.wait_timeout_s:
+                self._fail(now, f'both fixations not settled within {self.p.wait_timeout_s:g} s (the right one '
+                                f'with its image and joints)')
+            return None
+        if self.t_left is not None and now - self.t_left > self.p.timeout_s:
             note = f' ({self._note})' if self._note else ''
-            self._fail(now, f'timeout after {self.p.timeout_s:.0f} s in phase {self.phase}{note}')
+            if self._rejections:
+                note += f' [{"; ".join(self._rejections)}]'
+            self._fail(now, f'timeout after {self.p.timeout_s:g} s in phase {self.phase}{note}')
             return None
         if self.phase != 'converging':
             return None
         frames = list(self.left_frames)
+        # the point is gone (the left lost it or the right re-selected): measure with the frames before, if enough
+        ended, why = math.inf, ''
         if frames and (frames[-1].pixel is None or frames[-1].fixation_id != self._left_id):
-            self._fail(now, 'the left camera lost the partner point')
+            ended = next(f.t for f in frames if f.pixel is None or f.fixation_id != self._left_id)
+            why = 'the left camera lost the partner point'
+        t_right = [f[0] for f in self.right_fix if frames and f[0] >= frames[0].t and f[2] != self._right_id]
+        if t_right and min(t_right) < ended:
+            ended, why = min(t_right), 'the right camera re-selected its fixation point'
+        samples = self._samples([f for f in frames if f.t < ended])
+        if why:
+            if len(samples) < self.p.settle_frames:
+                self._fail(now, why)
+                return None
+            self.timeline.append(('cut short', now))
+            return self._measure(samples, now)
+        if samples and self._t_settled is None:
+            self._t_settled = now
+            self.timeline.append(('settled', now))
+        if self._t_settled is None and now - self.t_phase > self.p.hold_timeout_s:
+            note = f' ({self._note})' if self._note else ''
+            self._fail(now, f'the fixations did not settle within {self.p.hold_timeout_s:g} s{note}')
             return None
-        if any(f[2] != self._right_id for f in self.right_fix if frames and f[0] >= frames[0].t):
-            self._fail(now, 'the right camera re-selected its fixation point')
-            return None
-        # the newest settle_frames left frames that have a right fixation and both joint states, all centred
-        # (frames still lacking a partner message, or whose joint state was dropped, are skipped)
-        run: list[tuple[_Frame, tuple]] = []
-        for f in reversed(frames[-60:]):
-            if f.pixel is None:
-                break
-            rf = self._right_fix_near(f.t)
-            lq = self.left_history.at(f.t, max_extrapolation_s=0.0)
-            rq = self.right_history.at(rf[0], max_extrapolation_s=0.0) if rf is not None else None
-            if rf is None or lq is None or rq is None:
-                continue
-            if not (self._centred('left', f.pixel) and self._centred('right', rf[1])):
-                lc, rc = self.rig.left.center, self.rig.right.center
-                self._note = (f'fixations {math.dist(f.pixel, lc):.1f} px (left) and {math.dist(rf[1], rc):.1f} px '
-                              f'(right) from the principal points')
-                break
-            run.append((f, (rf, lq, rq)))
-            if len(run) >= self.p.settle_frames:
-                break
-        if len(run) < self.p.settle_frames:
-            if not run and not self._note:
+        enough = len(samples) >= self.p.frames or (
+            self._t_settled is not None and now - self._t_settled > self.p.hold_timeout_s
+            and len(samples) >= min(self.p.frames, self.p.settle_frames))
+        if not enough:
+            if not samples and not self._note:
                 self._note = 'no left frame matched with a right fixation and both joint states'
             return None
-        f, (rf, lq, rq) = run[0]
-        sigma = math.hypot(self.p.pixel_sigma_px / self.rig.left.fx, math.radians(self.p.joint_sigma_deg))
-        ray_r = _right_ray(self.rig, rf[1], rq)
-        ray_l = self.rig.pixels_to_rig_rays('left', np.asarray(f.pixel, float).reshape(1, 2), *lq)[0]
-        tri = triangulate_fixation(ray_r, ray_l, self.rig.c_L, sigma, math.radians(self.p.min_angle_deg))
-        if not tri.ok:
-            self._fail(now, tri.reason)
+        return self._measure(samples, now)
+
+    def _measure(self, samples: list[VergenceSample], now: float) -> VergenceResult | None:
+        avg = average_samples(samples, self.rig.c_L, self.p.pixel_sigma_px / self.rig.left.fx,
+                              math.radians(self.p.joint_sigma_deg), math.radians(self.p.min_angle_deg),
+                              self.p.max_scatter, self.p.timing_sigma_s)
+        if not avg.ok:
+            self._fail(now, avg.reason)
             return None
-        self.result = VergenceResult(f.t, tri.point_rig, tri.distance_m, tri.std_m, tri.angle_rad, tri.cov_rig,
-                                     rf[1], f.pixel, self.match, now - self.t_start)
+        assert avg.point_rig is not None and avg.cov_rig is not None
+        self.result = VergenceResult(avg.t, avg.point_rig, avg.distance_m, avg.std_m, avg.angle_rad, avg.cov_rig,
+                                     avg.right_pixel, avg.left_pixel, self.match, now - self.t_start, avg.frames,
+                                     avg.distinct_readings, avg.scatter_m, avg.rate_mps)
         self._ended = 'done'
         self._start_return(now)
         return self.result
+
+    def _motion(self, history: JointHistory, t: float) -> tuple[float, bool] | None:
+        """(angular speed in rad/s, moved at all) of a head around ``t``; None until readings cover the window."""
+        h = self.p.motion_window_s
+        a, b = history.at(t - h, max_extrapolation_s=0.0), history.at(t + h, max_extrapolation_s=0.0)
+        if a is None or b is None:
+            return None
+        step = math.hypot(b[0] - a[0], b[1] - a[1])
+        return step / (2 * h), step > 1e-9
+
+    def _frame_sample(self, f: _Frame) -> VergenceSample | str | None:
+        """The sample of a left frame, or why it is not settled (a note), or None while its data is incomplete
+        (partner message, readings after it). Final answers are cached: polls repeat this for every frame."""
+        hit = self._sample_cache.get(f.t)
+        if hit is not None:
+            return hit
+        rf = self._right_fix_near(f.t)
+        if rf is None or rf[2] != self._right_id:
+            return None
+        lq = self.left_history.at(f.t, max_extrapolation_s=0.0)
+        rq = self.right_history.at(rf[0], max_extrapolation_s=0.0)
+        rm, lm = self._motion(self.right_history, rf[0]), self._motion(self.left_history, f.t)
+        if lq is None or rq is None or rm is None or lm is None:
+            return None
+        max_rate = math.radians(self.p.max_rate_deg_s)
+        out: VergenceSample | str
+        if not (self._centred('left', f.pixel) and self._centred('right', rf[1])) or max(rm[0], lm[0]) > max_rate:
+            out = (f'fixations {math.dist(f.pixel, self.rig.left.center):.1f} px (left) and '
+                   f'{math.dist(rf[1], self.rig.right.center):.1f} px (right) from the principal points, heads turning '
+                   f'{math.degrees(lm[0]):.1f} (left) and {math.degrees(rm[0]):.1f} deg/s (right)')
+        else:
+            ray_r = _right_ray(self.rig, rf[1], rq)
+            ray_l = self.rig.pixels_to_rig_rays('left', np.asarray(f.pixel, float).reshape(1, 2), *lq)[0]
+            out = VergenceSample(f.t, ray_r, ray_l, (lq[0], lq[1], rq[0], rq[1]), rf[1], f.pixel, (rm[0], lm[0]),
+                                 (rm[1], lm[1]))
+        newest = self.right_fix[-1][0] if self.right_fix else -math.inf
+        if abs(rf[0] - f.t) < 1e-6 or newest > f.t + self.p.stamp_slop_s:    # no closer partner message can come
+            self._sample_cache[f.t] = out
+        return out
+
+    def _samples(self, frames: list[_Frame]) -> list[VergenceSample]:
+        """Frames (oldest first) from the first run of ``settle_frames`` consecutive settled ones on: both fixations
+        within ``settle_px`` of their principal points and both heads turning at most ``max_rate_deg_s``. A frame
+        still lacking its partner message or readings after it, or whose joint state was dropped, is skipped; an
+        unsettled one ends a run before the fixations have settled, and is left out after."""
+        out: list[VergenceSample] = []
+        run = 0
+        for f in frames:
+            if f.pixel is None:
+                continue
+            sample = self._frame_sample(f)
+            if sample is None:
+                continue
+            if isinstance(sample, str):
+                self._note = sample
+                if run < self.p.settle_frames:
+                    out, run = [], 0
+                continue
+            out.append(sample)
+            run += 1
+        return out if run >= self.p.settle_frames else []
+
+
+# ------------------------------------------------------------------------------------------------ scheduler
+@dataclass
+class VergenceSchedule:
+    period_s: float = 0.0          # > 0: a step at least this often (from the start of the last one)
+    min_interval_s: float = 5.0    # from the end of one step to the start of the next, whatever triggers it
+    retry_s: float = 5.0           # after a failure, retry this much later (doubled per failure in a row) ...
+    retry_max_s: float = 60.0      # ... up to this
+
+
+TRIGGERS = ('start', 'right_fixation', 'request', 'period', 'retry')
+
+
+class VergenceScheduler:
+    """Decides when the left camera runs a vergence step: at start-up, when the right camera selects a new
+    fixation point (its id changes), when asked (a request), periodically, and after a failure (back-off) -
+    never closer than ``min_interval_s`` after the previous step that left the own point, so the left camera's
+    own fixation is interrupted for a bounded share of the time. A trigger during the min interval waits
+    (triggers coalesce); one arriving while a step runs is ignored and counted. Plain data in, no clock of its
+    own."""
+
+    def __init__(self, params: VergenceSchedule | None = None, now: float = 0.0) -> None:
+        self.p = params or VergenceSchedule()
+        self.pending: str | None = 'start'
+        self.running = False
+        self.t_created = now
+        self.t_last_start: float | None = None
+        self.t_last_end: float | None = None
+        self.t_retry: float | None = None
+        self.failures_in_a_row = 0
+        self.right_id: int | None = None
+        self.triggers: dict[str, int] = dict.fromkeys(TRIGGERS, 0)
+        self.triggers['start'] = 1
+        self.ignored = 0
+        self.attempts = self.successes = self.failures = 0
+        self.last_trigger = ''
+
+    def trigger(self, reason: str, now: float) -> bool:
+        """A reason for a step; False (and counted as ignored) while a step runs."""
+        self.triggers[reason] = self.triggers.get(reason, 0) + 1
+        if self.running:
+            self.ignored += 1
+            return False
+        self.pending = self.pending or reason
+        return True
+
+    def on_right_fixation(self, fixation_id: int, now: float) -> bool:
+        """The right camera's fixation id from its fixation topic: a new id (not the first seen) triggers."""
+        prev, self.right_id = self.right_id, int(fixation_id)
+        if prev is None or prev == self.right_id:
+            return False
+        return self.trigger('right_fixation', now)
+
+    def next_allowed(self) -> float:
+        """Earliest time the next step may start (min interval)."""
+        return -math.inf if self.t_last_end is None else self.t_last_end + self.p.min_interval_s
+
+    def due(self, now: float) -> str | None:
+        """The reason to start a step now, or None."""
+        if self.running or now < self.next_allowed():
+            return None
+        if self.pending:
+            return self.pending
+        if self.t_retry is not None and now >= self.t_retry:
+            return 'retry'
+        since = self.t_last_start if self.t_last_start is not None else self.t_created
+        if self.p.period_s > 0 and now - since >= self.p.period_s:
+            return 'period'
+        return None
+
+    def started(self, reason: str, now: float) -> None:
+        if reason in ('retry', 'period'):
+            self.triggers[reason] += 1
+        self.running, self.pending, self.t_retry = True, None, None
+        self.attempts += 1
+        self.last_trigger, self.t_last_start = reason, now
+
+    def finished(self, ok: bool, now: float, left_own_point: bool = True) -> None:
+        """The step is over (head back): success, or a failure to retry after the back-off. The min interval
+        runs from the end of the last step that took the left head off its own point (one that failed before,
+        e.g. waiting for settled fixations, interrupted nothing)."""
+        self.running = False
+        if left_own_point:
+            self.t_last_end = now
+        if ok:
+            self.successes += 1
+            self.failures_in_a_row = 0
+            self.t_retry = None
+        else:
+            self.failures += 1
+            self.failures_in_a_row += 1
+            backoff = min(self.p.retry_s * 2 ** (self.failures_in_a_row - 1), max(self.p.retry_max_s, self.p.retry_s))
+            self.t_retry = now + backoff
