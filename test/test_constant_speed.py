@@ -166,3 +166,19 @@ def test_each_vergence_point_re_measures_the_speed():
     corrected = final_speed({0: 1.3, 25: 1.0})
     assert abs(wrong / v_true - 1.0) > 0.15                       # the first measurement alone leaves it off
     assert abs(corrected / v_true - 1.0) < 0.5 * abs(wrong / v_true - 1.0)
+
+
+def test_speed_is_the_median_of_the_last_three_measurements():
+    """One wild vergence fit (a speed 3x off with a small stated std) does not throw the speed once three are known;
+    with one or two the newest counts (a re-measurement replaces the first)."""
+    from fixego_ros.estimation.constant_speed import ConstantSpeed
+
+    s = ConstantSpeed(0.5)
+    s.calibrate(0.4, 0.05)                 # 0.2 m/s
+    assert s.v == pytest.approx(0.2) and s.measured
+    s.calibrate(1.1, 0.05)                 # 0.22 m/s: the newest
+    assert s.v == pytest.approx(0.22)
+    s.calibrate(3.0, 0.05)                 # 0.66 m/s, wild: the median of 0.2, 0.22, 0.66
+    assert s.v == pytest.approx(0.22)
+    s.calibrate(0.9, 0.05)                 # 0.198: median of 0.22, 0.66, 0.198
+    assert s.v == pytest.approx(0.22)

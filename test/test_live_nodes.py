@@ -109,6 +109,7 @@ def test_estimator_node_publishes_trajectory_resets_and_survives_bad_input(ros_c
     from geometry_msgs.msg import PoseStamped
     from nav_msgs.msg import Odometry, Path
     from sensor_msgs.msg import PointCloud2, PointField
+    from std_msgs.msg import Empty
     from std_srvs.srv import Trigger
 
     from fixego_ros.nodes.common import RELIABLE_QOS, msg_to_pose
@@ -129,6 +130,8 @@ def test_estimator_node_publishes_trajectory_resets_and_survives_bad_input(ros_c
     paths: dict[str, list[Path]] = {'path': [], 'path_raw': []}
     probe.create_subscription(PoseStamped, '/fixego/pose', pose_msgs.append, RELIABLE_QOS)
     probe.create_subscription(Odometry, '/fixego/odom', odoms.append, RELIABLE_QOS)
+    requests: list[Empty] = []
+    probe.create_subscription(Empty, '/fixego/vergence_request', requests.append, RELIABLE_QOS)
     for k in paths:
         probe.create_subscription(Path, f'/fixego/{k}', paths[k].append, RELIABLE_QOS)
     pub = probe.create_publisher(PointCloud2, '/fixego/flow/observation', RELIABLE_QOS)
@@ -148,6 +151,8 @@ def test_estimator_node_publishes_trajectory_resets_and_survives_bad_input(ros_c
                 pub.publish(table_to_cloud(rows, sec_to_stamp(50.0 + k + 0.6), 'rig'))
         assert spin_until(ex, lambda: len(pose_msgs) >= n and len(paths['path_raw']) >= n, 15.0), len(pose_msgs)
         assert node.stats['malformed'] == 2
+        # no scale aid: the unmeasured scale asks the rig for vergence, once per 5 s of stamps (50 s and 55 s)
+        assert spin_until(ex, lambda: len(requests) >= 2, 5.0) and node.scale_requests.count == 2
         # poses: base_link in odom, close to the truth (noise-free rays; scale through the lever arm)
         path_len = sum(np.linalg.norm(poses[i + 1].t - poses[i].t) for i in range(n - 1))
         for msg, truth in zip(pose_msgs, poses, strict=True):

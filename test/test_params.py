@@ -290,7 +290,7 @@ def test_flow_node_run_time_changes_take_effect(ros_context, tmp_path):
                             ('preset', 'paper'), ('window_px', 50), ('observation_topic', '/x')]:
             r = _set(node, name, value)
             assert not r.successful and r.reason, (name, value)
-        assert node.frontend.params.fb_max_px == 0.8 and node.frontend.params.preset == 'window'
+        assert node.frontend.params.fb_max_px == 0.8 and node.frontend.params.preset == 'full'
     finally:
         node.destroy_node()
 

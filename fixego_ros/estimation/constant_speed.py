@@ -16,11 +16,12 @@ a lot on the way is drawn with its average speed.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 # relative std of the step-length prior: the length is a gauge (the rays fit any value about equally), and a
 # firm prior keeps each step on the common speed instead of on the spurious near-zero-T fit
 PRIOR_REL_STD = 0.1
+MEDIAN_OF = 3
 
 
 @dataclass
@@ -31,6 +32,7 @@ class ConstantSpeed:
     v: float = math.nan
     rel_std: float = math.nan       # of ``v`` once measured
     measured: bool = False
+    history: list[float] = field(default_factory=list)   # every measured speed, m/s
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.nominal) and self.nominal > 0):
@@ -42,9 +44,12 @@ class ConstantSpeed:
         return self.v * dt, PRIOR_REL_STD * self.v * dt
 
     def calibrate(self, k: float, rel_std: float) -> None:
-        """A measurement found the speed so far too small by ``k`` (relative std ``rel_std``)."""
+        """A measurement found the speed so far too small by ``k`` (relative std ``rel_std``). From the third
+        measurement on the speed is the median of the last :data:`MEDIAN_OF` (one wild fit does not throw it)."""
         if not (math.isfinite(k) and k > 0 and math.isfinite(rel_std) and rel_std >= 0):
             raise ValueError(f'speed calibration needs a finite k > 0 and std >= 0, got {k}, {rel_std}')
-        self.v *= k
+        self.history.append(self.v * k)
+        recent = self.history[-MEDIAN_OF:]
+        self.v = sorted(recent)[len(recent) // 2] if len(recent) == MEDIAN_OF else recent[-1]
         self.rel_std = rel_std
         self.measured = True

@@ -274,6 +274,7 @@ class Estimator:
         self._anchors_used = 0              # vergence measurements that have calibrated the speed
         self._recent: deque[tuple[float, Pose, dict[str, Fixation | None]]] = deque(maxlen=ANCHOR_HISTORY)
         self._anchor_note = ''
+        self._scale_measured: tuple[float, float] | None = None   # (stamp, relative std) of the newest measurement
 
     # ------------------------------------------------------------------------------------ scale aids
     def add_velocity(self, stamp: float, v_rig: np.ndarray, cov_rig: np.ndarray) -> None:
@@ -347,6 +348,7 @@ class Estimator:
         if fit is not None:
             first = not self._speed_prior.measured
             self._speed_prior.calibrate(fit.speed_k, fit.rel_std)
+            self._scale_measured = (stamp, fit.rel_std)
             self._aids.add('the vergence step')
             self._anchors_used += 1
             if first:      # the path so far was drawn at the nominal speed: make it metric once
@@ -358,6 +360,12 @@ class Estimator:
         elif a.ended:
             self._anchor, self._anchor_note = None, (f'vergence: the {a.side} camera left the point after '
                                                      f'{len(a.views)} frames, before the scale settled')
+
+    @property
+    def scale_measurement(self) -> tuple[float, float] | None:
+        """(stamp, relative std) of the newest scale measurement (a settled vergence anchor), None before one.
+        A speed source measures the scale at every step, so with one this stays None and nothing is requested."""
+        return self._scale_measured
 
     @property
     def scale_observed(self) -> bool:

@@ -44,9 +44,11 @@ from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry, Path
 from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
+from std_msgs.msg import Empty
 from std_srvs.srv import Trigger
 
 from fixego_ros.estimation.estimator import Estimator, FrameResult
+from fixego_ros.estimation.scale_requests import ScaleRequests
 from fixego_ros.estimation.status import StepStatus
 from fixego_ros.geometry.rig import default_rig_path, load_rig
 from fixego_ros.geometry.rotation import RIG_TO_BASE, Pose, rig_pose_to_base_link
@@ -82,7 +84,7 @@ LIVE_CONFIG = ('fixation_weight', 'velocity_prior', 'prior_sigma_rel', 'prior_si
                'max_speed', 'max_step_rotation_deg', 'reject_translation_std')
 # ... and the node reads these per message (or sets the timer's period)
 LIVE_NODE = ('max_lag_s', 'max_keyframe_lag_s', 'max_future_s', 'backward_reset_count', 'backward_reset_s',
-             'diagnostics_period_s')
+             'diagnostics_period_s', 'vergence_request_rel_std', 'vergence_request_min_interval_s', 'scale_drift_per_s')
 
 
 def odom_covariance(pose_cov_rig: np.ndarray) -> list[float]:
@@ -129,6 +131,10 @@ class EstimatorNode(Node):
         self.vergence_topic = str(g('vergence_topic'))
         if self.vergence_topic:
             self.create_subscription(PoseWithCovarianceStamped, self.vergence_topic, self._on_vergence, LATCHED_QOS)
+        request_topic = str(g('vergence_request_topic'))
+        self.pub_vergence_request = self.create_publisher(Empty, request_topic, RELIABLE_QOS) if request_topic else None
+        self.scale_requests = ScaleRequests(float(g('vergence_request_rel_std')),
+                                            float(g('vergence_request_min_interval_s')), float(g('scale_drift_per_s')))
         self.create_service(Trigger, '~/reset', self._srv_reset)
         self.diag_timer = self.create_timer(float(g('diagnostics_period_s')), self._publish_diagnostics)
         self.status_counts: Counter[str] = Counter()
@@ -203,6 +209,9 @@ class EstimatorNode(Node):
                                       'counted on /diagnostics)', throttle_duration_sec=10.0)
         self.last = res
         self._publish(msg.header.stamp, res)
+        if self.pub_vergence_request is not None and self.scale_requests.due(
+                res.stamp, self.estimator.scale_measurement, 'the speed source' in res.scale_note):
+            self.pub_vergence_request.publish(Empty())
 
     def _stamp_problem(self, key: str, text: str) -> None:
         self.stats[key] += 1
@@ -347,6 +356,10 @@ class EstimatorNode(Node):
         if config is not None:
             self.config = self.estimator.config = config
         self._set_stamp_bounds(g)
+        r = self.scale_requests
+        r.max_rel_std = float(g('vergence_request_rel_std'))
+        r.min_interval_s = float(g('vergence_request_min_interval_s'))
+        r.drift_per_s = float(g('scale_drift_per_s'))
         if 'diagnostics_period_s' in changes:
             set_timer_period(self.diag_timer, float(g('diagnostics_period_s')))
 
@@ -369,6 +382,10 @@ class EstimatorNode(Node):
     # -------------------------------------------------------------------------------------- diagnostics
     def _publish_diagnostics(self) -> None:
         values: dict[str, object] = dict(self.stats)
+        values['vergence_requests'] = self.scale_requests.count
+        if self.last is not None:
+            std = self.scale_requests.rel_std(self.last.stamp, self.estimator.scale_measurement)
+            values['scale_rel_std'] = f'{std:.4f}' if math.isfinite(std) else 'unmeasured'
         values.update({f'steps_{k}': v for k, v in sorted(self.status_counts.items())})
         ms = np.array(self.solve_ms) if self.solve_ms else np.zeros(1)
         values.update({'solve_ms_p50': f'{np.median(ms):.2f}', 'solve_ms_p95': f'{np.percentile(ms, 95):.2f}',

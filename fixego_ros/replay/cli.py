@@ -4,8 +4,9 @@ Writes ``EST.tum`` (refined) and ``EST.raw.tum`` (two-frame only): TUM lines ``s
 qw``, the pose of ``base_link`` in ``odom`` (DESIGN.md §6). Prints what was skipped and why, the speed
 against real time, and the ATE when the bag holds ``ground_truth/pose``. ``--speed-topic`` (off by
 default) feeds a nav_msgs/Odometry speed source recorded in the bag (e.g. ``fixego sim --wheel-odom-std``)
-to the estimator as a scale aid; ``--vergence-topic`` (off by default) does the same with a start-up
-vergence measurement (e.g. ``fixego sim --vergence-std``).
+to the estimator as a scale aid; the vergence measurements (``<namespace>/vergence``, any number, written by
+the rig's repeated vergence step and by ``fixego sim``) are used when the bag has them (``--vergence-topic``
+names another topic, ``''`` turns them off).
 
 Exit codes: 0 done (possibly with documented degradations, printed); 2 the bag or the options cannot be
 used, or the bag is corrupt: then what precedes the first damaged record has been replayed and written
@@ -62,10 +63,10 @@ def register(subparsers) -> None:
                    help='std (m/s) of a speed sample whose covariance is all zeros (estimator_node '
                         'speed_default_std)')
     p.add_argument('--vergence-topic', metavar='TOPIC',
-                   help='scale aid: feed the start-up vergence measurement on this geometry_msgs/'
-                        'PoseWithCovarianceStamped topic of the bag (the right fixation point in the rig frame, '
-                        'e.g. /fixego/vergence written by `fixego sim --vergence-std`) to the estimator '
-                        '(estimator_node vergence_topic; default: off)')
+                   help='scale aid: feed the vergence measurements on this geometry_msgs/PoseWithCovarianceStamped '
+                        'topic of the bag (the right fixation point in the rig frame at each stamp) to the '
+                        "estimator (estimator_node vergence_topic). Default: <namespace>/vergence when the bag has "
+                        "it; '' = off")
     p.add_argument('--eval-out', type=Path, metavar='DIR',
                    help='with ground truth: also write DIR/ground_truth.tum, DIR/eval.json and DIR/eval.png')
     p.add_argument('--workers', type=int, choices=(1, 2), default=2 if (os.cpu_count() or 1) > 1 else 1,
@@ -130,6 +131,15 @@ def settings_from_args(args: argparse.Namespace, rig):
                                        vergence_topic=args.vergence_topic or '')
 
 
+def vergence_topic_in(bag, topics) -> str:
+    """The contract's vergence topic (``<namespace>/vergence``) when the bag lists it with the right type, else ''."""
+    from fixego_ros.replay.run import VERGENCE_TYPE
+
+    name = topics.name('vergence')
+    t = bag.topics.get(name)
+    return name if t is not None and t.msgtype == VERGENCE_TYPE else ''
+
+
 def run(args: argparse.Namespace) -> int:
     """``fixego replay``; see the module docstring for the exit codes."""
     bars: list = []          # the progress bar, so an interruption ends its line before saying so
@@ -172,8 +182,10 @@ def _run(args: argparse.Namespace, bars: list) -> int:
         return fail(f'no rig file: {rig_path} does not exist (pass --rig RIG.yaml; DESIGN.md §4)')
     try:
         rig = load_rig(rig_path)
-        settings = settings_from_args(args, rig)
         topics = ReplayTopics(args.namespace, tuple(_pairs(args.remap, '--remap')))
+        if args.vergence_topic is None:      # default: the bag's vergence measurements when it has them
+            args.vergence_topic = vergence_topic_in(bag, topics)
+        settings = settings_from_args(args, rig)
     except (RigError, ParamsError, ValueError) as e:
         return fail(str(e))
     counts = [bag.topics[t].count for t in (topics.name(f'{s}/image_raw') for s in SIDES) if t in bag.topics]

@@ -25,8 +25,9 @@ are converted (:mod:`fixego_ros.pipeline.odometry`) and fed to ``Estimator.add_v
 through the same queue as the frames (so ``workers=2`` sees the same interleaving); they do not drive the
 synchroniser's clock. Unusable ones are skipped and noted once per cause.
 
-Start-up vergence (off by default, :attr:`ReplaySettings.vergence_topic`): geometry_msgs/PoseWithCovarianceStamped
-messages on that topic (camera_node's vergence step, or ``fixego sim --vergence-std``) are converted with
+Vergence measurements (:attr:`ReplaySettings.vergence_topic`; ``fixego replay`` uses the bag's ``vergence`` topic when
+it has one): geometry_msgs/PoseWithCovarianceStamped messages, any number (the left camera_node's repeated
+vergence step, or ``fixego sim``), are converted with
 :func:`~fixego_ros.pipeline.odometry.vergence_from_msg` and given to ``Estimator.add_fixation_point`` as the
 right camera's fixation point, through the same queue and without driving the clock, like speed samples.
 A message that cannot be converted or that the estimator refuses is skipped and noted.
@@ -110,7 +111,7 @@ class ReplaySettings:
     sync: SyncParams
     estimator: EstimatorConfig
     speed: SpeedSettings = field(default_factory=SpeedSettings)      # scale aid; topic '' = off
-    vergence_topic: str = ''                                          # start-up vergence measurement; '' = off
+    vergence_topic: str = ''                                          # vergence measurements; '' = off
 
     @classmethod
     def from_getters(cls, rig: Rig, camera: Getter | None = None, flow: Getter | None = None,
