@@ -46,9 +46,10 @@ def register(subparsers) -> None:
     p.add_argument('--width', type=int, help=f'image width, {SIZE_RANGE[0]}..{SIZE_RANGE[1]} px (intrinsics scaled; '
                                              'default: the rig file\'s)')
     p.add_argument('--height', type=int, help=f'image height, {SIZE_RANGE[0]}..{SIZE_RANGE[1]} px')
-    p.add_argument('--preset', choices=('paper', 'window', 'full'), default='window', help='flow points')
-    p.add_argument('--window', type=int, default=3, help='local BA frames n: 3..10, or 0 (disabled) or 1 (default 3)')
-    p.add_argument('--mode', choices=('paper', 'joint'), default='paper', help='local BA mode')
+    p.add_argument('--preset', choices=('paper', 'window', 'full'), help="flow points (default: flow_node's)")
+    p.add_argument('--window', type=int, help="local BA frames n: 3..10, or 0 (disabled) or 1 (default: "
+                                              "estimator_node's)")
+    p.add_argument('--mode', choices=('paper', 'joint'), help="local BA mode (default: estimator_node's)")
     p.add_argument('--seed', type=int, default=0, help=f'seed of the simulated world, 0..{SEED_MAX}')
     p.add_argument('--domain-id', type=int,
                    help='ROS_DOMAIN_ID for every process, {}..{} (default: inherited)'.format(*ROS_DOMAIN_IDS))
@@ -72,7 +73,8 @@ def check_args(args: argparse.Namespace):
         check_int(args.domain_id, "--domain-id", *ROS_DOMAIN_IDS, note=' (ROS 2 domain ids)')
     spec = ESTIMATOR_PARAMS['window']
     try:
-        spec.check(args.window)
+        if args.window is not None:
+            spec.check(args.window)
     except ParamsError:
         raise OptionError(f'--window must be an {spec.allowed()} (estimator_node window), got {args.window!r}') \
             from None
@@ -151,9 +153,10 @@ def _run(args: argparse.Namespace, out: Path, rig_path: Path, launcher) -> int:
     for side in ('right', 'left'):
         launcher.start(NodeSpec(f'{side}_camera_node', 'fixego_ros.nodes.camera_node',
                                 {**common, 'side': side, 'port': ptys[side]}))
-    launcher.start(NodeSpec('flow_node', 'fixego_ros.nodes.flow_node', {**common, 'preset': args.preset}))
+    given = lambda **kw: {k: v for k, v in kw.items() if v is not None}  # noqa: E731  (else the node's default)
+    launcher.start(NodeSpec('flow_node', 'fixego_ros.nodes.flow_node', {**common, **given(preset=args.preset)}))
     launcher.start(NodeSpec('estimator_node', 'fixego_ros.nodes.estimator_node',
-                            {**common, 'window': args.window, 'mode': args.mode}))
+                            {**common, **given(window=args.window, mode=args.mode)}))
 
     rclpy.init()
     node = Recorder()
