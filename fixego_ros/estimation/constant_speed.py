@@ -8,9 +8,10 @@ left camera's baseline to fit noise). A walker or a robot keeps its speed from o
 holding every step at one speed gives the trajectory's shape; its metric scale is then a single number,
 which the start-up vergence step measures (:mod:`.scale_anchor`) or an external speed source replaces.
 
-Until then the speed is ``nominal`` and the scale is reported unobserved. A rig that stands still is
-caught by the two-frame solve's stationary test (no parallax), not by this prior; one that changes speed
-a lot on the way is drawn with its average speed.
+Until then the speed is ``nominal`` and the scale is reported unobserved. A rig that stands still should be
+caught by the two-frame solve's stationary test (no parallax), but the joint-quantisation jitter of the heads
+gives each camera ~1 px of apparent parallax, so a still or creeping rig is drawn at this speed (README,
+"Constant-speed prior"); one that changes speed a lot on the way is drawn with its average speed.
 """
 
 from __future__ import annotations
