@@ -368,6 +368,11 @@ class Estimator:
         return self._scale_measured
 
     @property
+    def speed_source_used(self) -> bool:
+        """Whether an external speed source has set step lengths (it measures the scale at every step)."""
+        return 'the speed source' in self._aids
+
+    @property
     def scale_observed(self) -> bool:
         if self._aids:
             return True

@@ -210,7 +210,7 @@ class EstimatorNode(Node):
         self.last = res
         self._publish(msg.header.stamp, res)
         if self.pub_vergence_request is not None and self.scale_requests.due(
-                res.stamp, self.estimator.scale_measurement, 'the speed source' in res.scale_note):
+                res.stamp, self.estimator.scale_measurement, self.estimator.speed_source_used):
             self.pub_vergence_request.publish(Empty())
 
     def _stamp_problem(self, key: str, text: str) -> None:
