@@ -17,6 +17,7 @@ gives each camera ~1 px of apparent parallax, so a still or creeping rig is draw
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass, field
 
 # relative std of the step-length prior: the length is a gauge (the rays fit any value about equally), and a
@@ -33,7 +34,8 @@ class ConstantSpeed:
     v: float = math.nan
     rel_std: float = math.nan       # of ``v`` once measured
     measured: bool = False
-    history: list[float] = field(default_factory=list)   # every measured speed, m/s
+    # the last MEDIAN_OF measured speeds, m/s (older ones never count again)
+    history: deque[float] = field(default_factory=lambda: deque(maxlen=MEDIAN_OF))
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.nominal) and self.nominal > 0):
@@ -50,7 +52,7 @@ class ConstantSpeed:
         if not (math.isfinite(k) and k > 0 and math.isfinite(rel_std) and rel_std >= 0):
             raise ValueError(f'speed calibration needs a finite k > 0 and std >= 0, got {k}, {rel_std}')
         self.history.append(self.v * k)
-        recent = self.history[-MEDIAN_OF:]
+        recent = list(self.history)
         self.v = sorted(recent)[len(recent) // 2] if len(recent) == MEDIAN_OF else recent[-1]
         self.rel_std = rel_std
         self.measured = True
