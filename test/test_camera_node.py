@@ -300,16 +300,18 @@ def test_left_node_repeats_vergence_steps_on_start_up_request_and_right_reselect
     probe.create_subscription(PointStamped, '/fixego/left/fixation', lfix.append, RELIABLE_QOS)
     request = probe.create_publisher(Empty, '/fixego/vergence_request', RELIABLE_QOS)
     steps: list[tuple[str, float, float]] = []        # (trigger, start, end) in the left node's clock
-    state = {'step': None, 'start': 0.0}
+    measured: list[bool] = []                          # per step: it gave a measurement
+    state = {'step': None, 'start': 0.0, 'successes': 0}
 
     def watch() -> None:
-        """Note each step's trigger, start and end (the node keeps only the running one)."""
+        """Note each step's trigger, start, end and outcome (the node keeps only the running one)."""
         s, v = left.scheduler, left.vergence
         if v is not None and v is not state['step']:
             state['step'], state['start'] = v, s.t_last_start
         if state['step'] is not None and v is None:
             steps.append((s.last_trigger, state['start'], s.t_last_end))
-            state['step'] = None
+            measured.append(s.successes > state['successes'])
+            state['step'], state['successes'] = None, s.successes
 
     def until(pred, timeout_s):
         return spin_until(ex, lambda: watch() or pred(), timeout_s=timeout_s, step_s=0.01)
@@ -350,16 +352,19 @@ def test_left_node_repeats_vergence_steps_on_start_up_request_and_right_reselect
         assert until(fut.done, 5.0) and fut.result().success
         assert until(lambda: len(got) >= 3 and left.vergence is None, 20.0), left.vergence_state
         check(got[2])
-        # each kind of trigger ran a step, the steps kept the min interval, and all succeeded
-        assert [trig for trig, _, _ in steps][:3] == ['start', 'request', 'right_fixation'], steps
+        # each kind of trigger ran a step that measured, and the steps kept the min interval. On a loaded machine a
+        # step can lose the partner point (frames late): it is counted and retried, and the retry measures instead
+        done = [trig for (trig, _, _), ok in zip(steps, measured, strict=True) if ok]
+        assert done[:3] in (['start', 'request', 'right_fixation'], ['retry', 'request', 'right_fixation']), steps
         for (_, _, end), (_, start, _) in itertools.pairwise(steps):
             assert start - end >= min_interval - 1e-6, steps
         s = left.scheduler
-        assert s.successes == 3 and s.failures == 0 and s.ignored >= 1
+        assert s.successes == 3 and s.failures == measured.count(False) and s.ignored >= 1
         assert 0.0 < left.vergence_time['last_interrupted_s'] <= left.vergence_time['last_away_s'] < 5.0
         assert until(lambda: (_vergence_status(diags) or {}).get('successes') == '3', 3.0)
         st = _vergence_status(diags)
-        assert st['attempts'] == '3' and st['last_trigger'] == 'right_fixation' and float(st['last_distance_m']) > 0
+        assert st['attempts'] == str(len(steps)) and st['last_trigger'] == 'right_fixation'
+        assert float(st['last_distance_m']) > 0
         # a subscriber that comes late gets every measurement (transient local, depth 20)
         late: list[PoseWithCovarianceStamped] = []
         probe.create_subscription(PoseWithCovarianceStamped, '/fixego/vergence', late.append, LATCHED_QOS)
