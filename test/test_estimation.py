@@ -187,3 +187,31 @@ def test_config_validation():
         EstimatorConfig(window=2)
     with pytest.raises(ValueError, match='mode'):
         EstimatorConfig(mode='magic')
+
+
+def test_blind_step_is_bridged_from_the_rates_on_both_sides():
+    """Both cameras see nothing across one step (e.g. both re-selected at once) where a turn ends: the step is
+    predicted at the turn's rate, then re-estimated from the rates before and after once the next step is
+    solved, and the keyframe's corrected pose is reported (the later poses build on it)."""
+    cfg = replace(PRESETS['dense'], noise_px=0.0, fixation_depth=4.0, step_length=0.1)
+    scene = PointScene(cfg, np.random.default_rng(4))
+    turn, t = np.radians(3.0), np.array([0.0, 0.0, 0.1])
+    steps = [Pose(exp_so3([0.0, turn, 0.0]), t)] * 4 + [Pose(exp_so3([0.0, turn / 2, 0.0]), t)] + \
+        [Pose(np.eye(3), t)] * 4
+    poses, _, clean = scene.frames(steps)
+    blind = 5
+    for k, obs in enumerate(clean):
+        for cam in (obs.right, obs.left):
+            if k == blind:
+                cam.flow_prev, cam.flow_curr = np.zeros((0, 3)), np.zeros((0, 3))
+            if k >= blind:
+                cam.fixation_id = 1          # re-selected: no fixation pair across the blind step
+    est = Estimator(scene.rig, EstimatorConfig(window=0))
+    results = [est.update(obs) for obs in clean]
+    yaw_error = [np.degrees(abs(((poses[k].inverse() @ p).rvec())[1]))
+                 for k, p in ((blind, results[blind].pose), (blind, results[blind + 1].corrected[1]))]
+    assert results[blind].status is StepStatus.PREDICTED
+    assert results[blind + 1].corrected[0] == clean[blind].stamp
+    assert yaw_error[0] > 1.0 and yaw_error[1] < 0.1      # predicted: the whole turn rate; bridged: half of it
+    later = results[-1].pose
+    assert np.degrees(np.linalg.norm((poses[-1].inverse() @ later).rvec())) < 0.1

@@ -158,3 +158,21 @@ def test_speed_samples_integrate_over_the_step():
     t, cov = s.translation(0.2, 0.6)
     assert np.allclose(t, [0, 0, 0.2]) and np.allclose(cov, np.eye(3) * 0.01 * 0.16)
     assert s.translation(5.0, 6.0) is None
+
+
+def test_speed_samples_follow_the_rig_round_an_arc():
+    """A wheel odometry's body-frame velocity stays forward on an arc while the rig turns: over the step the
+    translation is the chord, turned by half the step's rotation from the keyframe's forward axis."""
+    s = SpeedSamples()
+    for t in np.arange(0.0, 1.001, 0.05):
+        s.add(float(t), np.array([0.0, 0.0, 1.0]), np.eye(3) * 1e-4)
+    phi = np.array([0.0, np.radians(20.0), 0.0])
+    chord = exp_so3(phi / 2) @ np.array([0.0, 0.0, 1.0])
+
+    def angle_deg(t: np.ndarray) -> float:
+        return float(np.degrees(np.arccos(np.clip(t @ chord / np.linalg.norm(t), -1.0, 1.0))))
+
+    turned, _ = s.translation(0.0, 1.0, phi)
+    unturned, _ = s.translation(0.0, 1.0)
+    assert angle_deg(turned) < 0.01 and abs(angle_deg(unturned) - 10.0) < 0.01
+    assert abs(np.linalg.norm(turned) - np.sin(phi[1] / 2) / (phi[1] / 2)) < 0.01   # a chord, not the arc length

@@ -30,7 +30,13 @@ from fixego_ros.estimation.sliding_window import (
     landmark_kind_side,
 )
 from fixego_ros.estimation.status import StepStatus
-from fixego_ros.estimation.twoframe import SolverConfig, TwoFrameResult, TwoFrameSolver
+from fixego_ros.estimation.twoframe import (
+    MIN_ROTATION_PAIRS,
+    SolverConfig,
+    TwoFrameResult,
+    TwoFrameSolver,
+    kabsch_rotation,
+)
 from fixego_ros.geometry.rig import SIDES, Rig
 from fixego_ros.geometry.rotation import Pose, compose_all, rotation_angle
 
@@ -187,6 +193,10 @@ class FrameResult:
     # the scale was just measured: every earlier pose's position should be multiplied by this to be metric
     # (the path so far was built at a nominal speed; a trajectory kept by the caller can be rewritten)
     prefix_scale: float = 1.0
+    # a blind step (predicted: no flow, e.g. both cameras re-selected at once) into the reference keyframe was
+    # re-estimated from the rates on both sides of it: (stamp, pose, pose_raw) of that keyframe, to replace the
+    # pose reported for it then (a kept trajectory is corrected; later poses already build on it)
+    corrected: tuple[float, Pose, Pose] | None = None
 
 
 @dataclass
@@ -211,6 +221,17 @@ class _Latest:
     step_cov: np.ndarray = field(default_factory=lambda: np.diag([1e-2] * 3 + [VAR_MAX] * 3))  # of ``motion``
     speed: tuple[np.ndarray, np.ndarray] | None = None       # external-speed translation over the step
     landmarks: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+    blind: _Blind | None = None     # the motion was predicted: re-estimated once the next step is solved
+
+
+@dataclass
+class _Blind:
+    """A predicted step (nothing seen across it), kept to be re-estimated from the rates on both sides."""
+
+    start: Pose                     # keyframe poses (refined, raw) the step starts from
+    start_raw: Pose
+    dt: float
+    rate: tuple[np.ndarray, np.ndarray]   # [rvec, t] per second before it (refined, raw)
 
 
 # frames kept for a vergence measurement that arrives after its frame (~10 s at 10 Hz)
@@ -256,6 +277,7 @@ class Estimator:
         self._key_cov = np.zeros((6, 6))
         self._latest: _Latest | None = None
         self._velocity: tuple[np.ndarray, np.ndarray] | None = None  # [rvec, t] per second: refined, raw
+        self._key_blind: _Blind | None = None   # the keyframe was reached by a blind (predicted) step
         self._sliding = SlidingWindow(self.config.sliding) if self.config.refinement == 'sliding' else None
         self._speed = SpeedSamples()
         self._pending_points: list[tuple[float, int, np.ndarray, np.ndarray]] = []
@@ -511,7 +533,7 @@ class Estimator:
         prediction = self._predict(dt)
         start = self._latest.motion_raw if self._latest is not None else (prediction[1] if prediction else None)
         cfg = self.config
-        speed = self._speed.translation(self._key_stamp, obs.stamp)
+        speed = self._speed.translation(self._key_stamp, obs.stamp, self._step_rotation(pairs, prediction))
         if speed is not None:
             sigma = math.sqrt(max(float(np.max(np.linalg.eigvalsh(speed[1]))), 1e-12))
             tf = self.solver.solve(pairs, initial=start, prior_t=speed[0], prior_sigma_t=sigma)
@@ -531,7 +553,9 @@ class Estimator:
             cov = tf.covariance
             status = tf.status
             message = tf.message
-            if self._sliding is None and self.config.window >= 3 and obs.keyframe is not False:
+            # the local BA has no term for a speed source's translation, so with one it would let the length
+            # float again (42 cm mean against 1.2 cm without it on the simulated loop): the two-frame solve stands
+            if self._sliding is None and self.config.window >= 3 and obs.keyframe is not False and speed is None:
                 problem, full = self._ba_problem(obs)
                 if full and len(problem):
                     ba = refine_latest(problem, tf.pose, self.config.mode, pairs, self.config.solver.sigma,
@@ -553,11 +577,16 @@ class Estimator:
             cov = np.diag([1e-2] * 3 + [VAR_MAX] * 3)
             status = StepStatus(tf.status if not tf.status.usable else StepStatus.REJECTED)
             message = why + '; held'
+        corrected = self._rebridge(motion, motion_raw, dt) if accepted else None
         pose_cov = self._propagate(self._key_pose, self._key_cov, motion, cov)
         pose = (self._key_pose @ motion).normalized()
         pose_raw = (self._key_pose_raw @ motion_raw).normalized()
+        # (the sliding window places such a keyframe with its own factors, so only the local refinement bridges)
+        blind = (_Blind(self._key_pose, self._key_pose_raw, dt, self._velocity)
+                 if status == StepStatus.PREDICTED and self._velocity is not None and self._sliding is None else None)
         self._latest = _Latest(obs.stamp, fix, motion, motion_raw, pose, pose_raw, pose_cov, cov, speed,
-                               landmarks=landmark_observations(self.rig, obs) if self._sliding is not None else None)
+                               landmarks=landmark_observations(self.rig, obs) if self._sliding is not None else None,
+                               blind=blind)
         if speed is not None:
             self._aids.add('the speed source')
         key_stamp = self._key_stamp
@@ -574,7 +603,22 @@ class Estimator:
         prefix_scale, self._prefix_scale_out = self._prefix_scale_out, 1.0
         return FrameResult(self._index, obs.stamp, status, pose, pose_raw, motion, motion_raw, cov,
                            pose_cov.copy(), message, tf, ba, key_stamp, scale_observed=observed,
-                           scale_note=self.scale_note(), prefix_scale=prefix_scale)
+                           scale_note=self.scale_note(), prefix_scale=prefix_scale, corrected=corrected)
+
+    def _rebridge(self, motion: Pose, motion_raw: Pose, dt: float) -> tuple[float, Pose, Pose] | None:
+        """The keyframe was reached by a blind step, predicted from the rates before it; now that the step out of
+        it is solved, give it the mean of the rates before and after (a turn that ends inside the blind step
+        is then half-counted, not continued for the whole step), and move the keyframe accordingly."""
+        b, self._key_blind = self._key_blind, None
+        if b is None or self._key_stamp is None or dt <= 0:
+            return None
+        after = (np.concatenate([motion.rvec(), motion.t]) / dt, np.concatenate([motion_raw.rvec(), motion_raw.t]) / dt)
+        step, step_raw = (Pose.from_rvec(0.5 * (v0[:3] + v1[:3]) * b.dt, 0.5 * (v0[3:] + v1[3:]) * b.dt)
+                          for v0, v1 in zip(b.rate, after, strict=True))
+        self._key_pose = (b.start @ step).normalized()
+        self._key_pose_raw = (b.start_raw @ step_raw).normalized()
+        self._window[-1].step = step
+        return self._key_stamp, self._key_pose, self._key_pose_raw
 
     def _promote(self) -> None:
         """The newest frame becomes the keyframe later flow starts from (refined by the sliding window)."""
@@ -597,9 +641,11 @@ class Estimator:
         self._window.append(_Slot(f.fixation, prev_pose.inverse() @ pose))
         self._speed.forget_before(self._key_stamp)     # later steps start at this keyframe or after
         pose_raw = f.pose_raw
-        if self._pending_prefix is not None:
+        rescaled = self._pending_prefix is not None
+        if rescaled:
             pose, pose_raw = self._rescale_prefix(pose, pose_raw)
         self._key_stamp, self._key_pose, self._key_pose_raw, self._key_cov = f.stamp, pose, pose_raw, f.pose_cov
+        self._key_blind = None if rescaled else f.blind
         self._latest = None
         self._attach_points()
 
@@ -616,6 +662,7 @@ class Estimator:
         """Apply a scale found late (a vergence distance) to everything built with the unobserved one."""
         assert self._sliding is not None
         self._sliding.rescale(s)
+        self._key_blind = None
         self._key_pose = Pose(self._key_pose.R, self._key_pose.t * s)
         self._key_cov = self._key_cov.copy()
         self._key_cov[3:, 3:] *= s * s
@@ -643,6 +690,15 @@ class Estimator:
                 self._aids.add('the vergence step')
         self._pending_points = kept
 
+    @staticmethod
+    def _step_rotation(pairs: RayPairs, prediction: tuple[Pose, Pose] | None) -> np.ndarray | None:
+        """The step's rotation vector before the solve, to put a speed source's velocities into the keyframe's
+        frame: the rotation-only fit of the step's rays (the translation is small against the depths), else
+        the constant-velocity prediction."""
+        if len(pairs) >= MIN_ROTATION_PAIRS:
+            return Pose(kabsch_rotation(pairs.a, pairs.b), np.zeros(3)).rvec()
+        return prediction[0].rvec() if prediction is not None else None
+
     def _predict(self, dt: float) -> tuple[Pose, Pose] | None:
         """Constant-velocity motion over ``dt`` (refined, raw), or None before the first solved step."""
         if self._velocity is None:
@@ -668,7 +724,7 @@ class Estimator:
             empty = (np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)))
             self._sliding.hold_open = not (self._aids or self._turned)
             self._key_pose = self._sliding.add(ref, self._key_pose, *empty, StepFactor(step, cov)).normalized()
-        self._key_stamp = ref
+        self._key_stamp, self._key_blind = ref, None
         # the missed frames' fixations are unknown: no fixation pair or BA term may span the gap
         self._window.append(_Slot({side: None for side in SIDES}, step))
         return f'{dt:.3f} s of missing frames bridged by a constant-velocity prediction'

@@ -631,9 +631,14 @@ class SpeedSamples:
         self.v.append(np.asarray(v, float).reshape(3))
         self.cov.append(np.asarray(cov, float).reshape(3, 3))
 
-    def translation(self, t0: float, t1: float) -> tuple[np.ndarray, np.ndarray] | None:
-        """Translation over [t0, t1] from the samples in it (or the nearest within ``max_age_s``), with its
-        covariance (errors taken as fully correlated over the interval: wheel slip is not white)."""
+    def translation(self, t0: float, t1: float, rotation: np.ndarray | None = None
+                    ) -> tuple[np.ndarray, np.ndarray] | None:
+        """Translation over [t0, t1] in the rig frame at ``t0``, from the samples in it (or the nearest within
+        ``max_age_s``), with its covariance (errors taken as fully correlated over the interval: wheel slip is
+        not white). ``rotation`` (rotation vector of the rig at ``t1`` in the rig at ``t0``) turns each sample
+        from the rig frame at its stamp into the one at ``t0``, at constant angular velocity: on an arc the
+        body-frame velocity stays forward while the step's chord turns by half the step's rotation, and a prior
+        left in the wrong frame would bend the solved rotation to fit it."""
         if not self.stamps or t1 <= t0:
             return None
         s = np.asarray(self.stamps)
@@ -646,8 +651,12 @@ class SpeedSamples:
             inside[near] = True
         idx = np.flatnonzero(inside)
         dt = t1 - t0
-        v = np.mean([self.v[i] for i in idx], axis=0)
-        cov = np.mean([self.cov[i] for i in idx], axis=0)
+        phi = np.zeros(3) if rotation is None else np.asarray(rotation, float).reshape(3)
+        # the rig frame at a sample's stamp in the one at t0 (the nearest sample outside counts as mid-step)
+        frac = [min(max((s[i] - t0) / dt, 0.0), 1.0) if t0 - 1e-9 <= s[i] <= t1 + 1e-9 else 0.5 for i in idx]
+        rots = [exp_so3(phi * f) for f in frac]
+        v = np.mean([R @ self.v[i] for R, i in zip(rots, idx, strict=True)], axis=0)
+        cov = np.mean([R @ self.cov[i] @ R.T for R, i in zip(rots, idx, strict=True)], axis=0)
         return v * dt, cov * dt * dt
 
     def forget_before(self, t: float) -> None:

@@ -73,6 +73,9 @@ class TwoFrameResult:
         return np.sqrt(np.clip(np.diag(self.covariance)[3:], 0.0, VAR_MAX))
 
 
+MIN_ROTATION_PAIRS = 8           # ray pairs for a Kabsch rotation worth predicting with
+
+
 def kabsch_rotation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Rotation R minimising sum |a_i - R b_i|^2 (rotation-only fit of ray pairs)."""
     H = b.T @ a

@@ -278,6 +278,17 @@ class EstimatorNode(Node):
                 p.x, p.y, p.z = p.x * k, p.y * k, p.z * k
         self.get_logger().info(f'scale measured: the {len(self.path)} path poses so far rescaled by {k:.3f}')
 
+    def _correct_last(self, stamp: float, pose: Pose, pose_raw: Pose) -> None:
+        """A blind step (nothing seen across it) was re-estimated once the step after it was solved: the path's
+        last pose, that frame's, is replaced (the pose and odometry published then stay as they were)."""
+        pose, pose_raw = rig_pose_to_base_link(pose), rig_pose_to_base_link(pose_raw)
+        if not (self.path and pose.is_finite() and pose_raw.is_finite()
+                and abs(stamp_to_sec(self.path[-1].header.stamp) - stamp) <= 1e-6):
+            return
+        self.path[-1] = self._stamped(self.path[-1].header.stamp, pose)
+        self.path_raw[-1] = self._stamped(self.path_raw[-1].header.stamp, pose_raw)
+        self.stats['blind_steps_bridged'] = self.stats.get('blind_steps_bridged', 0) + 1
+
     def _publish(self, stamp, res: FrameResult) -> None:
         pose = rig_pose_to_base_link(res.pose)
         pose_raw = rig_pose_to_base_link(res.pose_raw)
@@ -286,6 +297,8 @@ class EstimatorNode(Node):
             return
         if res.prefix_scale != 1.0 and math.isfinite(res.prefix_scale):
             self._rescale_paths(res.prefix_scale)
+        if res.corrected is not None:
+            self._correct_last(*res.corrected)
         ps = self._stamped(stamp, pose)
         self.pub_pose.publish(ps)
         self.path.append(ps)

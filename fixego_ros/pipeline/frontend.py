@@ -60,7 +60,7 @@ import cv2
 import numpy as np
 
 from fixego_ros.estimation.estimator import CameraFrame, FrameObservation
-from fixego_ros.estimation.twoframe import kabsch_rotation
+from fixego_ros.estimation.twoframe import MIN_ROTATION_PAIRS, kabsch_rotation
 from fixego_ros.geometry.rig import SIDES, Rig
 from fixego_ros.geometry.rotation import exp_so3, log_so3, rotation_angle
 from fixego_ros.tracking.flow import (
@@ -86,7 +86,6 @@ BAD_JOINTS = 'bad_joints'        # non-finite pan/tilt readings
 LK_PREDICTED = 'predicted'       # from the predicted positions
 LK_ZERO = 'zero'                 # the prediction failed for most points; zero motion did better
 LK_STEREO = 'stereo'             # ... and the rotation the other camera measured over this step did better
-MIN_ROTATION_PAIRS = 8           # pairs for a Kabsch rotation worth predicting with
 
 
 @dataclass

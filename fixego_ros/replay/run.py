@@ -163,6 +163,7 @@ class _Estimate:
     pose_raw: Pose
     ms: float
     prefix_scale: float = 1.0       # the scale was measured here: earlier positions are multiplied by it
+    corrected: tuple[float, Pose, Pose] | None = None   # a blind step re-estimated: (stamp, pose, pose_raw)
 
 
 @dataclass
@@ -194,8 +195,12 @@ def _add_point(estimator: Estimator, p: _FixationPoint) -> _Refused | None:
 def _update(estimator: Estimator, stamp: float, obs) -> _Estimate:
     t0 = time.perf_counter()
     r = estimator.update(obs)
+    corrected = None
+    if r.corrected is not None:
+        c_stamp, c_pose, c_raw = r.corrected
+        corrected = (c_stamp, rig_pose_to_base_link(c_pose), rig_pose_to_base_link(c_raw))
     return _Estimate(stamp, r.placed, r.status.value, r.message, rig_pose_to_base_link(r.pose),
-                     rig_pose_to_base_link(r.pose_raw), (time.perf_counter() - t0) * 1e3, r.prefix_scale)
+                     rig_pose_to_base_link(r.pose_raw), (time.perf_counter() - t0) * 1e3, r.prefix_scale, corrected)
 
 
 @dataclass
@@ -521,6 +526,10 @@ def replay(bag: Bag, rig: Rig, settings: ReplaySettings, topics: ReplayTopics = 
                                         f'rescaled by {e.prefix_scale:.3f}')
             res.poses = [Pose(p.R, p.t * e.prefix_scale) for p in res.poses]
             res.poses_raw = [Pose(p.R, p.t * e.prefix_scale) for p in res.poses_raw]
+        if e.corrected is not None and res.stamps and abs(res.stamps[-1] - e.corrected[0]) <= 1e-6 \
+                and e.corrected[1].is_finite() and e.corrected[2].is_finite():
+            res.poses[-1], res.poses_raw[-1] = e.corrected[1], e.corrected[2]   # a blind step bridged late
+            res.counts['blind_steps_bridged'] += 1
         if not (e.pose.is_finite() and e.pose_raw.is_finite()):
             res.note('non_finite_pose', f'frame at {e.stamp:.3f} s: non-finite pose left out')
             continue
