@@ -105,6 +105,18 @@ def _cloud(obs, t: float):
     return table_to_cloud(observation_to_rows(obs), sec_to_stamp(t), 'rig')
 
 
+def _synthetic_estimator_node(ros_context, rig, tmp_path, *extra: Parameter):
+    """estimator_node on ``rig`` with the bounds opened for synthetic data (long steps, old stamps), plus ``extra``."""
+    from fixego_ros.nodes.estimator_node import EstimatorNode
+
+    rig_file = tmp_path / 'rig.yaml'
+    rig.save(rig_file)
+    return EstimatorNode(context=ros_context, parameter_overrides=[
+        Parameter('rig_file', value=str(rig_file)), Parameter('max_step_translation', value=2.0),
+        Parameter('max_speed', value=100.0), Parameter('max_lag_s', value=1e12),
+        Parameter('max_keyframe_lag_s', value=1e12), *extra])
+
+
 def test_estimator_node_publishes_trajectory_resets_and_survives_bad_input(ros_context, clean_sequence, tmp_path):
     from geometry_msgs.msg import PoseStamped
     from nav_msgs.msg import Odometry, Path
@@ -113,16 +125,9 @@ def test_estimator_node_publishes_trajectory_resets_and_survives_bad_input(ros_c
     from std_srvs.srv import Trigger
 
     from fixego_ros.nodes.common import RELIABLE_QOS, msg_to_pose
-    from fixego_ros.nodes.estimator_node import EstimatorNode
-
     rig, poses, clean = clean_sequence
-    rig_file = tmp_path / 'rig.yaml'
-    rig.save(rig_file)
-    node = EstimatorNode(context=ros_context, parameter_overrides=[
-        Parameter('rig_file', value=str(rig_file)), Parameter('max_step_translation', value=2.0),
-        Parameter('max_speed', value=100.0), Parameter('max_lag_s', value=1e12),
-        Parameter('max_keyframe_lag_s', value=1e12),
-        Parameter('constant_speed', value=False)])   # noise-free rays: the lever arm gives the lengths here
+    # noise-free rays: the lever arm gives the lengths here
+    node = _synthetic_estimator_node(ros_context, rig, tmp_path, Parameter('constant_speed', value=False))
     probe = rclpy.create_node('probe', context=ros_context)
     ex = executor_for(ros_context, node, probe)
     pose_msgs: list[PoseStamped] = []
@@ -194,16 +199,10 @@ def test_estimator_node_rejects_future_stamps_counts_disorder_and_resets_on_a_cl
     from sensor_msgs.msg import PointCloud2
 
     from fixego_ros.nodes.common import RELIABLE_QOS, msg_to_pose, stamp_to_sec
-    from fixego_ros.nodes.estimator_node import EstimatorNode
-
     rig, _, clean = clean_sequence
-    rig_file = tmp_path / 'rig.yaml'
-    rig.save(rig_file)
-    node = EstimatorNode(context=ros_context, parameter_overrides=[
-        Parameter('rig_file', value=str(rig_file)), Parameter('max_step_translation', value=2.0),
-        Parameter('max_speed', value=100.0), Parameter('max_lag_s', value=1e12),
-        Parameter('max_keyframe_lag_s', value=1e12), Parameter('backward_reset_count', value=3),
-        Parameter('backward_reset_s', value=60.0), Parameter('diagnostics_period_s', value=0.05)])
+    node = _synthetic_estimator_node(ros_context, rig, tmp_path, Parameter('backward_reset_count', value=3),
+                                     Parameter('backward_reset_s', value=60.0),
+                                     Parameter('diagnostics_period_s', value=0.05))
     probe = rclpy.create_node('probe', context=ros_context)
     ex = executor_for(ros_context, node, probe)
     poses: list[PoseStamped] = []

@@ -234,6 +234,11 @@ class _Blind:
     rate: tuple[np.ndarray, np.ndarray]   # [rvec, t] per second before it (refined, raw)
 
 
+def _motion_at(rate: np.ndarray, dt: float) -> Pose:
+    """The motion over ``dt`` at a constant ``rate`` ([rotation vector, translation] per second)."""
+    return Pose.from_rvec(rate[:3] * dt, rate[3:] * dt)
+
+
 # frames kept for a vergence measurement that arrives after its frame (~10 s at 10 Hz)
 ANCHOR_HISTORY = 100
 
@@ -533,7 +538,8 @@ class Estimator:
         prediction = self._predict(dt)
         start = self._latest.motion_raw if self._latest is not None else (prediction[1] if prediction else None)
         cfg = self.config
-        speed = self._speed.translation(self._key_stamp, obs.stamp, self._step_rotation(pairs, prediction))
+        rotation = self._step_rotation(pairs, prediction) if self._speed.stamps else None   # (no SVD without one)
+        speed = self._speed.translation(self._key_stamp, obs.stamp, rotation)
         if speed is not None:
             sigma = math.sqrt(max(float(np.max(np.linalg.eigvalsh(speed[1]))), 1e-12))
             tf = self.solver.solve(pairs, initial=start, prior_t=speed[0], prior_sigma_t=sigma)
@@ -577,7 +583,7 @@ class Estimator:
             cov = np.diag([1e-2] * 3 + [VAR_MAX] * 3)
             status = StepStatus(tf.status if not tf.status.usable else StepStatus.REJECTED)
             message = why + '; held'
-        corrected = self._rebridge(motion, motion_raw, dt) if accepted else None
+        corrected = self._rebridge() if accepted else None
         pose_cov = self._propagate(self._key_pose, self._key_cov, motion, cov)
         pose = (self._key_pose @ motion).normalized()
         pose_raw = (self._key_pose_raw @ motion_raw).normalized()
@@ -605,16 +611,16 @@ class Estimator:
                            pose_cov.copy(), message, tf, ba, key_stamp, scale_observed=observed,
                            scale_note=self.scale_note(), prefix_scale=prefix_scale, corrected=corrected)
 
-    def _rebridge(self, motion: Pose, motion_raw: Pose, dt: float) -> tuple[float, Pose, Pose] | None:
+    def _rebridge(self) -> tuple[float, Pose, Pose] | None:
         """The keyframe was reached by a blind step, predicted from the rates before it; now that the step out of
-        it is solved, give it the mean of the rates before and after (a turn that ends inside the blind step
-        is then half-counted, not continued for the whole step), and move the keyframe accordingly."""
+        it is solved (its rates are ``_velocity``), give it the mean of the rates before and after (a turn that
+        ends inside the blind step is then half-counted, not continued for the whole step), and move the
+        keyframe accordingly."""
         b, self._key_blind = self._key_blind, None
-        if b is None or self._key_stamp is None or dt <= 0:
+        if b is None or self._key_stamp is None or self._velocity is None:
             return None
-        after = (np.concatenate([motion.rvec(), motion.t]) / dt, np.concatenate([motion_raw.rvec(), motion_raw.t]) / dt)
-        step, step_raw = (Pose.from_rvec(0.5 * (v0[:3] + v1[:3]) * b.dt, 0.5 * (v0[3:] + v1[3:]) * b.dt)
-                          for v0, v1 in zip(b.rate, after, strict=True))
+        step, step_raw = (_motion_at(0.5 * (before + after), b.dt)
+                          for before, after in zip(b.rate, self._velocity, strict=True))
         self._key_pose = (b.start @ step).normalized()
         self._key_pose_raw = (b.start_raw @ step_raw).normalized()
         self._window[-1].step = step
@@ -704,7 +710,7 @@ class Estimator:
         if self._velocity is None:
             return None
         v, v_raw = self._velocity
-        return (Pose.from_rvec(v[:3] * dt, v[3:] * dt), Pose.from_rvec(v_raw[:3] * dt, v_raw[3:] * dt))
+        return _motion_at(v, dt), _motion_at(v_raw, dt)
 
     def _bridge(self, ref: float) -> str:
         """Advance the keyframe over frames that never arrived (keyframe -> ``ref``) at constant velocity."""

@@ -642,18 +642,17 @@ class SpeedSamples:
         if not self.stamps or t1 <= t0:
             return None
         s = np.asarray(self.stamps)
-        inside = (s >= t0 - 1e-9) & (s <= t1 + 1e-9)
-        if not np.any(inside):
-            near = np.argmin(np.abs(s - 0.5 * (t0 + t1)))
+        dt = t1 - t0
+        idx = np.flatnonzero((s >= t0 - 1e-9) & (s <= t1 + 1e-9))
+        # where each sample lies in the step (its rig frame turned that far); the nearest one outside counts as mid-step
+        if len(idx):
+            frac = np.clip((s[idx] - t0) / dt, 0.0, 1.0)
+        else:
+            near = int(np.argmin(np.abs(s - 0.5 * (t0 + t1))))
             if abs(s[near] - 0.5 * (t0 + t1)) > self.max_age_s:
                 return None
-            inside = np.zeros(len(s), bool)
-            inside[near] = True
-        idx = np.flatnonzero(inside)
-        dt = t1 - t0
+            idx, frac = np.array([near]), np.array([0.5])
         phi = np.zeros(3) if rotation is None else np.asarray(rotation, float).reshape(3)
-        # the rig frame at a sample's stamp in the one at t0 (the nearest sample outside counts as mid-step)
-        frac = [min(max((s[i] - t0) / dt, 0.0), 1.0) if t0 - 1e-9 <= s[i] <= t1 + 1e-9 else 0.5 for i in idx]
         rots = [exp_so3(phi * f) for f in frac]
         v = np.mean([R @ self.v[i] for R, i in zip(rots, idx, strict=True)], axis=0)
         cov = np.mean([R @ self.cov[i] @ R.T for R, i in zip(rots, idx, strict=True)], axis=0)
