@@ -140,7 +140,7 @@ def test_estimator_node_publishes_trajectory_resets_and_survives_bad_input(ros_c
     for k in paths:
         probe.create_subscription(Path, f'/fixego/{k}', paths[k].append, RELIABLE_QOS)
     pub = probe.create_publisher(PointCloud2, '/fixego/flow/observation', RELIABLE_QOS)
-    reset = probe.create_client(Trigger, '/estimator_node/reset')
+    reset = probe.create_client(Trigger, '/fixego/estimator_node/reset')
     assert spin_until(ex, lambda: pub.get_subscription_count() > 0, 10.0)
     try:
         n = len(clean)

@@ -39,6 +39,7 @@ from fixego_ros.nodes.common import (
     OnceLogger,
     declare_parameters,
     diagnostic_status,
+    in_namespace,
     publish_diagnostics,
     run_node,
     set_timer_period,
@@ -61,7 +62,7 @@ LIVE_SYNC = ('slop_s', 'max_wait_s', 'joint_extrapolation_s')
 
 class FlowNode(Node):
     def __init__(self, **kwargs) -> None:
-        super().__init__('flow_node', **kwargs)
+        super().__init__('flow_node', **in_namespace(kwargs))
         self.params = g = declare_parameters(self, PARAMS)
         rig_notes: list[str] = []
         self.rig = load_rig(g('rig_file') or default_rig_path(), warnings=rig_notes)
@@ -74,7 +75,7 @@ class FlowNode(Node):
         self.pub_obs = self.create_publisher(PointCloud2, str(g('observation_topic')), RELIABLE_QOS)
         self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', RELIABLE_QOS)
         for side in SIDES:
-            ns = f'/fixego/{side}'
+            ns = side
             self.create_subscription(Image, f'{ns}/image_raw', lambda m, s=side: self._on_image(s, m), SENSOR_QOS)
             self.create_subscription(JointState, f'{ns}/joint_states', lambda m, s=side: self._on_joints(s, m),
                                      RELIABLE_QOS)

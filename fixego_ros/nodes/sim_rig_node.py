@@ -39,6 +39,7 @@ from fixego_ros.nodes.common import (
     array_to_image,
     declare_parameters,
     diagnostic_status,
+    in_namespace,
     publish_diagnostics,
     run_node,
 )
@@ -57,7 +58,7 @@ class SimRigNode(Node):
     """Renders the rig's two cameras from the trajectory and the emulated heads' true angles."""
 
     def __init__(self, **kwargs) -> None:
-        super().__init__('sim_rig_node', **kwargs)
+        super().__init__('sim_rig_node', **in_namespace(kwargs))
         g = declare_parameters(self, PARAMS)
         g.start(lambda changes, getter: None, ())      # every parameter is read-only
         p = {name: g(name) for name in PARAMS}
@@ -95,11 +96,11 @@ class SimRigNode(Node):
         self.get_logger().info(f'VISCA emulators: right {self.ptys["right"]}, left {self.ptys["left"]} '
                                f'(written to {p["pty_file"] or "-"})')
 
-        self.pub_image = {s: self.create_publisher(Image, f'/fixego/{s}/image_raw', SENSOR_QOS) for s in SIDES}
-        self.pub_info = {s: self.create_publisher(CameraInfo, f'/fixego/{s}/camera_info', SENSOR_QOS)
+        self.pub_image = {s: self.create_publisher(Image, f'{s}/image_raw', SENSOR_QOS) for s in SIDES}
+        self.pub_info = {s: self.create_publisher(CameraInfo, f'{s}/camera_info', SENSOR_QOS)
                          for s in SIDES}
         self._info = {s: camera_info_msg(self.rig, s, 0.0) for s in SIDES}   # constant but for the stamp
-        self.pub_gt = self.create_publisher(PoseStamped, '/fixego/ground_truth/pose', RELIABLE_QOS)
+        self.pub_gt = self.create_publisher(PoseStamped, 'ground_truth/pose', RELIABLE_QOS)
         self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', RELIABLE_QOS)
 
         self.frames = 0
