@@ -158,7 +158,7 @@ def _node_process(module: str, *ros_args: str) -> subprocess.CompletedProcess:
 def test_node_refuses_a_bad_parameter_at_start_with_one_line_and_exit_2(tmp_path, module, args, expect):
     if args == 'params_file':
         f = tmp_path / 'p.yaml'
-        f.write_text('estimator_node:\n  ros__parameters:\n    max_lag_s: -1.0\n')
+        f.write_text('/**/estimator_node:\n  ros__parameters:\n    max_lag_s: -1.0\n')    # in any namespace
         args = ('--params-file', str(f))
     p = _node_process(module, *args)
     assert p.returncode == 2, p.stderr
@@ -226,7 +226,7 @@ def test_estimator_node_run_time_changes_over_the_parameter_service(ros_context,
     node = EstimatorNode(context=ros_context, parameter_overrides=[Parameter('rig_file', value=_rig_file(tmp_path))])
     probe = rclpy.create_node('param_probe', context=ros_context)
     ex = executor_for(ros_context, node, probe)
-    client = AsyncParameterClient(probe, 'estimator_node')
+    client = AsyncParameterClient(probe, '/fixego/estimator_node')
     try:
         assert spin_until(ex, lambda: client.services_are_ready(), 10.0)
 

@@ -5,7 +5,10 @@ each camera's view from the rig pose and the *true* pan/tilt of that camera's VI
 real ``camera_node``s driving the emulators over serial close the fixation loop exactly as on a rig.
 It publishes images and camera_info for both cameras, the true pose on ``/fixego/ground_truth/pose``
 (``base_link`` in ``odom``, ``odom`` = base_link at the first frame), and ``/diagnostics``. The pty
-paths are logged and written as JSON ``{"right": ..., "left": ...}`` to ``pty_file``.
+paths are logged and written as JSON ``{"right": ..., "left": ...}`` to ``pty_file``; with ``pty_link_dir``
+the node also makes ``<pty_link_dir>/right`` and ``.../left`` symlinks to them, so camera nodes started at the
+same time can be given those paths as ports (``sim.launch.py``: a fresh directory per launch, so a link left by
+a killed run can never send VISCA bytes to an unrelated terminal; the camera nodes retry until it appears).
 
 When the trajectory ends it publishes a final diagnostics status and, with ``exit_at_end``, stops
 (``main`` returns); otherwise it keeps rendering the final pose (or loops, with ``loop``).
@@ -93,6 +96,7 @@ class SimRigNode(Node):
             self.ptys[side] = emu.start()
             self.emulators[side] = emu
         self._write_pty_file()
+        self._links = self._make_pty_links()
         self.get_logger().info(f'VISCA emulators: right {self.ptys["right"]}, left {self.ptys["left"]} '
                                f'(written to {p["pty_file"] or "-"})')
 
@@ -123,6 +127,22 @@ class SimRigNode(Node):
         tmp = path.with_name(f'.{path.name}.{os.getpid()}')
         tmp.write_text(json.dumps(self.ptys))
         os.replace(tmp, path)
+
+    def _make_pty_links(self) -> list[Path]:
+        """``<pty_link_dir>/<side>`` -> the emulator's own stable link to its pty (replaced atomically)."""
+        if not self.p['pty_link_dir']:
+            return []
+        directory = Path(self.p['pty_link_dir'])
+        directory.mkdir(parents=True, exist_ok=True)
+        links = []
+        for side, emu in self.emulators.items():
+            link, tmp = directory / side, directory / f'.{side}.{os.getpid()}'
+            tmp.unlink(missing_ok=True)
+            os.symlink(emu.link_path or self.ptys[side], tmp)
+            os.replace(tmp, link)
+            links.append(link)
+        self.get_logger().info(f'pty links: {", ".join(map(str, links))}')
+        return links
 
     def sim_time(self, now: float) -> float:
         """Trajectory time at monotonic time ``now`` (0 until started)."""
@@ -207,6 +227,8 @@ class SimRigNode(Node):
         """Stop the emulators and remove the pty file if it is still ours."""
         for emu in self.emulators.values():
             emu.stop()
+        for link in getattr(self, '_links', []):
+            link.unlink(missing_ok=True)
         path = self.p.get('pty_file')
         if path and os.path.exists(path):
             try:

@@ -441,6 +441,8 @@ SIM_RIG_NODE_PARAMS: Table = _table(
     _bool('wait_for_start', False, 'hold the rig at the start pose (still rendering) until ~/start is called, so '
                                    'the other nodes can come up and fixate first'),
     _str('pty_file', '/tmp/fixego_sim_ptys.json', 'JSON file receiving the two pty paths'),
+    _str('pty_link_dir', '', "also make symlinks <dir>/right and <dir>/left to the ptys (camera_node ports known "
+                             "before the node starts; sim.launch.py); '' = none"),
     _str('profile', 'evi_d30', 'VISCA camera profile of the emulators'),
     _num('baud', 9600, 'emulated serial baud rate', ge=1200, le=115200),
     _num('start_pan_deg_right', 22.5, 'initial pan of the right head (deg)', ge=-180.0, le=180.0),
