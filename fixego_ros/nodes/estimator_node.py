@@ -318,7 +318,7 @@ class EstimatorNode(Node):
         self.path_raw.append(self._stamped(stamp, pose_raw))
         self._paths_pending = True
         self._last_pose_wall = time.monotonic()
-        if self.path_period == 0 or self._path_stamp is None or res.stamp - self._path_stamp >= self.path_period:
+        if self.path_period == 0 or self._path_stamp is None or res.stamp - self._path_stamp >= self.path_period - 1e-6:
             self._publish_paths()
         self.pub_odom.publish(self._odometry(stamp, pose, res))
         if self.tf is not None:
