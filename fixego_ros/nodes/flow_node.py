@@ -1,11 +1,12 @@
 """flow_node: synchronised stereo frames in, one flow observation per frame out.
 
-Subscribes each camera's ``image_raw`` (sensor-data QoS), ``joint_states`` and ``fixation`` (from
+Topics are relative names in the node namespace (default ``/fixego``). Subscribes each camera's
+``<side>/image_raw`` (sensor-data QoS), ``joint_states`` and ``fixation`` (from
 ``camera_node``), matches them by stamp (:class:`~fixego_ros.pipeline.sync.StereoSync`, bounded waits),
 keeps persistent point tracks in a window around each fixation point (pyramidal Lucas-Kanade frame to
 frame from positions predicted by the pan/tilt readings and the rig's angular velocity, epipolar RANSAC)
 and turns every point into rig-frame rays with the pan/tilt of its frame
-(:class:`~fixego_ros.pipeline.frontend.StereoFrontEnd`). Publishes ``/fixego/flow/observation``
+(:class:`~fixego_ros.pipeline.frontend.StereoFrontEnd`). Publishes ``flow/observation``
 (sensor_msgs/PointCloud2 rows: cameras, flow pairs keyframe -> t, live tracks;
 :mod:`fixego_ros.pipeline.observation`) and ``/diagnostics``. A frame with one camera only gives a
 one-camera observation; dropped frames show up as a gap between the observation's ``t0`` and the

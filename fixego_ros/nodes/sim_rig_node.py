@@ -3,12 +3,13 @@
 The node moves the rig along a trajectory in (scaled) wall-clock time and, at the frame rate, renders
 each camera's view from the rig pose and the *true* pan/tilt of that camera's VISCA emulator, so two
 real ``camera_node``s driving the emulators over serial close the fixation loop exactly as on a rig.
-It publishes images and camera_info for both cameras, the true pose on ``/fixego/ground_truth/pose``
-(``base_link`` in ``odom``, ``odom`` = base_link at the first frame), and ``/diagnostics``. The pty
-paths are logged and written as JSON ``{"right": ..., "left": ...}`` to ``pty_file``; with ``pty_link_dir``
-the node also makes ``<pty_link_dir>/right`` and ``.../left`` symlinks to them, so camera nodes started at the
-same time can be given those paths as ports (``sim.launch.py``: a fresh directory per launch, so a link left by
-a killed run can never send VISCA bytes to an unrelated terminal; the camera nodes retry until it appears).
+It publishes images and camera_info for both cameras, the true pose on ``ground_truth/pose`` (relative
+names, namespace ``/fixego`` by default; ``base_link`` in ``odom``, ``odom`` = base_link at the first frame),
+and ``/diagnostics``. The pty paths are logged and written as JSON ``{"right": ..., "left": ...}`` to
+``pty_file``; with ``pty_link_dir`` the node also makes ``<pty_link_dir>/right`` and ``.../left`` symlinks to
+them, so camera nodes started at the same time can be given those paths as ports (``sim.launch.py``: a fresh
+directory per launch, so a link left by a killed run can never send VISCA bytes to an unrelated terminal; the
+camera nodes retry until it appears).
 
 When the trajectory ends it publishes a final diagnostics status and, with ``exit_at_end``, stops
 (``main`` returns); otherwise it keeps rendering the final pose (or loops, with ``loop``).
