@@ -373,3 +373,33 @@ def test_numbers_written_without_a_dot_are_numbers():
         spec.check('1e308')
     with pytest.raises(ParamsError, match='is not a YAML value'):
         parse_value('min_eig', '[')
+
+
+def test_generated_files_apply_under_any_node_name_but_replay_gives_each_to_its_node(tmp_path):
+    """config/<node>.yaml is one /** block (ROS applies it to the node whatever its name or namespace); its
+    marker line tells fixego replay, which reads several nodes' files, whose block it is: fb_max_px is the
+    fixation tracker's (1.0) in camera_node.yaml and the flow's (0.5) in flow_node.yaml, in either order."""
+    import argparse
+
+    import yaml
+
+    from fixego_ros.geometry.rig import load_rig
+    from fixego_ros.pipeline.params import file_node
+    from fixego_ros.replay.cli import settings_from_args
+
+    for node in NODE_PARAMS:
+        path = CONFIG / f'{node}.yaml'
+        assert list(yaml.safe_load(path.read_text())) == ['/**'] and file_node(path) == node
+    assert load_params_file(CONFIG / 'camera_node.yaml', 'flow_node') == {}
+    assert load_params_file(CONFIG / 'flow_node.yaml', 'camera_node') == {}
+    rig = load_rig(CONFIG / 'rig.yaml')
+    files = [CONFIG / 'camera_node.yaml', CONFIG / 'flow_node.yaml', CONFIG / 'estimator_node.yaml']
+    for order in (files, files[::-1]):
+        args = argparse.Namespace(params_file=order, preset=None, keyframe_max_frames=None, window=None, mode=None,
+                                  speed_topic=None, speed_default_std=None, param=[], vergence_topic=None)
+        s = settings_from_args(args, rig)
+        assert s.fixation.fb_max_px == 1.0 and s.flow.fb_max_px == 0.5
+    # a file without the marker: its /** block reaches every node that has the parameter, as in ROS
+    f = tmp_path / 'p.yaml'
+    f.write_text('/**:\n  ros__parameters:\n    fb_max_px: 0.8\n')
+    assert load_params_file(f, 'camera_node') == {'fb_max_px': 0.8} == load_params_file(f, 'flow_node')
