@@ -110,7 +110,7 @@ def test_active_node_converges_and_publishes_consistent_joint_states(ros_context
         assert len(joints) > 0.8 * len(truth) - 10
         assert math.degrees(float(np.percentile(jerr, 95))) < 0.2, math.degrees(max(jerr))
         # --- ~/reselect gives a new fixation id
-        cli = peer.create_client(Trigger, '/camera_node/reselect')
+        cli = peer.create_client(Trigger, '/fixego/camera_node/reselect')
         assert cli.wait_for_service(timeout_sec=2.0)
         fut = cli.call_async(Trigger.Request())
         assert spin_until(ex, fut.done, timeout_s=3.0) and fut.result().success
@@ -158,7 +158,7 @@ def test_passive_node_tracks_without_serial(ros_context, rig_file):
         assert np.allclose(np.diff(xs), 2.0, atol=0.05)
         assert len(node.history) >= 10 and all(len(j.name) == 2 for j in joints_seen)
         assert len(joints_seen) == 15     # only ours: a passive node publishes no joint states
-        cli = peer.create_client(Trigger, '/camera_node/home')
+        cli = peer.create_client(Trigger, '/fixego/camera_node/home')
         assert cli.wait_for_service(timeout_sec=2.0)
         fut = cli.call_async(Trigger.Request())
         assert spin_until(ex, fut.done, timeout_s=3.0) and not fut.result().success
@@ -346,7 +346,7 @@ def test_left_node_repeats_vergence_steps_on_start_up_request_and_right_reselect
         assert until(lambda: len(got) >= 2 and left.vergence is None, 20.0), left.vergence_state
         check(got[1])
         # 3. the right camera re-selects its point (a new fixation id): a step for it
-        cli = probe.create_client(Trigger, '/right_camera_node/reselect')
+        cli = probe.create_client(Trigger, '/fixego/right_camera_node/reselect')
         assert cli.wait_for_service(timeout_sec=5.0)
         fut = cli.call_async(Trigger.Request())
         assert until(fut.done, 5.0) and fut.result().success

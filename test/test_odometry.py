@@ -155,7 +155,7 @@ def test_unusable_vergence_messages_are_rejected_with_the_reason(kwargs, match):
 
 
 def test_config_file_lists_the_speed_parameters_with_their_defaults():
-    params = yaml.safe_load((CONFIG / 'estimator_node.yaml').read_text())['estimator_node']['ros__parameters']
+    params = yaml.safe_load((CONFIG / 'estimator_node.yaml').read_text())['/**']['ros__parameters']
     for name, (default, text) in SPEED_PARAMS.items():
         assert params[name] == default and text, name
     assert SPEED_PARAMS['speed_topic'][0] == ''        # off by default

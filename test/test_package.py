@@ -34,6 +34,8 @@ def test_colcon_build_installs_executables_and_ament_marker(tmp_path):
     assert (install / 'share' / 'ament_index' / 'resource_index' / 'packages' / 'fixego_ros').exists()
     assert (install / 'share' / 'fixego_ros' / 'package.xml').exists()
     assert (install / 'share' / 'fixego_ros' / 'config' / 'rig.yaml').exists()
+    for launch in ('fixego.launch.py', 'sim.launch.py', 'replay.launch.py'):
+        assert (install / 'share' / 'fixego_ros' / 'launch' / launch).exists(), launch
     scripts = _console_scripts()
     assert 'fixego' in scripts
     for exe in scripts:

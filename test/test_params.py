@@ -158,7 +158,7 @@ def _node_process(module: str, *ros_args: str) -> subprocess.CompletedProcess:
 def test_node_refuses_a_bad_parameter_at_start_with_one_line_and_exit_2(tmp_path, module, args, expect):
     if args == 'params_file':
         f = tmp_path / 'p.yaml'
-        f.write_text('estimator_node:\n  ros__parameters:\n    max_lag_s: -1.0\n')
+        f.write_text('/**/estimator_node:\n  ros__parameters:\n    max_lag_s: -1.0\n')    # in any namespace
         args = ('--params-file', str(f))
     p = _node_process(module, *args)
     assert p.returncode == 2, p.stderr
@@ -226,7 +226,7 @@ def test_estimator_node_run_time_changes_over_the_parameter_service(ros_context,
     node = EstimatorNode(context=ros_context, parameter_overrides=[Parameter('rig_file', value=_rig_file(tmp_path))])
     probe = rclpy.create_node('param_probe', context=ros_context)
     ex = executor_for(ros_context, node, probe)
-    client = AsyncParameterClient(probe, 'estimator_node')
+    client = AsyncParameterClient(probe, '/fixego/estimator_node')
     try:
         assert spin_until(ex, lambda: client.services_are_ready(), 10.0)
 
@@ -373,3 +373,33 @@ def test_numbers_written_without_a_dot_are_numbers():
         spec.check('1e308')
     with pytest.raises(ParamsError, match='is not a YAML value'):
         parse_value('min_eig', '[')
+
+
+def test_generated_files_apply_under_any_node_name_but_replay_gives_each_to_its_node(tmp_path):
+    """config/<node>.yaml is one /** block (ROS applies it to the node whatever its name or namespace); its
+    marker line tells fixego replay, which reads several nodes' files, whose block it is: fb_max_px is the
+    fixation tracker's (1.0) in camera_node.yaml and the flow's (0.5) in flow_node.yaml, in either order."""
+    import argparse
+
+    import yaml
+
+    from fixego_ros.geometry.rig import load_rig
+    from fixego_ros.pipeline.params import file_node
+    from fixego_ros.replay.cli import settings_from_args
+
+    for node in NODE_PARAMS:
+        path = CONFIG / f'{node}.yaml'
+        assert list(yaml.safe_load(path.read_text())) == ['/**'] and file_node(path) == node
+    assert load_params_file(CONFIG / 'camera_node.yaml', 'flow_node') == {}
+    assert load_params_file(CONFIG / 'flow_node.yaml', 'camera_node') == {}
+    rig = load_rig(CONFIG / 'rig.yaml')
+    files = [CONFIG / 'camera_node.yaml', CONFIG / 'flow_node.yaml', CONFIG / 'estimator_node.yaml']
+    for order in (files, files[::-1]):
+        args = argparse.Namespace(params_file=order, preset=None, keyframe_max_frames=None, window=None, mode=None,
+                                  speed_topic=None, speed_default_std=None, param=[], vergence_topic=None)
+        s = settings_from_args(args, rig)
+        assert s.fixation.fb_max_px == 1.0 and s.flow.fb_max_px == 0.5
+    # a file without the marker: its /** block reaches every node that has the parameter, as in ROS
+    f = tmp_path / 'p.yaml'
+    f.write_text('/**:\n  ros__parameters:\n    fb_max_px: 0.8\n')
+    assert load_params_file(f, 'camera_node') == {'fb_max_px': 0.8} == load_params_file(f, 'flow_node')

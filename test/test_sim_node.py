@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import time
 
 import numpy as np
@@ -50,8 +51,10 @@ def test_images_follow_visca_commands(ros_context, tmp_path):
     overrides = [Parameter('trajectory', value='straight'), Parameter('time_scale', value=0.0),
                  Parameter('noise_sigma', value=0.0), Parameter('width', value=160),
                  Parameter('height', value=120), Parameter('texel', value=0.006), Parameter('fps', value=20.0),
-                 Parameter('pty_file', value=str(pty_file)), Parameter('exit_at_end', value=False)]
+                 Parameter('pty_file', value=str(pty_file)), Parameter('exit_at_end', value=False),
+                 Parameter('pty_link_dir', value=str(tmp_path / 'links' / 'run'))]
     node = SimRigNode(context=ros_context, parameter_overrides=overrides)
+    links = {side: tmp_path / 'links' / 'run' / side for side in ('right', 'left')}
     probe = rclpy.create_node('probe', context=ros_context)
     ex = executor_for(ros_context, node, probe)
     images: dict[str, list[Image]] = {'right': [], 'left': []}
@@ -63,6 +66,7 @@ def test_images_follow_visca_commands(ros_context, tmp_path):
     try:
         ptys = json.loads(pty_file.read_text())
         assert set(ptys) == {'right', 'left'} and ptys == node.ptys
+        assert all(os.path.realpath(links[s]) == os.path.realpath(ptys[s]) for s in ptys)
         assert spin_until(ex, lambda: images['right'] and images['left'] and infos, 10.0)
         assert (images['right'][-1].width, images['right'][-1].height) == (160, 120)
         assert infos[-1].k[0] == pytest.approx(1727.0 / 4)
@@ -77,7 +81,7 @@ def test_images_follow_visca_commands(ros_context, tmp_path):
         assert np.abs(before - expected('right')).mean() < 0.5  # rendered at the head's start pose (20, 0)
         left_before = image_to_gray(images['left'][-1]).astype(int)
 
-        with serial.Serial(ptys['right'], 9600, timeout=0.05) as port:
+        with serial.Serial(str(links['right']), 9600, timeout=0.05) as port:    # through the pty link
             port.write(_absolute_position(-88, 60))  # pan -10 deg, tilt +5 deg (EVI-D30 units)
             port.flush()
             replies = _read_until_completion(port)
@@ -104,6 +108,7 @@ def test_images_follow_visca_commands(ros_context, tmp_path):
         node.destroy_node()
         probe.destroy_node()
     assert not pty_file.exists()  # removed on close
+    assert not any(p.is_symlink() for p in links.values())
 
 
 def test_node_finishes_at_trajectory_end(ros_context, tmp_path):

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 import time
@@ -156,13 +157,14 @@ def _run(args: argparse.Namespace, out: Path, rig_path: Path, launcher) -> int:
     given = lambda **kw: {k: v for k, v in kw.items() if v is not None}  # noqa: E731  (else the node's default)
     launcher.start(NodeSpec('flow_node', 'fixego_ros.nodes.flow_node', {**common, **given(preset=args.preset)}))
     launcher.start(NodeSpec('estimator_node', 'fixego_ros.nodes.estimator_node',
-                            {**common, **given(window=args.window, mode=args.mode)}))
+                            {**common, **given(window=args.window, mode=args.mode),
+                             'path_max_length': _path_length(args)}))
 
     rclpy.init()
     node = Recorder()
     # the rig's vergence measurements (the left camera node verges by default): counted for the report
     vergence_stamps: list[float] = []
-    node.create_subscription(PoseWithCovarianceStamped, '/fixego/vergence',
+    node.create_subscription(PoseWithCovarianceStamped, 'vergence',
                              lambda m: vergence_stamps.append(stamp_to_sec(m.header.stamp)), LATCHED_QOS)
     ex = SingleThreadedExecutor()
     ex.add_node(node)
@@ -198,6 +200,11 @@ def _run(args: argparse.Namespace, out: Path, rig_path: Path, launcher) -> int:
         # let the last frames through the pipeline (bounded)
         wait_for(lambda: node.poses and node.truth and node.poses[-1][0] >= node.truth[-1][0], 5.0, spin=spin)
         spin(0.3)
+        # the estimator publishes the paths at most once per period and once more when the poses stop: wait for
+        # the raw path that holds the last pose (bounded)
+        if node.poses:
+            last = node.poses[-1][0]
+            wait_for(lambda: (node.raw_path_stamp() or -math.inf) >= last, 2 * _path_period() + 3.0, spin=spin)
         launcher.stop_all()
         from fixego_ros.demo.report import write_report
         report = write_report(out, node, t_reset, vars(args), vergence_stamps)
@@ -207,6 +214,22 @@ def _run(args: argparse.Namespace, out: Path, rig_path: Path, launcher) -> int:
         rclpy.try_shutdown()
     _say(args, report['console'])
     return 0
+
+
+def _path_period() -> float:
+    from fixego_ros.pipeline.params import ESTIMATOR_NODE_PARAMS
+    return float(ESTIMATOR_NODE_PARAMS['path_publish_period_s'].default)
+
+
+def _path_length(args: argparse.Namespace) -> int:
+    """path_max_length for the estimator: the whole run (the report takes the raw trajectory from the last raw
+    path), with a margin for the frames before the rig starts; at least the node's default."""
+    from fixego_ros.pipeline.params import ESTIMATOR_NODE_PARAMS
+    from fixego_ros.sim.trajectories import make_trajectory
+
+    spec = ESTIMATOR_NODE_PARAMS['path_max_length']
+    frames = make_trajectory(args.trajectory, seed=args.seed, duration=args.duration or None).frame_count(args.fps)
+    return int(min(spec.max, max(int(spec.default), frames + math.ceil(10 * args.fps))))
 
 
 def _progress(node, elapsed: float) -> str:

@@ -52,6 +52,7 @@ from fixego_ros.nodes.common import (
     declare_parameters,
     diagnostic_status,
     image_to_gray,
+    in_namespace,
     publish_diagnostics,
     run_node,
     sec_to_stamp,
@@ -92,7 +93,7 @@ def servo_params(g: Getter) -> ServoParams:
 
 class CameraNode(Node):
     def __init__(self, **kwargs) -> None:
-        super().__init__('camera_node', **kwargs)
+        super().__init__('camera_node', **in_namespace(kwargs))
         self.params = g = declare_parameters(self, PARAMS)
         self.side = str(g('side'))
         if float(g('vergence_min_depth_m')) >= float(g('vergence_max_depth_m')):
@@ -123,7 +124,7 @@ class CameraNode(Node):
         self.driver: ViscaCamera | None = None
         self.loop: ServoLoop | None = None
         self.servo = FixationServo(self.camera, self.profile, self.servo_params, self.calibration)
-        ns = f'/fixego/{self.side}'
+        ns = self.side
         self.joint_names = [f'{self.side}_pan', f'{self.side}_tilt']
         self.pub_fix = self.create_publisher(PointStamped, f'{ns}/fixation', RELIABLE_QOS)
         self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', RELIABLE_QOS)
@@ -367,15 +368,15 @@ class CameraNode(Node):
         self.right_history = JointHistory()
         self.scheduler = VergenceScheduler(self._vergence_schedule(g), self._now())
         self.vergence_state = 'idle'
-        self.pub_vergence = self.create_publisher(PoseWithCovarianceStamped, '/fixego/vergence', LATCHED_QOS)
-        self.create_subscription(Image, '/fixego/right/image_raw', self._on_right_image, SENSOR_QOS)
-        self.create_subscription(PointStamped, '/fixego/right/fixation', self._on_right_fixation, RELIABLE_QOS)
-        self.create_subscription(JointState, '/fixego/right/joint_states', self._on_right_joints, RELIABLE_QOS)
-        self.create_subscription(Empty, '/fixego/vergence_request', self._on_vergence_request, RELIABLE_QOS)
+        self.pub_vergence = self.create_publisher(PoseWithCovarianceStamped, 'vergence', LATCHED_QOS)
+        self.create_subscription(Image, 'right/image_raw', self._on_right_image, SENSOR_QOS)
+        self.create_subscription(PointStamped, 'right/fixation', self._on_right_fixation, RELIABLE_QOS)
+        self.create_subscription(JointState, 'right/joint_states', self._on_right_joints, RELIABLE_QOS)
+        self.create_subscription(Empty, 'vergence_request', self._on_vergence_request, RELIABLE_QOS)
         self._vergence_timer = self.create_timer(0.05, self._vergence_tick)
         period = float(g('vergence_period_s'))
         self.get_logger().info('vergence steps armed: at start-up, on each new right fixation point, on '
-                               '/fixego/vergence_request' + (f', every {period:g} s' if period > 0 else '')
+                               'vergence_request' + (f', every {period:g} s' if period > 0 else '')
                                + f'; at least {float(g("vergence_min_interval_s")):g} s apart')
 
     def _on_right_image(self, msg: Image) -> None:

@@ -43,6 +43,17 @@ RELIABLE_QOS = QoSProfile(depth=50)
 # latched: occasional measurements (the vergence steps) whose recent ones a node started later must still get
 LATCHED_QOS = QoSProfile(depth=20, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
+# every node's default namespace (DESIGN.md §3): its topics are relative names inside it, so `-r __ns:=/robot1`
+# (or a launch file's namespace) moves a whole rig; /diagnostics, /tf, /tf_static stay absolute
+DEFAULT_NAMESPACE = 'fixego'
+
+
+def in_namespace(kwargs: dict) -> dict:
+    """Node constructor arguments with the default namespace unless the caller gave one (a ``__ns`` remap on the
+    command line or in the context arguments still wins over both)."""
+    return {'namespace': DEFAULT_NAMESPACE, **kwargs}
+
+
 OK, WARN, ERROR, STALE = (DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR,
                           DiagnosticStatus.STALE)
 

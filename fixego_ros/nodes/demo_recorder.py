@@ -3,7 +3,8 @@
 It keeps the refined poses with their arrival latency (receipt time minus the image stamp they carry:
 the simulated rig stamps images with the wall clock, so this is image -> pose through every process),
 the ground truth, the last raw path (subscribed without deserialising each one), and the fixation and
-diagnostics traffic the console progress line shows.
+diagnostics traffic the console progress line shows. Names are relative in the default namespace /fixego,
+like the pipeline's nodes.
 """
 
 from __future__ import annotations
@@ -19,27 +20,28 @@ from std_srvs.srv import Trigger
 
 from fixego_ros.geometry.rig import SIDES
 from fixego_ros.geometry.rotation import Pose
-from fixego_ros.nodes.common import RELIABLE_QOS, msg_to_pose, stamp_to_sec
+from fixego_ros.nodes.common import RELIABLE_QOS, in_namespace, msg_to_pose, stamp_to_sec
 
 
 class Recorder(Node):
     def __init__(self, **kwargs) -> None:
-        super().__init__('fixego_demo', **kwargs)
+        super().__init__('fixego_demo', **in_namespace(kwargs))
         self.poses: list[tuple[float, Pose]] = []
         self.latency_s: list[float] = []
         self.truth: list[tuple[float, Pose]] = []
         self.fixations: Counter[str] = Counter()
         self.statuses: dict[str, dict[str, str]] = {}
         self._path_raw: bytes | None = None
-        self.create_subscription(PoseStamped, '/fixego/pose', self._on_pose, RELIABLE_QOS)
-        self.create_subscription(PoseStamped, '/fixego/ground_truth/pose', self._on_truth, RELIABLE_QOS)
-        self.create_subscription(Path, '/fixego/path_raw', self._on_path_raw, RELIABLE_QOS, raw=True)
+        self._path_raw_parsed: tuple[bytes, Path] | None = None     # the last one deserialised, and its bytes
+        self.create_subscription(PoseStamped, 'pose', self._on_pose, RELIABLE_QOS)
+        self.create_subscription(PoseStamped, 'ground_truth/pose', self._on_truth, RELIABLE_QOS)
+        self.create_subscription(Path, 'path_raw', self._on_path_raw, RELIABLE_QOS, raw=True)
         self.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, RELIABLE_QOS)
         for side in SIDES:
-            self.create_subscription(PointStamped, f'/fixego/{side}/fixation',
+            self.create_subscription(PointStamped, f'{side}/fixation',
                                      lambda m, s=side: self.fixations.update([s]), RELIABLE_QOS)
-        self.reset_client = self.create_client(Trigger, '/estimator_node/reset')
-        self.start_client = self.create_client(Trigger, '/sim_rig_node/start')
+        self.reset_client = self.create_client(Trigger, 'estimator_node/reset')
+        self.start_client = self.create_client(Trigger, 'sim_rig_node/start')
 
     def _now(self) -> float:
         return self.get_clock().now().nanoseconds * 1e-9
@@ -59,11 +61,24 @@ class Recorder(Node):
         for st in msg.status:
             self.statuses[st.name] = {'message': st.message, **{kv.key: kv.value for kv in st.values}}
 
-    def raw_poses(self) -> list[tuple[float, Pose]]:
-        """The two-frame-only trajectory: the last /fixego/path_raw received."""
+    def _last_path_raw(self) -> Path | None:
         if self._path_raw is None:
+            return None
+        if self._path_raw_parsed is None or self._path_raw_parsed[0] is not self._path_raw:
+            self._path_raw_parsed = (self._path_raw, deserialize_message(self._path_raw, Path))
+        return self._path_raw_parsed[1]
+
+    def raw_path_stamp(self) -> float | None:
+        """Stamp of the last path_raw received (its newest pose); None before the first. The estimator publishes
+        paths at most once per path_publish_period_s, and once more when the poses stop."""
+        path = self._last_path_raw()
+        return None if path is None else stamp_to_sec(path.header.stamp)
+
+    def raw_poses(self) -> list[tuple[float, Pose]]:
+        """The two-frame-only trajectory: the last path_raw received."""
+        path = self._last_path_raw()
+        if path is None:
             return []
-        path = deserialize_message(self._path_raw, Path)
         return [(stamp_to_sec(p.header.stamp), msg_to_pose(p.pose)) for p in path.poses]
 
     def call(self, client, executor, timeout_s: float) -> tuple[bool, str]:
@@ -83,3 +98,4 @@ class Recorder(Node):
         self.latency_s.clear()
         self.truth.clear()
         self._path_raw = None
+        self._path_raw_parsed = None

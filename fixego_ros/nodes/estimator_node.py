@@ -1,11 +1,13 @@
 """estimator_node: flow observations in, trajectory out (DESIGN.md §3).
 
-Subscribes ``/fixego/flow/observation`` (sensor_msgs/PointCloud2, the row table of
-:mod:`fixego_ros.pipeline.observation`) and feeds the core :class:`~fixego_ros.estimation.estimator.Estimator`:
-a two-frame solve per step, then the local bundle adjustment over the last n frames. Publishes
-``/fixego/pose`` (refined), ``/fixego/path``, ``/fixego/path_raw`` (two-frame only), ``/fixego/odom`` (with
-covariance; weakly observed axes get large variances), ``/diagnostics``, and TF ``odom -> base_link``
-when tf2_ros is importable. ``~/reset`` (std_srvs/Trigger) restarts the trajectory.
+Topics are relative names in the node namespace (default ``/fixego``). Subscribes ``flow/observation``
+(sensor_msgs/PointCloud2, the row table of :mod:`fixego_ros.pipeline.observation`) and feeds the core
+:class:`~fixego_ros.estimation.estimator.Estimator`: a two-frame solve per step, then the local bundle
+adjustment over the last n frames. Publishes ``pose`` (refined) and ``odom`` (with covariance; weakly observed
+axes get large variances) every frame, ``path`` and ``path_raw`` (two-frame only) at most once per
+``path_publish_period_s`` of observation time plus once when the poses stop coming (so the last Path holds the
+whole run, up to ``path_max_length`` poses), ``/diagnostics``, and TF ``odom -> base_link`` when tf2_ros is
+importable. ``~/reset`` (std_srvs/Trigger) restarts the trajectory.
 
 Scale aid (off by default): with ``speed_topic`` set it subscribes that nav_msgs/Odometry (e.g. wheel
 odometry; twist in ``base_frame``, REP-105) and forwards each valid sample, in stamp order, to
@@ -42,6 +44,7 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry, Path
+from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Empty
@@ -63,6 +66,7 @@ from fixego_ros.nodes.common import (
     cloud_to_table,
     declare_parameters,
     diagnostic_status,
+    in_namespace,
     pose_to_msg,
     publish_diagnostics,
     run_node,
@@ -100,7 +104,7 @@ def odom_covariance(pose_cov_rig: np.ndarray) -> list[float]:
 
 class EstimatorNode(Node):
     def __init__(self, **kwargs) -> None:
-        super().__init__('estimator_node', **kwargs)
+        super().__init__('estimator_node', **in_namespace(kwargs))
         self.params = g = declare_parameters(self, PARAMS)
         rig_notes: list[str] = []
         self.rig = load_rig(g('rig_file') or default_rig_path(), warnings=rig_notes)
@@ -114,10 +118,16 @@ class EstimatorNode(Node):
         n_path = int(g('path_max_length'))
         self.path: deque[PoseStamped] = deque(maxlen=n_path)
         self.path_raw: deque[PoseStamped] = deque(maxlen=n_path)
-        self.pub_pose = self.create_publisher(PoseStamped, '/fixego/pose', RELIABLE_QOS)
-        self.pub_path = self.create_publisher(Path, '/fixego/path', RELIABLE_QOS)
-        self.pub_path_raw = self.create_publisher(Path, '/fixego/path_raw', RELIABLE_QOS)
-        self.pub_odom = self.create_publisher(Odometry, '/fixego/odom', RELIABLE_QOS)
+        # paths: built from the stored messages at most once per period of observation time (a Path of n poses
+        # costs O(n) to publish), and flushed by a steady-clock timer once the poses stop (a bag's /clock stops too)
+        self.path_period = float(g('path_publish_period_s'))
+        self._path_stamp: float | None = None       # observation stamp of the last Path published
+        self._paths_pending = False                 # poses stored (or corrected) since then
+        self._last_pose_wall = time.monotonic()
+        self.pub_pose = self.create_publisher(PoseStamped, 'pose', RELIABLE_QOS)
+        self.pub_path = self.create_publisher(Path, 'path', RELIABLE_QOS)
+        self.pub_path_raw = self.create_publisher(Path, 'path_raw', RELIABLE_QOS)
+        self.pub_odom = self.create_publisher(Odometry, 'odom', RELIABLE_QOS)
         self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', RELIABLE_QOS)
         self.tf = self._make_tf_broadcaster() if bool(g('publish_tf')) else None
         self.create_subscription(PointCloud2, str(g('observation_topic')), self._on_observation, RELIABLE_QOS)
@@ -137,9 +147,12 @@ class EstimatorNode(Node):
                                             float(g('vergence_request_min_interval_s')), float(g('scale_drift_per_s')))
         self.create_service(Trigger, '~/reset', self._srv_reset)
         self.diag_timer = self.create_timer(float(g('diagnostics_period_s')), self._publish_diagnostics)
+        if self.path_period > 0:
+            self.create_timer(self.path_period, self._flush_paths, clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.status_counts: Counter[str] = Counter()
         self.stats = {'observations': 0, 'malformed': 0, 'out_of_order': 0, 'future_rejected': 0,
-                      'skipped_behind': 0, 'published': 0, 'resets': 0, 'clock_jump_resets': 0}
+                      'skipped_behind': 0, 'published': 0, 'paths_published': 0, 'resets': 0,
+                      'clock_jump_resets': 0}
         self.recent: Counter[str] = Counter()      # stamp problems since the last diagnostics report
         self.stamp_problem = ''                    # the latest of them, in words
         self._backward: tuple[float, int] | None = None   # (monotonic start, count) of a run of older stamps
@@ -303,16 +316,36 @@ class EstimatorNode(Node):
         self.pub_pose.publish(ps)
         self.path.append(ps)
         self.path_raw.append(self._stamped(stamp, pose_raw))
+        self._paths_pending = True
+        self._last_pose_wall = time.monotonic()
+        if self.path_period == 0 or self._path_stamp is None or res.stamp - self._path_stamp >= self.path_period - 1e-6:
+            self._publish_paths()
+        self.pub_odom.publish(self._odometry(stamp, pose, res))
+        if self.tf is not None:
+            self._send_tf(stamp, pose)
+        self.stats['published'] += 1
+
+    def _publish_paths(self) -> None:
+        """path and path_raw from the stored poses (corrections and rescaling already applied to them), stamped
+        with the newest one."""
+        if not self.path:
+            return
+        stamp = self.path[-1].header.stamp
         for pub, poses in ((self.pub_path, self.path), (self.pub_path_raw, self.path_raw)):
             path = Path()
             path.header.stamp = stamp
             path.header.frame_id = self.odom_frame
             path.poses = list(poses)
             pub.publish(path)
-        self.pub_odom.publish(self._odometry(stamp, pose, res))
-        if self.tf is not None:
-            self._send_tf(stamp, pose)
-        self.stats['published'] += 1
+        self._path_stamp = stamp_to_sec(stamp)
+        self._paths_pending = False
+        self.stats['paths_published'] += 1
+
+    def _flush_paths(self) -> None:
+        """Steady-clock timer: once no pose has come for a period (the run ended, or stalled), publish the paths
+        that are still unpublished, so the last Path holds the whole trajectory."""
+        if self._paths_pending and time.monotonic() - self._last_pose_wall >= self.path_period:
+            self._publish_paths()
 
     def _stamped(self, stamp, pose: Pose) -> PoseStamped:
         ps = PoseStamped()
@@ -382,6 +415,7 @@ class EstimatorNode(Node):
         self.speed.reset()
         self.path.clear()
         self.path_raw.clear()
+        self._path_stamp, self._paths_pending = None, False
         self.last = None
 
     def _srv_reset(self, request, response):

@@ -1,11 +1,12 @@
 """flow_node: synchronised stereo frames in, one flow observation per frame out.
 
-Subscribes each camera's ``image_raw`` (sensor-data QoS), ``joint_states`` and ``fixation`` (from
+Topics are relative names in the node namespace (default ``/fixego``). Subscribes each camera's
+``<side>/image_raw`` (sensor-data QoS), ``joint_states`` and ``fixation`` (from
 ``camera_node``), matches them by stamp (:class:`~fixego_ros.pipeline.sync.StereoSync`, bounded waits),
 keeps persistent point tracks in a window around each fixation point (pyramidal Lucas-Kanade frame to
 frame from positions predicted by the pan/tilt readings and the rig's angular velocity, epipolar RANSAC)
 and turns every point into rig-frame rays with the pan/tilt of its frame
-(:class:`~fixego_ros.pipeline.frontend.StereoFrontEnd`). Publishes ``/fixego/flow/observation``
+(:class:`~fixego_ros.pipeline.frontend.StereoFrontEnd`). Publishes ``flow/observation``
 (sensor_msgs/PointCloud2 rows: cameras, flow pairs keyframe -> t, live tracks;
 :mod:`fixego_ros.pipeline.observation`) and ``/diagnostics``. A frame with one camera only gives a
 one-camera observation; dropped frames show up as a gap between the observation's ``t0`` and the
@@ -39,6 +40,7 @@ from fixego_ros.nodes.common import (
     OnceLogger,
     declare_parameters,
     diagnostic_status,
+    in_namespace,
     publish_diagnostics,
     run_node,
     set_timer_period,
@@ -61,7 +63,7 @@ LIVE_SYNC = ('slop_s', 'max_wait_s', 'joint_extrapolation_s')
 
 class FlowNode(Node):
     def __init__(self, **kwargs) -> None:
-        super().__init__('flow_node', **kwargs)
+        super().__init__('flow_node', **in_namespace(kwargs))
         self.params = g = declare_parameters(self, PARAMS)
         rig_notes: list[str] = []
         self.rig = load_rig(g('rig_file') or default_rig_path(), warnings=rig_notes)
@@ -74,7 +76,7 @@ class FlowNode(Node):
         self.pub_obs = self.create_publisher(PointCloud2, str(g('observation_topic')), RELIABLE_QOS)
         self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', RELIABLE_QOS)
         for side in SIDES:
-            ns = f'/fixego/{side}'
+            ns = side
             self.create_subscription(Image, f'{ns}/image_raw', lambda m, s=side: self._on_image(s, m), SENSOR_QOS)
             self.create_subscription(JointState, f'{ns}/joint_states', lambda m, s=side: self._on_joints(s, m),
                                      RELIABLE_QOS)

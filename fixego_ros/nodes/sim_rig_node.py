@@ -3,9 +3,13 @@
 The node moves the rig along a trajectory in (scaled) wall-clock time and, at the frame rate, renders
 each camera's view from the rig pose and the *true* pan/tilt of that camera's VISCA emulator, so two
 real ``camera_node``s driving the emulators over serial close the fixation loop exactly as on a rig.
-It publishes images and camera_info for both cameras, the true pose on ``/fixego/ground_truth/pose``
-(``base_link`` in ``odom``, ``odom`` = base_link at the first frame), and ``/diagnostics``. The pty
-paths are logged and written as JSON ``{"right": ..., "left": ...}`` to ``pty_file``.
+It publishes images and camera_info for both cameras, the true pose on ``ground_truth/pose`` (relative
+names, namespace ``/fixego`` by default; ``base_link`` in ``odom``, ``odom`` = base_link at the first frame),
+and ``/diagnostics``. The pty paths are logged and written as JSON ``{"right": ..., "left": ...}`` to
+``pty_file``; with ``pty_link_dir`` the node also makes ``<pty_link_dir>/right`` and ``.../left`` symlinks to
+them, so camera nodes started at the same time can be given those paths as ports (``sim.launch.py``: a fresh
+directory per launch, so a link left by a killed run can never send VISCA bytes to an unrelated terminal; the
+camera nodes retry until it appears).
 
 When the trajectory ends it publishes a final diagnostics status and, with ``exit_at_end``, stops
 (``main`` returns); otherwise it keeps rendering the final pose (or loops, with ``loop``).
@@ -39,6 +43,7 @@ from fixego_ros.nodes.common import (
     array_to_image,
     declare_parameters,
     diagnostic_status,
+    in_namespace,
     publish_diagnostics,
     run_node,
 )
@@ -57,7 +62,7 @@ class SimRigNode(Node):
     """Renders the rig's two cameras from the trajectory and the emulated heads' true angles."""
 
     def __init__(self, **kwargs) -> None:
-        super().__init__('sim_rig_node', **kwargs)
+        super().__init__('sim_rig_node', **in_namespace(kwargs))
         g = declare_parameters(self, PARAMS)
         g.start(lambda changes, getter: None, ())      # every parameter is read-only
         p = {name: g(name) for name in PARAMS}
@@ -92,14 +97,15 @@ class SimRigNode(Node):
             self.ptys[side] = emu.start()
             self.emulators[side] = emu
         self._write_pty_file()
+        self._links = self._make_pty_links()
         self.get_logger().info(f'VISCA emulators: right {self.ptys["right"]}, left {self.ptys["left"]} '
                                f'(written to {p["pty_file"] or "-"})')
 
-        self.pub_image = {s: self.create_publisher(Image, f'/fixego/{s}/image_raw', SENSOR_QOS) for s in SIDES}
-        self.pub_info = {s: self.create_publisher(CameraInfo, f'/fixego/{s}/camera_info', SENSOR_QOS)
+        self.pub_image = {s: self.create_publisher(Image, f'{s}/image_raw', SENSOR_QOS) for s in SIDES}
+        self.pub_info = {s: self.create_publisher(CameraInfo, f'{s}/camera_info', SENSOR_QOS)
                          for s in SIDES}
         self._info = {s: camera_info_msg(self.rig, s, 0.0) for s in SIDES}   # constant but for the stamp
-        self.pub_gt = self.create_publisher(PoseStamped, '/fixego/ground_truth/pose', RELIABLE_QOS)
+        self.pub_gt = self.create_publisher(PoseStamped, 'ground_truth/pose', RELIABLE_QOS)
         self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', RELIABLE_QOS)
 
         self.frames = 0
@@ -122,6 +128,22 @@ class SimRigNode(Node):
         tmp = path.with_name(f'.{path.name}.{os.getpid()}')
         tmp.write_text(json.dumps(self.ptys))
         os.replace(tmp, path)
+
+    def _make_pty_links(self) -> list[Path]:
+        """``<pty_link_dir>/<side>`` -> the emulator's own stable link to its pty (replaced atomically)."""
+        if not self.p['pty_link_dir']:
+            return []
+        directory = Path(self.p['pty_link_dir'])
+        directory.mkdir(parents=True, exist_ok=True)
+        links = []
+        for side, emu in self.emulators.items():
+            link, tmp = directory / side, directory / f'.{side}.{os.getpid()}'
+            tmp.unlink(missing_ok=True)
+            os.symlink(emu.link_path or self.ptys[side], tmp)
+            os.replace(tmp, link)
+            links.append(link)
+        self.get_logger().info(f'pty links: {", ".join(map(str, links))}')
+        return links
 
     def sim_time(self, now: float) -> float:
         """Trajectory time at monotonic time ``now`` (0 until started)."""
@@ -206,6 +228,8 @@ class SimRigNode(Node):
         """Stop the emulators and remove the pty file if it is still ours."""
         for emu in self.emulators.values():
             emu.stop()
+        for link in getattr(self, '_links', []):
+            link.unlink(missing_ok=True)
         path = self.p.get('pty_file')
         if path and os.path.exists(path):
             try:

@@ -374,13 +374,15 @@ CAMERA_NODE_PARAMS: Table = _table(
 FLOW_NODE_PARAMS: Table = _table(
     _str('rig_file', '', RIG_FILE),
     FLOW_PARAMS,
-    _str('observation_topic', '/fixego/flow/observation', 'where observations are published'),
+    _str('observation_topic', 'flow/observation', 'where observations are published (relative: in the node '
+                                               'namespace, default /fixego)'),
     _diagnostics_period(),
 )
 
 ESTIMATOR_NODE_PARAMS: Table = _table(
     _str('rig_file', '', RIG_FILE),
-    _str('observation_topic', '/fixego/flow/observation', 'flow observations (PointCloud2 rows, see README)'),
+    _str('observation_topic', 'flow/observation', 'flow observations (PointCloud2 rows, see README; relative: in '
+                                               'the node namespace)'),
     ESTIMATOR_PARAMS,
     SPEED_PARAMS,
     _num('max_lag_s', 0.1, 'when an observation is this far behind the clock and not a keyframe, skip it (keyframes '
@@ -396,11 +398,11 @@ ESTIMATOR_NODE_PARAMS: Table = _table(
          live=True),
     _num('backward_reset_s', 2.0, '... as does an unbroken run of such observations lasting this long (s)', gt=0.0,
          le=3600.0, live=True),
-    _str('vergence_topic', '/fixego/vergence', "vergence measurements (geometry_msgs/PoseWithCovarianceStamped from "
-                                               "the left camera_node's repeated vergence step); '' = off"),
-    _str('vergence_request_topic', '/fixego/vergence_request', 'std_msgs/Empty published when the scale '
-                                                               'uncertainty has grown past vergence_request_rel_std '
-                                                               "(the left camera_node then verges); '' = never"),
+    _str('vergence_topic', 'vergence', "vergence measurements (geometry_msgs/PoseWithCovarianceStamped from the left "
+                                       "camera_node's repeated vergence step); '' = off"),
+    _str('vergence_request_topic', 'vergence_request', 'std_msgs/Empty published when the scale uncertainty has '
+                                                       'grown past vergence_request_rel_std (the left camera_node '
+                                                       "then verges); '' = never"),
     _num('vergence_request_rel_std', 0.05, 'relative scale std (grown by scale_drift_per_s since the last '
                                            'measurement) above which a vergence step is requested', gt=0.0,
          live=True),
@@ -410,8 +412,12 @@ ESTIMATOR_NODE_PARAMS: Table = _table(
                                      'speed changes; the fixations change)', ge=0.0, live=True),
     _str('odom_frame', 'odom', 'frame of the published trajectory'),
     _str('base_frame', 'base_link', 'frame of the rig body (x forward, y left, z up)'),
-    _num('path_max_length', 20000, 'poses kept in /fixego/path and /fixego/path_raw (oldest dropped)', ge=1,
-         le=10_000_000),
+    _num('path_max_length', 5000, 'poses kept in path and path_raw (oldest dropped; each Path message carries them '
+                                  'all, so its cost grows with this)', ge=1, le=10_000_000),
+    _num('path_publish_period_s', 1.0, 'path and path_raw are published at most once per this much observation '
+                                       'time, and once more when no observation has come for this long of wall time '
+                                       '(the end of a run); pose and odom go out every frame. 0 = paths every frame',
+         ge=0.0, le=3600.0),
     _bool('publish_tf', True, 'broadcast odom -> base_link when tf2_ros is importable'),
     _diagnostics_period(),
 )
@@ -435,6 +441,8 @@ SIM_RIG_NODE_PARAMS: Table = _table(
     _bool('wait_for_start', False, 'hold the rig at the start pose (still rendering) until ~/start is called, so '
                                    'the other nodes can come up and fixate first'),
     _str('pty_file', '/tmp/fixego_sim_ptys.json', 'JSON file receiving the two pty paths'),
+    _str('pty_link_dir', '', "also make symlinks <dir>/right and <dir>/left to the ptys (camera_node ports known "
+                             "before the node starts; sim.launch.py); '' = none"),
     _str('profile', 'evi_d30', 'VISCA camera profile of the emulators'),
     _num('baud', 9600, 'emulated serial baud rate', ge=1200, le=115200),
     _num('start_pan_deg_right', 22.5, 'initial pan of the right head (deg)', ge=-180.0, le=180.0),
@@ -641,15 +649,34 @@ def read_params_file(path: str | Path) -> dict[str, dict[str, object]]:
     return out
 
 
+# the line of a generated config/<node>.yaml naming its node: the file's block is keyed /** (so it applies under
+# any node name and namespace), and this line tells ``fixego replay``, which reads several nodes' files at once,
+# which node the block is for
+FILE_NODE = re.compile(r'^# fixego_ros node: (\w+)', re.MULTILINE)
+
+
+def file_node(path: str | Path) -> str | None:
+    """The node a parameter file says it is for (:data:`FILE_NODE`), or None (a wildcard block then applies to
+    every node, as in ROS)."""
+    try:
+        m = FILE_NODE.search(Path(path).read_text())
+    except (OSError, UnicodeDecodeError):
+        return None
+    return m.group(1) if m and m.group(1) in NODE_PARAMS else None
+
+
 def load_params_file(path: str | Path, node: str) -> dict[str, object]:
     """The values a node named ``node`` takes from a ROS 2 parameter file: the wildcard blocks, then the
     blocks keyed ``node`` or ``/ns/node`` (later wins), each checked against its spec ({} when none applies).
+    The wildcard blocks of a file that names another node (:func:`file_node`, e.g. the generated
+    ``config/camera_node.yaml`` read for flow_node) do not apply: ``fb_max_px`` means different things to them.
     The whole file is checked (:func:`read_params_file`), so an error elsewhere in it is reported too."""
     table = NODE_PARAMS.get(node, {})
     values: dict[str, object] = {}
     blocks = read_params_file(path)
+    owner = file_node(path)
     for key, params in sorted(blocks.items(), key=lambda kv: kv[0] not in WILDCARDS):
-        if key in WILDCARDS or key.rstrip('/').split('/')[-1] == node:
+        if (key in WILDCARDS and owner in (None, node)) or key.rstrip('/').split('/')[-1] == node:
             values.update({k: v for k, v in params.items() if k in table or key not in WILDCARDS})
     try:
         return check_values(table, values)
@@ -700,7 +727,10 @@ def render_config(node: str) -> str:
              'config/);',
              '# edit the spec there, not this file. [...] gives the allowed values; read-only parameters are taken '
              'at start only.',
-             f'{node}:', '  ros__parameters:']
+             '# Keyed /** so the values apply whatever the node is named (-r __node:=right_camera_node) and in any '
+             'namespace.',
+             f'# fixego_ros node: {node} (fixego replay --params-file gives this block to {node} only)',
+             '/**:', '  ros__parameters:']
     for spec in NODE_PARAMS[node].values():
         note = f'{spec.description} [{spec.allowed()}{"; read-only" if spec.read_only else ""}]'
         if spec.default is None:

@@ -19,6 +19,7 @@ traceback.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import signal
@@ -186,6 +187,10 @@ def _run(args: argparse.Namespace, bars: list) -> int:
         if args.vergence_topic is None:      # default: the bag's vergence measurements when it has them
             args.vergence_topic = vergence_topic_in(bag, topics)
         settings = settings_from_args(args, rig)
+        if settings.speed.topic and not settings.speed.topic.startswith('/'):
+            # a relative speed_topic (as the node takes it, in its namespace) names the bag topic under --namespace
+            settings = dataclasses.replace(settings, speed=dataclasses.replace(
+                settings.speed, topic=topics.name(settings.speed.topic)))
     except (RigError, ParamsError, ValueError) as e:
         return fail(str(e))
     counts = [bag.topics[t].count for t in (topics.name(f'{s}/image_raw') for s in SIDES) if t in bag.topics]
