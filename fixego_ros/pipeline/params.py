@@ -314,6 +314,9 @@ CAMERA_NODE_PARAMS: Table = _table(
     _num('baud', 9600, 'serial baud rate (EVI cameras: 9600)', ge=1200, le=115200),
     _num('address', 1, 'VISCA camera address 1..7', ge=1, le=7),
     _str('profile', 'evi_d30', 'camera profile: evi_d30 | evi_d100 | evi_d70 | evi_g20 | path to calibrate .json'),
+    _bool('require_model_match', False, "on connect the camera's model (CAM_VersionInq) is compared with the "
+                                        "profile's model ids: true = a mismatch stops the node; false = it is "
+                                        'logged and an ERROR on /diagnostics. No answer: a WARN either way'),
     _bool('passive', False, 'follow recorded joint states and only track (replays); also implied by empty port'),
     _str('video_device', '', 'V4L2 device (index or path) read with OpenCV instead of subscribing image_raw'),
     _num('video_fps', 30.0, 'frame rate to poll video_device at', gt=0.0, le=1000.0),
