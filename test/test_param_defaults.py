@@ -97,3 +97,27 @@ def test_papers_config_is_what_paper_sim_measured_with():
     assert (c.window, c.mode, c.max_step_translation, c.max_step_rotation, c.max_speed, c.constant_speed) == (
         5, 'paper', 1.0, 0.35, math.inf, False)
     assert (c.solver.loss, c.solver.max_nfev, c.solver.min_parallax) == ('linear', 60, 1e-7)
+
+
+# ------------------------------------------------------------------------------ the generated reference
+def test_parameter_reference_equals_what_the_specs_generate(tmp_path):
+    """docs/parameters.md is generated: regenerate it (--write-docs) after changing a spec."""
+    from pathlib import Path
+
+    from fixego_ros.pipeline.params import NODE_PARAMS, main, render_docs
+    committed = Path(__file__).resolve().parents[1] / 'docs' / 'parameters.md'
+    assert committed.read_text() == render_docs(), 'run: python -m fixego_ros.pipeline.params --write-docs ' \
+                                                   'docs/parameters.md'
+    text = render_docs()
+    sections = {part.split('\n', 1)[0]: part for part in text.split('\n## ')[1:]}
+    assert list(sections) == list(NODE_PARAMS)                 # one table per node, every parameter a row
+    for node, table in NODE_PARAMS.items():
+        rows = [line for line in sections[node].splitlines() if line.startswith('| `')]
+        assert [r.split('`')[1] for r in rows] == list(table)
+        for row, spec in zip(rows, table.values(), strict=True):
+            cells = [c.strip() for c in row.strip('|').split(' | ')]
+            assert cells[4] == ('read-only' if spec.read_only else 'run-time'), row
+    stale = tmp_path / 'parameters.md'
+    stale.write_text(text.replace('| `servo_gain` | float | `0.9`', '| `servo_gain` | float | `0.8`'))
+    assert main(['--check-docs', str(stale)]) == 1
+    assert main(['--write-docs', str(stale)]) == 0 and main(['--check-docs', str(stale)]) == 0
