@@ -81,6 +81,7 @@ LIVE_SERVO = ('servo_gain', 'servo_deadband_px', 'servo_move_time_s', 'servo_max
 LIVE_NODE = ('limit_margin_deg', 'limit_reselect_offset_px', 'joint_max_wait_s', 'diagnostics_period_s')
 # when vergence steps run (the scheduler's limits); the step itself is read-only
 LIVE_VERGENCE = ('vergence_period_s', 'vergence_min_interval_s', 'vergence_retry_s')
+MODEL_CHECK_TRIES = 3   # CAM_VersionInq attempts per connection before a silent camera counts as not answering
 
 
 def servo_params(g: Getter) -> ServoParams:
@@ -125,6 +126,7 @@ class CameraNode(Node):
         self.require_model_match = bool(g('require_model_match'))
         self.model_check: ModelCheck | None = None
         self._model_checked: int | None = None      # the driver connection (reconnect count) last checked
+        self._model_tries = (-1, 0)                 # (connection, attempts) of the check under way
         self.loop: ServoLoop | None = None
         self.servo = FixationServo(self.camera, self.profile, self.servo_params, self.calibration)
         ns = f'/fixego/{self.side}'
@@ -179,13 +181,19 @@ class CameraNode(Node):
     # ---------------------------------------------------------------------------------------- camera model
     def _check_model(self) -> None:
         """CAM_VersionInq once per serial connection (:func:`~fixego_ros.visca.driver.check_model`): a match is
-        logged once, a mismatch is one error line (fatal with ``require_model_match``), no answer a warning."""
+        logged once, a mismatch is one error line (fatal with ``require_model_match``), no answer a warning. Silence
+        or garbled bytes (e.g. just after a reconnect) are retried at the next ticks, MODEL_CHECK_TRIES in all."""
         d = self.driver
         if d is None or not d.connected or self._model_checked == d.stats['reconnects']:
             return
-        self._model_checked = d.stats['reconnects']
-        before, c = self.model_check, check_model(d)
-        self.model_check = c
+        key = d.stats['reconnects']
+        tries = self._model_tries[1] + 1 if self._model_tries[0] == key else 1
+        self._model_tries = (key, tries)
+        c = check_model(d)
+        if c.outcome == 'no_answer' and not c.final and tries < MODEL_CHECK_TRIES:
+            return
+        self._model_checked = key
+        before, self.model_check = self.model_check, c
         if c.outcome == 'mismatch' and self.require_model_match:
             if self.loop is not None:
                 self.loop.stop()
@@ -205,7 +213,7 @@ class CameraNode(Node):
         values: dict[str, object] = {'profile': pr.name, 'require_model_match': self.require_model_match,
                                      'expected_models': ' '.join(f'{m:#06x}' for m in pr.model_ids) or 'none'}
         if c is None:
-            level, message = OK, 'not checked yet (serial port not open)'
+            level, message = OK, 'not checked yet'
         else:
             level = {'mismatch': ERROR, 'no_answer': WARN}.get(c.outcome, OK)
             message = {'match': f'model matches profile {pr.name}',

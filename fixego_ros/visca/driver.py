@@ -624,12 +624,15 @@ class ViscaCamera:
 @dataclass(frozen=True)
 class ModelCheck:
     """What :func:`check_model` found: ``outcome`` is 'match', 'mismatch', 'unchecked' (the profile lists no
-    model id) or 'no_answer' (silence, an error reply or a malformed one); ``message`` is one log line."""
+    model id) or 'no_answer' (silence, an error reply or a malformed one); ``message`` is one log line.
+    ``final`` is False for a no-answer that may pass (silence, garbled bytes, a lost port, e.g. just after a
+    reconnect); an error reply (old firmware refusing the inquiry) is final."""
 
     outcome: str
     message: str
     version: dict[str, int] | None = None
     expected: tuple[int, ...] = ()
+    final: bool = True
 
 
 def check_model(cam: ViscaCamera) -> ModelCheck:
@@ -643,7 +646,8 @@ def check_model(cam: ViscaCamera) -> ModelCheck:
         v = cam.version()
     except vp.ViscaError as e:
         return ModelCheck('no_answer', f'{cam.port}: no usable answer to CAM_VersionInq ({type(e).__name__}: {e}); '
-                                       f'camera model not checked against profile {pr.name}', None, expected)
+                                       f'camera model not checked against profile {pr.name}', None, expected,
+                          final=isinstance(e, vp.ViscaReplyError))
     found = (f'model {model_text(v["model"])}, vendor {v["vendor"]:#06x}, ROM {v["rom"]:#06x}, '
              f'{v["max_socket"]} sockets')
     if not expected:
