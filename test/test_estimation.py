@@ -14,11 +14,13 @@ from fixego_ros.estimation.estimator import (
     EstimatorConfig,
     FrameObservation,
     fixations_of,
+    papers_config,
+    papers_solver,
     step_pairs,
 )
 from fixego_ros.estimation.local_ba import BAProblem, BATerm, refine_latest
 from fixego_ros.estimation.status import StepStatus
-from fixego_ros.estimation.twoframe import SolverConfig, TwoFrameSolver
+from fixego_ros.estimation.twoframe import TwoFrameSolver
 from fixego_ros.experiments.point_scene import PRESETS, PointScene, random_motion_sequence
 from fixego_ros.geometry.rotation import Pose, exp_so3
 
@@ -44,7 +46,7 @@ def test_noise_free_motion_recovered_cold_start(seed, offsets):
     scene, steps, _, _, clean = scene_and_steps(cfg, seed)
     pairs = pairs_of(scene, clean, 1)
     assert np.linalg.norm(pairs.centers, axis=1).max() > 0        # left camera rows are present
-    res = TwoFrameSolver(SolverConfig(sigma=1e-4 / scene.rig.right.fx, prior_step=0.25)).solve(pairs)
+    res = TwoFrameSolver(papers_solver(sigma=1e-4 / scene.rig.right.fx, prior_step=0.25)).solve(pairs)
     assert res.status.usable, res.message
     assert np.linalg.norm(res.pose.rvec() - steps[0].rvec()) <= 1e-6
     assert np.linalg.norm(res.pose.t - steps[0].t) <= 1e-6
@@ -55,7 +57,7 @@ def test_noise_free_paper_preset_recovered_through_estimator():
     """Papers' 3 flow points per camera: 8 constraints, still exact without noise (both cameras)."""
     cfg = replace(PRESETS['paper'], noise_px=0.0)
     scene, _, poses, _, clean = scene_and_steps(cfg, 7, n_steps=4)
-    est = Estimator(scene.rig, EstimatorConfig(solver=SolverConfig(sigma=1e-3 / scene.rig.right.fx,
+    est = Estimator(scene.rig, papers_config(solver=papers_solver(sigma=1e-3 / scene.rig.right.fx,
                                                                    prior_step=0.25)))
     for k, obs in enumerate(clean):
         r = est.update(obs)
@@ -81,14 +83,14 @@ def test_covariance_shrinks_as_points_are_added():
         cfg = replace(PRESETS['dense'], n_flow=n, noise_px=0.5, max_yaw_deg=8.0, fixation_depth=3.0)
         scene, steps, _, noisy, _ = scene_and_steps(cfg, 11)
         pairs = pairs_of(scene, noisy, 1)
-        res = TwoFrameSolver(SolverConfig(sigma=0.5 / scene.rig.right.fx, prior_step=0.25)).solve(
+        res = TwoFrameSolver(papers_solver(sigma=0.5 / scene.rig.right.fx, prior_step=0.25)).solve(
             pairs, initial=steps[0])
         stds.append(np.sqrt(np.trace(res.covariance)))
     assert stds[0] > stds[1] > stds[2]
 
 
 def test_degenerate_inputs_give_status_not_exception():
-    solver = TwoFrameSolver()
+    solver = TwoFrameSolver(papers_solver())
     rays = np.array([[0.0, 0.0, 1.0], [0.1, 0.0, 1.0], [0.0, 0.1, 1.0]])
     few = RayPairs.build([(rays, rays, np.zeros(3), 1.0)])
     assert solver.solve(few).status is StepStatus.INSUFFICIENT
@@ -112,7 +114,7 @@ def test_degenerate_inputs_give_status_not_exception():
 def _ba_setup(seed, noise, true_prefix=False):
     cfg = replace(PRESETS['paper'], noise_px=noise)
     scene, steps, _, noisy, _ = scene_and_steps(cfg, seed, n_steps=2)
-    est = Estimator(scene.rig, EstimatorConfig(window=0, solver=SolverConfig(sigma=2 / scene.rig.right.fx)))
+    est = Estimator(scene.rig, papers_config(window=0, solver=papers_solver(sigma=2 / scene.rig.right.fx)))
     results = [est.update(o) for o in noisy]
     terms = []
     for side in ('right', 'left'):
@@ -148,7 +150,7 @@ def test_ba_cost_is_zero_at_truth_and_epipolar_distance_in_pixels():
 def test_estimator_window_never_spans_reselection_and_memory_is_bounded():
     cfg = replace(PRESETS['paper'], noise_px=0.5)
     scene, _, _, noisy, _ = scene_and_steps(cfg, 3, n_steps=30)
-    est = Estimator(scene.rig, EstimatorConfig(window=5))
+    est = Estimator(scene.rig, papers_config(window=5))
     for k, obs in enumerate(noisy):
         if k >= 10:   # the right camera re-selects its fixation point at frame 10
             obs.right.fixation_id = 1
@@ -157,7 +159,7 @@ def test_estimator_window_never_spans_reselection_and_memory_is_bounded():
             problem, _ = est._ba_problem(noisy[min(k + 1, len(noisy) - 1)])
         assert len(est._window) <= 5
     # at frame 11 the right camera's window holds only frame 10 (same id), the left one 4 frames
-    est2 = Estimator(scene.rig, EstimatorConfig(window=5))
+    est2 = Estimator(scene.rig, papers_config(window=5))
     for obs in noisy[:11]:
         est2.update(obs)
     est2._promote()          # what update(noisy[11]) does first: frame 10 becomes the keyframe
@@ -169,7 +171,7 @@ def test_estimator_window_never_spans_reselection_and_memory_is_bounded():
 def test_estimator_flags_bad_steps_and_never_returns_nan():
     cfg = replace(PRESETS['dense'], noise_px=0.2)
     scene, _, _, noisy, _ = scene_and_steps(cfg, 8, n_steps=6)
-    est = Estimator(scene.rig)
+    est = Estimator(scene.rig, papers_config())
     for obs in noisy[:3]:
         est.update(obs)
     empty = FrameObservation(3.0, None, None)
@@ -206,7 +208,7 @@ def test_blind_step_is_bridged_from_the_rates_on_both_sides():
                 cam.flow_prev, cam.flow_curr = np.zeros((0, 3)), np.zeros((0, 3))
             if k >= blind:
                 cam.fixation_id = 1          # re-selected: no fixation pair across the blind step
-    est = Estimator(scene.rig, EstimatorConfig(window=0))
+    est = Estimator(scene.rig, papers_config(window=0))
     results = [est.update(obs) for obs in clean]
     yaw_error = [np.degrees(abs(((poses[k].inverse() @ p).rvec())[1]))
                  for k, p in ((blind, results[blind].pose), (blind, results[blind + 1].corrected[1]))]

@@ -73,6 +73,22 @@ def test_limit_check_fires_once_per_approach_towards_the_middle():
     assert lc.check(0.5, -0.35) == (0.0, -100.0)       # near tilt bottom: choose a point above (smaller v)
 
 
+@pytest.mark.parametrize('cal', [PanTiltCalibration(), PanTiltCalibration(pan_sign=-1.0, tilt_sign=-1.0),
+                                 PanTiltCalibration(pan_sign=-1.0, tilt_sign=1.0, pan_offset=0.05)],
+                         ids=['upright', 'inverted', 'pan_inverted'])
+@pytest.mark.parametrize('pan,tilt', [(0.95, 0.0), (-0.95, 0.0), (0.0, 0.35), (0.0, -0.35)])
+def test_limit_reselection_turns_the_head_back_whatever_the_signs(cal, pan, tilt):
+    """The point chosen after a limit re-selection must need device angles further from that limit, also on a
+    head whose angles run against the view (rig file pan_sign/tilt_sign = -1)."""
+    lc = LimitCheck((-1.0, 1.0), (-0.4, 0.4), margin_rad=0.1, offset_px=100.0, signs=(cal.pan_sign, cal.tilt_sign))
+    du, dv = lc.check(pan, tilt)
+    want_pan, want_tilt = centring_angles(CAM, (CAM.cx + du, CAM.cy + dv), pan, tilt, cal)
+    if pan:
+        assert abs(want_pan) < abs(pan) - 0.1
+    else:
+        assert abs(want_tilt) < abs(tilt) - 0.1
+
+
 def test_centring_angles_are_exact():
     rng = np.random.default_rng(0)
     for _ in range(20):

@@ -9,12 +9,26 @@ import pytest
 from fixego_ros.estimation.coplanarity import RayPairs, sampson_residuals
 from fixego_ros.geometry.rig import SIDES, default_rig_path, load_rig
 from fixego_ros.geometry.rotation import Pose
-from fixego_ros.pipeline.frontend import BAD_IMAGE, BAD_JOINTS, MISSING, NO_PREVIOUS, OK, CameraSample, StereoFrontEnd
+from fixego_ros.pipeline.frontend import (
+    BAD_IMAGE,
+    BAD_JOINTS,
+    MISSING,
+    NO_PREVIOUS,
+    OK,
+    CameraSample,
+    KeyframePolicy,
+    StereoFrontEnd,
+)
 from fixego_ros.sim.render import Renderer, project_points
 from fixego_ros.sim.run import resize_rig
 from fixego_ros.sim.trajectories import AREA_CENTRE, TRIPOD_HEIGHT, attitude
 from fixego_ros.sim.world import make_room
 from fixego_ros.tracking.flow import FlowParams, track_flow
+
+# what these tests were written against (the dataclass defaults before they became the node's): the flow window
+# around the fixation with up to 150 corners, between consecutive frames
+WINDOW = FlowParams(preset='window', max_corners=150)
+CONSECUTIVE = KeyframePolicy(max_frames=1)
 
 W, H = 320, 240
 SHIFT = (0.37, -0.21)   # px, sub-pixel image motion of the synthetic pair
@@ -63,7 +77,7 @@ def test_params_are_validated_naming_the_field(kw, field):
 
 # ---------------------------------------------------------------------------------------------- track_flow
 def test_window_recovers_subpixel_shift_with_many_points_inside_the_window(pair):
-    tr = track_flow(*pair, CENTRE, FlowParams(preset='window'))
+    tr = track_flow(*pair, CENTRE, WINDOW)
     check_counts(tr)
     assert tr.counts.kept >= 80 and tr.counts.kept == tr.counts.detected  # clean shift: nothing rejected
     err = np.linalg.norm(tr.curr_px - tr.prev_px - SHIFT, axis=1)
@@ -103,7 +117,7 @@ def test_full_spreads_over_the_image_and_default_centre_is_the_image_centre(pair
     lo, hi = tr.prev_px.min(axis=0), tr.prev_px.max(axis=0)
     assert np.all(lo >= 8) and hi[0] <= W - 9 and hi[1] <= H - 9
     assert np.all(hi - lo > 0.85 * np.array([W, H]))
-    win = track_flow(*pair, None, FlowParams(preset='window'))
+    win = track_flow(*pair, None, WINDOW)
     assert win.center_px == ((W - 1) / 2, (H - 1) / 2)
     assert np.all(np.abs(win.prev_px - win.center_px) <= 50.5)
 
@@ -113,9 +127,9 @@ def test_unrelated_content_is_rejected_and_the_rest_is_kept(pair):
     a, b = pair
     b = b.copy()
     b[:, :150] = texture(5)[:, :150]
-    tr = track_flow(a, b, CENTRE, FlowParams())
+    tr = track_flow(a, b, CENTRE, WINDOW)
     check_counts(tr)
-    full = track_flow(*pair, CENTRE, FlowParams())
+    full = track_flow(*pair, CENTRE, WINDOW)
     in_new = full.prev_px[:, 0] < 150 - 1
     assert in_new.sum() > 40                                   # the window had many corners there
     assert np.all(tr.prev_px[:, 0] >= 150 - 1)                 # ... none survive
@@ -130,7 +144,7 @@ def test_forward_backward_alone_rejects_most_unrelated_tracks(pair):
     a, b = pair
     b = b.copy()
     b[:, :150] = texture(5)[:, :150]
-    tr = track_flow(a, b, CENTRE, FlowParams(ncc_min=-1.0))   # correlation check off
+    tr = track_flow(a, b, CENTRE, FlowParams(preset='window', max_corners=150, ncc_min=-1.0))   # correlation check off
     assert tr.counts.ncc == 0 and tr.counts.fb > 40
     wrong = np.linalg.norm(tr.curr_px - tr.prev_px - SHIFT, axis=1) > 0.3
     assert wrong.sum() < 0.3 * tr.counts.fb                   # it lets a few through: why ncc_min exists
@@ -138,18 +152,18 @@ def test_forward_backward_alone_rejects_most_unrelated_tracks(pair):
 
 def test_flat_patches_are_rejected_by_min_eigenvalue(pair):
     a = (pair[0].astype(np.float32) * 0.02 + 128).astype(np.uint8)    # ~5 grey levels of texture
-    tr = track_flow(a, shifted(a, *SHIFT), CENTRE, FlowParams())
+    tr = track_flow(a, shifted(a, *SHIFT), CENTRE, WINDOW)
     check_counts(tr)
     assert tr.counts.detected > 0 and tr.counts.min_eig == tr.counts.detected and len(tr) == 0
     flat = np.full((H, W), 90, np.uint8)
-    tr = track_flow(flat, flat, CENTRE)
+    tr = track_flow(flat, flat, CENTRE, WINDOW)
     assert len(tr) == 0 and 'no corners' in tr.reason
 
 
 def test_points_leaving_the_image_are_dropped():
     a = texture(1)
     b = shifted(a, 0.0, 12.0)                                  # content moves 12 px down
-    tr = track_flow(a, b, (160.0, 200.0), FlowParams(border_px=20))
+    tr = track_flow(a, b, (160.0, 200.0), FlowParams(preset='window', max_corners=150, border_px=20))
     check_counts(tr)
     assert tr.counts.outside > 0
     assert np.all(tr.curr_px[:, 1] <= H - 21) and np.all(tr.curr_px >= 20)
@@ -168,7 +182,7 @@ def test_points_leaving_the_image_are_dropped():
     (texture(0, (10, 10)), texture(0, (10, 10)), None, 'too small'),
 ])
 def test_bad_input_gives_no_points_and_a_reason(prev, curr, centre, why):
-    tr = track_flow(prev, curr, centre, FlowParams())
+    tr = track_flow(prev, curr, centre, WINDOW)
     assert len(tr) == 0 and why in tr.reason
     assert tr.prev_px.shape == tr.curr_px.shape == (0, 2)
 
@@ -192,7 +206,7 @@ def sim_pair():
             px, _ = project_points(rig, side, P, pan, tilt, targets[side][None])
             frame[side] = CameraSample(renderer.render(side, P, pan, tilt), pan, tilt, tuple(px[0]), 7)
         frames.append(frame)
-    fe = StereoFrontEnd(rig)
+    fe = StereoFrontEnd(rig, WINDOW, CONSECUTIVE)
     obs = [fe.process(10.0 + k / 30, f) for k, f in enumerate(frames)]
     return rig, step, targets, frames, fe, obs
 
@@ -254,7 +268,7 @@ def small_rig():
 
 
 def test_missing_camera_and_gaps(small_rig):
-    fe = StereoFrontEnd(small_rig)
+    fe = StereoFrontEnd(small_rig, WINDOW, CONSECUTIVE)
     o0 = fe.process(0.0, synthetic_samples(0))
     assert o0.prev_stamp is None
     assert all(fe.last[s].status == NO_PREVIOUS and len(o0.camera(s).flow_prev) == 0 for s in SIDES)
@@ -277,7 +291,7 @@ def test_missing_camera_and_gaps(small_rig):
 
 
 def test_wrong_image_size_bad_joints_and_no_fixation(small_rig):
-    fe = StereoFrontEnd(small_rig)
+    fe = StereoFrontEnd(small_rig, WINDOW, CONSECUTIVE)
     fe.process(0.0, synthetic_samples(0))
     small = CameraSample(texture(0, (120, 160)), 0.0, 0.0, (80.0, 60.0), 1)
     o1 = fe.process(0.1, synthetic_samples(1, right=small))

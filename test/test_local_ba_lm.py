@@ -7,9 +7,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from fixego_ros.estimation.estimator import Estimator, EstimatorConfig, fixations_of, step_pairs
+from fixego_ros.estimation.estimator import Estimator, fixations_of, papers_config, papers_solver, step_pairs
 from fixego_ros.estimation.local_ba import BAProblem, BATerm, refine_latest
-from fixego_ros.estimation.twoframe import SolverConfig
 from fixego_ros.experiments.point_scene import PRESETS, PointScene, random_motion_sequence
 from fixego_ros.geometry.rotation import Pose, exp_so3, rotation_angle
 
@@ -23,7 +22,7 @@ def ba_setup(seed: int, noise: float, preset: str = 'paper'):
     steps = random_motion_sequence(cfg, 2, rng)
     _, noisy, _ = scene.frames(steps)
     sigma = max(noise, 0.1) / scene.rig.right.fx
-    est = Estimator(scene.rig, EstimatorConfig(window=0, solver=SolverConfig(sigma=sigma, prior_step=cfg.step_length)))
+    est = Estimator(scene.rig, papers_config(window=0, solver=papers_solver(sigma=sigma, prior_step=cfg.step_length)))
     results = [est.update(o) for o in noisy]
     terms = []
     for side in ('right', 'left'):

@@ -7,7 +7,7 @@ import copy
 import numpy as np
 import pytest
 
-from fixego_ros.estimation.estimator import Estimator, EstimatorConfig, FrameObservation
+from fixego_ros.estimation.estimator import Estimator, FrameObservation, papers_config
 from fixego_ros.estimation.status import StepStatus
 from fixego_ros.experiments.point_scene import PRESETS, PointScene, random_motion_sequence
 from fixego_ros.pipeline.observation import (
@@ -236,7 +236,7 @@ def test_rows_with_t0_after_stamp_rejected(scene_frames):
 # ---------------------------------------------------------------------------------------------- estimator
 def test_estimator_bridges_a_gap_and_ignores_disorder(scene_frames):
     rig, _, obs = scene_frames
-    est = Estimator(rig, EstimatorConfig(window=0))
+    est = Estimator(rig, papers_config(window=0))
     est.update(obs[0])
     r1 = est.update(obs[1])
     assert r1.status.usable

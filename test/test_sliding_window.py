@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fixego_ros.estimation.estimator import Estimator, EstimatorConfig, landmark_observations
+from fixego_ros.estimation.estimator import Estimator, EstimatorConfig, landmark_observations, papers_config
 from fixego_ros.estimation.sliding_window import SlidingWindow, SpeedSamples, WindowConfig
 from fixego_ros.experiments.landmark_scene import LandmarkScene, LandmarkSceneConfig
 from fixego_ros.geometry.rig import make_rig
@@ -21,6 +21,11 @@ def _run(name: str, seconds: float, noise_px: float = 0.3, window_px: float = 10
     return scene.run(make_trajectory(name), duration=seconds)
 
 
+def _config(**kw) -> EstimatorConfig:
+    """The estimator these tests were written against (the dataclass defaults before they became the node's)."""
+    return papers_config(sliding=WindowConfig(frames=8, sigma=1.0 / 863.5), **kw)
+
+
 def _loose() -> None:
     """No step factor: the landmarks alone place the keyframes."""
     return None
@@ -28,7 +33,7 @@ def _loose() -> None:
 
 def test_window_stays_at_the_truth_on_exact_observations():
     run = _run('paper', 12.0, noise_px=0.0)
-    sw = SlidingWindow(WindowConfig(sigma=1e-5))
+    sw = SlidingWindow(WindowConfig(frames=8, sigma=1e-5))
     sw.hold_open = False
     for obs, pose in zip(run.observations, run.poses, strict=True):
         est = sw.add(obs.stamp, pose, *landmark_observations(RIG, obs), _loose())
@@ -40,7 +45,7 @@ def test_window_stays_at_the_truth_on_exact_observations():
 def test_new_keyframe_is_placed_against_the_landmarks():
     """A 10 cm / 3 deg wrong guess for the newest keyframe is pulled back by the landmarks already placed."""
     run = _run('paper', 6.0, noise_px=0.0)
-    sw = SlidingWindow(WindowConfig(sigma=1e-5))
+    sw = SlidingWindow(WindowConfig(frames=8, sigma=1e-5))
     sw.hold_open = False
     obs = run.observations
     for o, pose in zip(obs[:-1], run.poses[:-1], strict=True):
@@ -53,7 +58,7 @@ def test_new_keyframe_is_placed_against_the_landmarks():
 
 def test_outlier_landmark_is_dropped():
     run = _run('paper', 4.0, noise_px=0.0)
-    sw = SlidingWindow(WindowConfig(sigma=1e-4))
+    sw = SlidingWindow(WindowConfig(frames=8, sigma=1e-4))
     sw.hold_open = False
     bad_key = None
     for k, (o, pose) in enumerate(zip(run.observations, run.poses, strict=True)):
@@ -70,7 +75,7 @@ def test_outlier_landmark_is_dropped():
 
 def test_scale_is_reported_unobserved_on_a_straight_run():
     run = _run('straight', 6.0)
-    est = Estimator(RIG, EstimatorConfig(refinement='sliding'))
+    est = Estimator(RIG, _config(refinement='sliding'))
     results = [est.update(o) for o in run.observations]
     assert not any(r.scale_observed for r in results)
     assert 'unobserved' in results[-1].scale_note
@@ -82,7 +87,7 @@ def test_scale_is_reported_unobserved_on_a_straight_run():
 def test_turning_alone_does_not_make_the_scale_observed(refinement):
     # a circle with the heading along it: the lever arm lies along every step (estimation/observability.py)
     run = _run('circle', 10.0)
-    est = Estimator(RIG, EstimatorConfig(refinement=refinement))
+    est = Estimator(RIG, _config(refinement=refinement))
     results = [est.update(o) for o in run.observations]
     assert not any(r.scale_observed for r in results)
     assert 'no scale aid' in results[-1].scale_note and 'constant-curvature' in results[-1].scale_note
@@ -92,7 +97,7 @@ def test_turning_alone_does_not_make_the_scale_observed(refinement):
 @pytest.mark.parametrize('refinement', ['local', 'sliding'])
 def test_scale_from_rotation_counts_it_observed_after_enough_rotation(refinement):
     run = _run('circle', 10.0)
-    est = Estimator(RIG, EstimatorConfig(refinement=refinement, scale_min_rotation_deg=15.0,
+    est = Estimator(RIG, _config(refinement=refinement, scale_min_rotation_deg=15.0,
                                          scale_from_rotation=True))
     flags = [est.update(o).scale_observed for o in run.observations]
     assert not flags[1] and flags[-1]
@@ -106,7 +111,7 @@ def test_speed_aid_makes_the_scale_observed_and_fixes_the_path_length():
     rng = np.random.default_rng(3)
     lengths = {}
     for aided in (False, True):
-        est = Estimator(RIG, EstimatorConfig(refinement='sliding'))
+        est = Estimator(RIG, _config(refinement='sliding'))
         res = None
         for k, o in enumerate(run.observations):
             if aided:
@@ -121,7 +126,7 @@ def test_speed_aid_makes_the_scale_observed_and_fixes_the_path_length():
 
 
 def test_bad_scale_aid_input_is_refused():
-    est = Estimator(RIG, EstimatorConfig(refinement='sliding'))
+    est = Estimator(RIG, _config(refinement='sliding'))
     with pytest.raises(ValueError):
         est.add_velocity(1.0, np.array([np.nan, 0, 0]), np.eye(3))
     with pytest.raises(ValueError):
@@ -140,7 +145,7 @@ def test_vergence_point_anchors_the_scale():
     run = _run('straight', 6.0)
     lengths = {}
     for aided in (False, True):
-        est = Estimator(RIG, EstimatorConfig(refinement='sliding'))
+        est = Estimator(RIG, _config(refinement='sliding'))
         if aided:
             est.add_fixation_point(run.stamps[0], 'right', run.fixation_points[0]['right'], np.eye(3) * 0.02**2)
         res = [est.update(o) for o in run.observations]

@@ -19,6 +19,9 @@ from fixego_ros.pipeline.frontend import (
 from fixego_ros.sim.run import resize_rig
 from fixego_ros.tracking.flow import FlowParams, track_points
 
+# what these tests were written against (the dataclass defaults before they became the node's)
+WINDOW = FlowParams(preset='window', max_corners=150)
+
 W, H = 320, 240
 
 
@@ -61,7 +64,7 @@ def check_counts(fe: StereoFrontEnd) -> None:
 def test_ids_persist_across_frames_and_are_never_reused(rig):
     """A texture drifting with the pan (consistent readings): every track lives on with its id; after
     the camera drops out, a reset and a re-detection, new ids are always larger than any seen before."""
-    fe = StereoFrontEnd(rig, FlowParams(), KeyframePolicy(max_frames=3))
+    fe = StereoFrontEnd(rig, WINDOW, KeyframePolicy(max_frames=3))
     o = fe.process(0.0, samples(rig, 0.0))
     first = {s: o.camera(s).track_ids.copy() for s in SIDES}
     assert all(len(v) >= 50 and v.dtype == np.int64 for v in first.values())
@@ -108,7 +111,7 @@ def test_predicted_lk_follows_a_60_px_pan_that_plain_lk_loses(rig):
     f = rig.camera('right').fx
     dpan = np.arctan(60.0 / f)                                    # 60 px at the image centre
     s0, s1 = samples(rig, 0.0), samples(rig, dpan)
-    fe = StereoFrontEnd(rig)
+    fe = StereoFrontEnd(rig, WINDOW, KeyframePolicy(max_frames=1))
     fe.process(0.0, s0)
     tracked = {s: (fe._tracks[s].px.copy(), fe._tracks[s].rays.copy()) for s in SIDES}
     o = fe.process(0.2, s1)
@@ -124,7 +127,7 @@ def test_predicted_lk_follows_a_60_px_pan_that_plain_lk_loses(rig):
         moved = np.linalg.norm(fe.last_tracks[side].curr_px - fe.last_tracks[side].prev_px, axis=1)
         assert np.median(moved) > 55
         # the same points without the prediction: LK from zero motion loses them
-        plain = track_points(s0[side].gray, s1[side].gray, px0, FlowParams())
+        plain = track_points(s0[side].gray, s1[side].gray, px0, WINDOW)
         truth = rig.camera(side).rays_to_pixels(rays0 @ rig.cam_to_rig(side, dpan, 0.0))
         right_place = plain.ok & (np.linalg.norm(plain.curr_px - truth, axis=1) < 1.0)
         assert right_place.sum() < 0.2 * len(px0)
@@ -138,7 +141,7 @@ def test_rig_rotation_is_predicted_at_constant_angular_velocity_and_triggers_key
     step = np.radians(2.0)
 
     def run(max_rotation_deg: float, frames: int) -> tuple[list[bool], StereoFrontEnd, object]:
-        fe = StereoFrontEnd(rig, FlowParams(), KeyframePolicy(max_frames=20, max_rotation_deg=max_rotation_deg))
+        fe = StereoFrontEnd(rig, WINDOW, KeyframePolicy(max_frames=20, max_rotation_deg=max_rotation_deg))
         keys = []
         for k in range(frames):
             o = fe.process(0.2 * k, samples(rig, 0.0, rot_y(step * k)))
@@ -201,7 +204,7 @@ def test_front_end_kills_epipolar_outliers(rig):
     """In the front end: tracks whose flow keyframe -> t does not fit the camera's epipolar model end and are
     counted. The images stand still; the keyframe's stored rays are replaced by those a rig 0.3 m away would
     have seen (points 2-6 m deep), a fifth of them moved 5 px off their epipolar plane."""
-    fe = StereoFrontEnd(rig, FlowParams(), KeyframePolicy(max_frames=5, max_rotation_deg=0.0))
+    fe = StereoFrontEnd(rig, WINDOW, KeyframePolicy(max_frames=5, max_rotation_deg=0.0))
     fe.process(0.0, samples(rig, 0.0))
     fe.process(0.2, samples(rig, 0.0))
     assert fe.last['right'].counts.epipolar == 0 and not fe.last['right'].ransac   # no parallax: skipped

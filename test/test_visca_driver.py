@@ -208,9 +208,11 @@ def test_ptz_cli_against_emulator(tmp_path, capsys):
         assert main([*base, 'home']) == 0
         assert json.loads(capsys.readouterr().out)['pan_units'] == 0
         prof = tmp_path / 'measured.json'
+        emu.faults.version_override = (0x0001, 0x0402, 0x0100, 2)
         assert main([*base, 'calibrate', '--settle', '0.1', '--out', str(prof)]) == 0
         limits = json.loads(capsys.readouterr().out)['limits']
         assert limits == {'pan_min': -44, 'pan_max': 88, 'tilt_min': -24, 'tilt_max': 36}
+        assert json.loads(prof.read_text())['profile']['model_ids'] == [0x0402]   # the measured device's model
         assert main(['ptz', '--port', emu.port, '--baud', '115200', '--profile', str(prof),
                      'goto', '9', '2']) == 0          # the measured profile is usable as --profile
         assert json.loads(capsys.readouterr().out)['pan_units'] == 79

@@ -361,3 +361,65 @@ def test_ack_after_network_change_and_lost_completion_recovers(visca_rig):
     assert cam.absolute(88, 0, wait=True) == 1
     assert emu.pan_tilt_units() == (88, 0) and cam.busy_sockets == {}
     assert cam.stats['lost_completions'] == 1 and cam.stats['network_changes'] == 1
+
+
+# ------------------------------------------------------------------------------ camera model (CAM_VersionInq)
+def test_profiles_list_only_the_documented_model_ids():
+    """Sony's manuals give 0402 (EVI-D30/D31) and 040E (EVI-D70); nothing for the D100 and G20, left unchecked.
+    An emulated camera answers its profile's version, so a checked profile must list that model."""
+    assert {n: p.model_ids for n, p in PROFILES.items()} == {
+        'evi_d30': (0x0402,), 'evi_d70': (0x040E,), 'evi_d100': (), 'evi_g20': ()}
+    for p in PROFILES.values():
+        assert not p.model_ids or p.version[1] in p.model_ids
+    with pytest.raises(ValueError, match='model_ids'):
+        CameraProfile(**dict(D30.to_dict(), model_ids=(0x10000,)))
+
+
+@pytest.mark.parametrize('name', ['evi_d30', 'evi_d70'])
+def test_emulated_camera_matches_its_profile(name):
+    from fixego_ros.visca.driver import check_model
+    with ViscaEmulator(name, baud=115200) as emu:
+        cam = ViscaCamera(emu.port, baud=115200, profile=name, timeout_s=0.2).open()
+        try:
+            c = check_model(cam)
+        finally:
+            cam.close()
+    assert c.outcome == 'match' and c.version['model'] == PROFILES[name].version[1], c.message
+    assert f'{PROFILES[name].version[1]:#06x}' in c.message and name in c.message
+
+
+def test_another_model_is_a_mismatch_naming_expected_and_found(visca_rig):
+    from fixego_ros.visca.driver import check_model
+    emu, cam = visca_rig
+    emu.faults.version_override = (0x0020, 0x040E, 0x0100, 2)      # an EVI-D70 behind an evi_d30 profile
+    c = check_model(cam)
+    assert c.outcome == 'mismatch' and c.expected == (0x0402,) and c.version['model'] == 0x040E
+    assert 'expects model 0x0402 (EVI-D30/D31' in c.message and 'answers model 0x040e (EVI-D70/P)' in c.message
+    assert '\n' not in c.message
+    assert cam.comm_errors == 0 and cam.position() == (0, 0)        # the link itself is fine
+
+
+def test_a_profile_without_model_ids_is_not_checked():
+    from fixego_ros.visca.driver import check_model
+    with ViscaEmulator('evi_g20', baud=115200) as emu:
+        cam = ViscaCamera(emu.port, baud=115200, profile='evi_g20', timeout_s=0.2).open()
+        try:
+            emu.faults.version_override = (0x0001, 0x0402, 0x0100, 2)
+            c = check_model(cam)
+        finally:
+            cam.close()
+    assert c.outcome == 'unchecked' and c.version['model'] == 0x0402 and 'lists no model id' in c.message
+
+
+@pytest.mark.parametrize('fault,error', [('silent', 'ViscaTimeoutError'), ('syntax_error', 'ViscaSyntaxError')])
+def test_unanswered_version_inquiry_is_bounded_and_the_link_goes_on(visca_rig, fault, error):
+    """Old firmware may not know CAM_VersionInq: silence ends at the reply timeout, a syntax error at once;
+    either is 'no_answer' (never an exception) and the next inquiry works."""
+    from fixego_ros.visca.driver import check_model
+    emu, cam = visca_rig
+    emu.faults.version_reply = fault
+    t0 = time.monotonic()
+    c = check_model(cam)
+    assert time.monotonic() - t0 < cam.timeout_s + 0.5
+    assert c.outcome == 'no_answer' and c.version is None and error in c.message and 'evi_d30' in c.message
+    assert cam.position() == (0, 0)

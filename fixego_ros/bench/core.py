@@ -11,9 +11,8 @@ import time
 
 import numpy as np
 
-from fixego_ros.estimation.estimator import Estimator, EstimatorConfig, step_pairs
+from fixego_ros.estimation.estimator import Estimator, papers_config, papers_solver, step_pairs
 from fixego_ros.estimation.local_ba import refine_latest
-from fixego_ros.estimation.twoframe import SolverConfig
 from fixego_ros.experiments.point_scene import PRESETS, PointScene, random_motion_sequence
 
 
@@ -24,8 +23,8 @@ def _time_preset(name: str, n_steps: int, seed: int = 0) -> dict[str, float]:
     steps = random_motion_sequence(cfg, n_steps, rng)
     _, obs, _ = scene.frames(steps)
     sigma = cfg.noise_px / scene.rig.right.fx
-    est = Estimator(scene.rig, EstimatorConfig(window=3, solver=SolverConfig(sigma=sigma, prior_step=cfg.step_length),
-                                               max_step_translation=4 * cfg.step_length))
+    est = Estimator(scene.rig, papers_config(window=3, solver=papers_solver(sigma=sigma, prior_step=cfg.step_length),
+                                             max_step_translation=4 * cfg.step_length))
     tf, ba = [], {'paper_powell': [], 'paper_trf': [], 'joint': []}
     for k, o in enumerate(obs):
         if k < 2:

@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -132,12 +133,15 @@ REFINEMENTS = ('sliding', 'local')
 
 @dataclass(frozen=True)
 class EstimatorConfig:
+    """Options of the estimator. The defaults are estimator_node's (``pipeline.params``, a test keeps them equal);
+    the papers' method as ``fixego paper-sim`` runs it is :func:`papers_config`."""
+
     window: int = 3                  # n: frames in the local BA (3..10); 0 or 1 disables it
-    mode: str = 'paper'              # 'paper' (BA cost alone, Powell) or 'joint'
+    mode: str = 'joint'              # 'paper' (BA cost alone, Powell) or 'joint'
     fixation_weight: float = 1.0     # weight of the fixation constraints relative to flow points
-    max_step_translation: float = 1.0  # m; larger steps are rejected as jumps
-    max_step_rotation: float = 0.35    # rad (~20 deg)
-    max_speed: float = float('inf')    # m/s; a step implying a faster rig is rejected as a jump
+    max_step_translation: float = 0.5  # m; larger steps are rejected as jumps
+    max_step_rotation: float = math.radians(20.0)  # rad
+    max_speed: float = 1.5             # m/s; a step implying a faster rig is rejected as a jump
     reject_translation_std: float = VAR_MAX  # m; steps less certain than this are rejected
     # weak constant-velocity prior on each step's T (off = the papers' method): sigma = max(min, rel * |T_pred|)
     velocity_prior: bool = False
@@ -155,7 +159,7 @@ class EstimatorConfig:
     scale_from_rotation: bool = False
     # constant-speed prior (:mod:`.constant_speed`): every step at one speed, nominal until the vergence step
     # (:meth:`Estimator.add_fixation_point`) measures it; off = the papers' free two-frame lengths
-    constant_speed: bool = False
+    constant_speed: bool = True
     speed_nominal: float = 0.5        # m/s
 
     def __post_init__(self) -> None:
@@ -170,6 +174,21 @@ class EstimatorConfig:
                              'with its landmarks instead)')
         if self.window not in (0, 1) and not 3 <= self.window <= 10:
             raise ValueError(f'window must be 3..10 (or 0 to disable the local BA), got {self.window}')
+
+
+def papers_solver(**overrides: Any) -> SolverConfig:
+    """The two-frame solve of the papers' experiments: plain least squares (no robust loss), up to 60
+    evaluations, no stationary detection (the simulated rig always moves)."""
+    return SolverConfig(**{'loss': 'linear', 'max_nfev': 60, 'min_parallax': 1e-7, **overrides})
+
+
+def papers_config(**overrides: Any) -> EstimatorConfig:
+    """The papers' method as ``fixego paper-sim`` and the core benchmark run it: the local BA in 'paper' mode
+    (Powell on the BA cost alone), free two-frame lengths (no constant-speed prior), no speed limit and loose
+    jump bounds (1 m, 0.35 rad), and :func:`papers_solver`. ``overrides`` replace any field."""
+    values: dict[str, Any] = {'mode': 'paper', 'max_step_translation': 1.0, 'max_step_rotation': 0.35,
+                              'max_speed': math.inf, 'constant_speed': False, 'solver': papers_solver()}
+    return EstimatorConfig(**{**values, **overrides})
 
 
 @dataclass

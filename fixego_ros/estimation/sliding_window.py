@@ -49,13 +49,15 @@ def landmark_kind_side(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 @dataclass(frozen=True)
 class WindowConfig:
-    """Options of the sliding window (defaults suit ~5-30 keyframes/s and ~80 tracks per camera)."""
+    """Options of the sliding window (defaults suit ~5-30 keyframes/s and ~80 tracks per camera). The defaults
+    are estimator_node's (``pipeline.params``); ``sigma`` is its pixel_sigma over the default rig's focal length
+    (config/rig.yaml: 1727 px)."""
 
-    frames: int = 8                    # keyframe poses refined (the newest ones)
+    frames: int = 4                    # keyframe poses refined (the newest ones)
     max_fixed_frames: int = 12         # older keyframes kept (fixed) for their observations of live landmarks
     max_unobserved_frames: int = 40    # while the scale is unobserved the window grows up to this
     iterations: int = 4                # LM iterations per keyframe
-    sigma: float = 1.0 / 863.5         # angular noise of one ray (rad)
+    sigma: float = 1.0 / 1727.0        # angular noise of one ray (rad)
     huber: float = 2.0                 # Huber knee in sigmas
     outlier_sigma: float = 8.0         # a landmark with an observation this far off is dropped
     min_parallax_deg: float = 1.0      # triangulate a landmark once its rays span this angle

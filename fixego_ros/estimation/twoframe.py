@@ -36,15 +36,16 @@ BACKENDS = ('lm', 'scipy')
 
 @dataclass(frozen=True)
 class SolverConfig:
-    """Options of the two-frame solve (defaults suit 640x480 at ~1700 px focal length)."""
+    """Options of the two-frame solve. The defaults are estimator_node's (``pipeline.params``); the two angles
+    are its pixel values over the default rig's focal length (config/rig.yaml: 1727 px)."""
 
     sigma: float = 1.0 / 1727.0        # expected angular noise of one ray (rad) = pixel noise / focal
-    loss: str = 'linear'               # scipy's losses: linear, huber, soft_l1, cauchy, arctan
+    loss: str = 'huber'                # scipy's losses: linear, huber, soft_l1, cauchy, arctan
     loss_scale: float = 3.0            # robust loss knee, in multiples of sigma
-    max_nfev: int = 60                 # bound on residual evaluations of one refinement
+    max_nfev: int = 30                 # bound on residual evaluations of one refinement
     tol: float = 1e-7                  # relative ftol/xtol of the least-squares solve
     prior_step: float = 0.05           # |T| (m) of the canonical starts when nothing better is known
-    min_parallax: float = 1e-7         # rad; median rotation-compensated parallax below this = stationary
+    min_parallax: float = 0.3 / 1727.0  # rad; median rotation-compensated parallax below this = stationary
     max_translation_std: float = 0.5   # m; beyond this the step is WEAK (scale unobserved)
     backend: str = 'lm'                # 'lm' (levenberg_marquardt below) or 'scipy' (least_squares, trf)
 

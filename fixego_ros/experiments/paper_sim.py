@@ -24,8 +24,14 @@ import numpy as np
 from scipy import stats
 
 from fixego_ros.estimation.crb import relative_bounds, two_frame_crb
-from fixego_ros.estimation.estimator import Estimator, EstimatorConfig, FrameResult, fixations_of, step_pairs
-from fixego_ros.estimation.twoframe import SolverConfig
+from fixego_ros.estimation.estimator import (
+    Estimator,
+    FrameResult,
+    fixations_of,
+    papers_config,
+    papers_solver,
+    step_pairs,
+)
 from fixego_ros.experiments.point_scene import PRESETS, PointScene, SceneConfig, random_motion_sequence
 from fixego_ros.geometry.rotation import rotation_error_paper, translation_error_paper
 
@@ -36,9 +42,9 @@ def estimator_for(scene: PointScene, cfg: SceneConfig, window: int, mode: str = 
     """Estimator tuned to the preset's noise (sigma = pixel noise / focal length); no jump rejection
     beyond 4 step lengths, so the experiment measures the method rather than the safety net."""
     sigma = max(cfg.noise_px, 1e-3) / scene.rig.right.fx
-    solver = SolverConfig(sigma=sigma, prior_step=cfg.step_length)
-    return Estimator(scene.rig, EstimatorConfig(window=window, mode=mode, solver=solver,
-                                                max_step_translation=4.0 * cfg.step_length))
+    solver = papers_solver(sigma=sigma, prior_step=cfg.step_length)
+    return Estimator(scene.rig, papers_config(window=window, mode=mode, solver=solver,
+                                              max_step_translation=4.0 * cfg.step_length))
 
 
 def _run(est: Estimator, obs: list) -> list[FrameResult]:

@@ -71,7 +71,7 @@ from fixego_ros.tracking.vergence import (
     VergenceScheduler,
     VergenceStep,
 )
-from fixego_ros.visca.driver import ViscaCamera
+from fixego_ros.visca.driver import ModelCheck, ViscaCamera, check_model
 from fixego_ros.visca.profiles import get_profile
 
 PARAMS = CAMERA_NODE_PARAMS
@@ -82,6 +82,7 @@ LIVE_SERVO = ('servo_gain', 'servo_deadband_px', 'servo_move_time_s', 'servo_max
 LIVE_NODE = ('limit_margin_deg', 'limit_reselect_offset_px', 'joint_max_wait_s', 'diagnostics_period_s')
 # when vergence steps run (the scheduler's limits); the step itself is read-only
 LIVE_VERGENCE = ('vergence_period_s', 'vergence_min_interval_s', 'vergence_retry_s')
+MODEL_CHECK_TRIES = 3   # CAM_VersionInq attempts per connection before a silent camera counts as not answering
 
 
 def servo_params(g: Getter) -> ServoParams:
@@ -116,12 +117,17 @@ class CameraNode(Node):
         pr = self.profile
         self.limits = LimitCheck((pr.pan_rad(pr.pan_min), pr.pan_rad(pr.pan_max)),
                                  (pr.tilt_rad(pr.tilt_min), pr.tilt_rad(pr.tilt_max)),
-                                 math.radians(float(g('limit_margin_deg'))), float(g('limit_reselect_offset_px')))
+                                 math.radians(float(g('limit_margin_deg'))), float(g('limit_reselect_offset_px')),
+                                 signs=(self.calibration.pan_sign, self.calibration.tilt_sign))
         self.servo_params = servo_params(g)
         self.joint_max_wait_s = float(g('joint_max_wait_s'))
         port = str(g('port'))
         self.passive = bool(g('passive')) or not port
         self.driver: ViscaCamera | None = None
+        self.require_model_match = bool(g('require_model_match'))
+        self.model_check: ModelCheck | None = None
+        self._model_checked: int | None = None      # the driver connection (reconnect count) last checked
+        self._model_tries = (-1, 0)                 # (connection, attempts) of the check under way
         self.loop: ServoLoop | None = None
         self.servo = FixationServo(self.camera, self.profile, self.servo_params, self.calibration)
         ns = self.side
@@ -139,11 +145,13 @@ class CameraNode(Node):
                 self.driver.open()
             except Exception as e:
                 self.get_logger().error(f'cannot open {port}: {e}; retrying in the background')
+            self._check_model()         # before the servo loop owns the line
             self.loop = ServoLoop(self.driver, self.servo_params, clock=self._now)
             self.history = self.loop.history
             self.pub_joint = self.create_publisher(JointState, f'{ns}/joint_states', RELIABLE_QOS)
             self.loop.start()
             self.create_timer(0.02, self._flush_joints)
+            self.create_timer(0.5, self._check_model)    # a port opened later, or re-opened: check again
         self._pending: deque = deque(maxlen=200)
         self.video = None
         self.pub_image = None
@@ -170,6 +178,54 @@ class CameraNode(Node):
     # ---------------------------------------------------------------------------------------- time
     def _now(self) -> float:
         return self.get_clock().now().nanoseconds * 1e-9
+
+    # ---------------------------------------------------------------------------------------- camera model
+    def _check_model(self) -> None:
+        """CAM_VersionInq once per serial connection (:func:`~fixego_ros.visca.driver.check_model`): a match is
+        logged once, a mismatch is one error line (fatal with ``require_model_match``), no answer a warning. Silence
+        or garbled bytes (e.g. just after a reconnect) are retried at the next ticks, MODEL_CHECK_TRIES in all."""
+        d = self.driver
+        if d is None or not d.connected or self._model_checked == d.stats['reconnects']:
+            return
+        key = d.stats['reconnects']
+        tries = self._model_tries[1] + 1 if self._model_tries[0] == key else 1
+        self._model_tries = (key, tries)
+        c = check_model(d)
+        if c.outcome == 'no_answer' and not c.final and tries < MODEL_CHECK_TRIES:
+            return
+        self._model_checked = key
+        before, self.model_check = self.model_check, c
+        if c.outcome == 'mismatch' and self.require_model_match:
+            if self.loop is not None:
+                self.loop.stop()
+            d.close()
+            raise ParamsError(f'parameter require_model_match is true and {c.message}')
+        if before is not None and (before.outcome, before.version) == (c.outcome, c.version):
+            return                                  # the same camera after a reconnect: said already
+        if c.outcome == 'mismatch':
+            self.get_logger().error(c.message + ' (require_model_match is false: carrying on)')
+        elif c.outcome == 'no_answer':
+            self.get_logger().warning(c.message)
+        else:
+            self.get_logger().info(c.message)
+
+    def _model_status(self):
+        c, pr = self.model_check, self.profile
+        values: dict[str, object] = {'profile': pr.name, 'require_model_match': self.require_model_match,
+                                     'expected_models': ' '.join(f'{m:#06x}' for m in pr.model_ids) or 'none'}
+        if c is None:
+            level, message = OK, 'not checked yet'
+        else:
+            level = {'mismatch': ERROR, 'no_answer': WARN}.get(c.outcome, OK)
+            message = {'match': f'model matches profile {pr.name}',
+                       'unchecked': f'profile {pr.name} lists no model id: not checked',
+                       'no_answer': 'no answer to CAM_VersionInq: model not checked',
+                       'mismatch': f'camera model mismatch with profile {pr.name}'}[c.outcome]
+            values['check'] = c.outcome
+            if c.version is not None:
+                values.update({f'camera_{k}': f'{v:#06x}' for k, v in c.version.items() if k != 'max_socket'})
+        return diagnostic_status(f'fixego camera_node {self.side}: camera model', self.driver.port, level, message,
+                                 values)
 
     # ---------------------------------------------------------------------------------------- input
     def _on_joint_state(self, msg: JointState) -> None:
@@ -531,7 +587,7 @@ class CameraNode(Node):
                 level, message = ERROR, f'serial port {self.driver.state}: {self.driver.last_error}'
         publish_diagnostics(self, self.pub_diag, [diagnostic_status(
             f'fixego camera_node {self.side}', self.driver.port if self.driver else 'passive', level, message,
-            values), self._vergence_status()])
+            values), self._vergence_status(), *([self._model_status()] if self.driver is not None else [])])
 
     def destroy_node(self) -> None:
         if self.loop is not None:

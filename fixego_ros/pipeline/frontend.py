@@ -103,7 +103,7 @@ class CameraSample:
 class KeyframePolicy:
     """When the front end takes a new keyframe (the frame later flow starts from)."""
 
-    max_frames: int = 1                 # frames per keyframe at most; 1 = flow between consecutive frames
+    max_frames: int = 10                # frames per keyframe at most; 1 = flow between consecutive frames
     min_parallax_px: float = 0.0        # new keyframe once the median rotation-compensated parallax reaches
                                         # this (0 = off)
     min_tracked_fraction: float = 0.5   # new keyframe when fewer of the keyframe's tracks survive

@@ -314,6 +314,9 @@ CAMERA_NODE_PARAMS: Table = _table(
     _num('baud', 9600, 'serial baud rate (EVI cameras: 9600)', ge=1200, le=115200),
     _num('address', 1, 'VISCA camera address 1..7', ge=1, le=7),
     _str('profile', 'evi_d30', 'camera profile: evi_d30 | evi_d100 | evi_d70 | evi_g20 | path to calibrate .json'),
+    _bool('require_model_match', False, "on connect the camera's model (CAM_VersionInq) is compared with the "
+                                        "profile's model ids: true = a mismatch stops the node; false = it is "
+                                        'logged and an ERROR on /diagnostics. No answer: a WARN either way'),
     _bool('passive', False, 'follow recorded joint states and only track (replays); also implied by empty port'),
     _str('video_device', '', 'V4L2 device (index or path) read with OpenCV instead of subscribing image_raw'),
     _num('video_fps', 30.0, 'frame rate to poll video_device at', gt=0.0, le=1000.0),
@@ -750,17 +753,65 @@ def write_config(directory: str | Path) -> list[Path]:
     return out
 
 
+# ---------------------------------------------------------------------------------------------- reference
+def _cell(text: str) -> str:
+    return text.replace('|', '\\|').replace('\n', ' ')
+
+
+def _type_name(spec: ParamSpec) -> str:
+    return {bool: 'bool', int: 'int', float: 'float', str: 'string', list: 'string[]'}[spec.type]
+
+
+def _default_text(spec: ParamSpec) -> str:
+    if spec.default is None:
+        return '(unset)'
+    if isinstance(spec.default, str):
+        return f'`{json.dumps(spec.default)}`'
+    return f'`{_yaml_scalar(spec.default)}`'
+
+
+def render_docs() -> str:
+    """``docs/parameters.md``: one table per node (name, type, default, allowed, when it applies, description)."""
+    lines = ['# Parameter reference', '',
+             'Generated from the specs in `fixego_ros/pipeline/params.py` '
+             '(`python -m fixego_ros.pipeline.params --write-docs docs/parameters.md`); edit the specs, not this file. '
+             '*read-only*: taken at start only; *run-time*: `ros2 param set` applies it to the running node. '
+             'Every value is checked (type, range, finite) at start and on every change; a refused value is one '
+             'line naming the parameter and what is allowed.', '']
+    for node, table in NODE_PARAMS.items():
+        lines += [f'## {node}', '', '| name | type | default | allowed | changes | description |',
+                  '|---|---|---|---|---|---|']
+        for spec in table.values():
+            when = 'read-only' if spec.read_only else 'run-time'
+            lines.append(f'| `{spec.name}` | {_type_name(spec)} | {_cell(_default_text(spec))} | '
+                         f'{_cell(spec.allowed())} | {when} | {_cell(spec.description)} |')
+        lines.append('')
+    return '\n'.join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog='python -m fixego_ros.pipeline.params',
-                                description='Generate (or check) config/<node>.yaml from the parameter specs.')
+                                description='Generate (or check) config/<node>.yaml and the parameter reference '
+                                            'from the parameter specs.')
     g = p.add_mutually_exclusive_group(required=True)
     g.add_argument('--write-config', type=Path, metavar='DIR', help='write DIR/<node>.yaml for every node')
     g.add_argument('--check-config', type=Path, metavar='DIR', help='exit 1 if DIR/<node>.yaml differ from the specs')
+    g.add_argument('--write-docs', type=Path, metavar='FILE', help='write the parameter reference (markdown) to FILE')
+    g.add_argument('--check-docs', type=Path, metavar='FILE', help='exit 1 if FILE differs from the specs')
     args = p.parse_args(argv)
     if args.write_config is not None:
         for path in write_config(args.write_config):
             print(f'wrote {path}')
         return 0
+    if args.write_docs is not None:
+        args.write_docs.write_text(render_docs())
+        print(f'wrote {args.write_docs}')
+        return 0
+    if args.check_docs is not None:
+        if args.check_docs.is_file() and args.check_docs.read_text() == render_docs():
+            return 0
+        print(f'{args.check_docs} differs from the specs (regenerate with --write-docs)', file=sys.stderr)
+        return 1
     stale = [node for node in NODE_PARAMS if not (args.check_config / f'{node}.yaml').exists()
              or (args.check_config / f'{node}.yaml').read_text() != render_config(node)]
     for node in stale:

@@ -229,9 +229,13 @@ class LimitCheck:
     margin_rad: float = math.radians(5.0)
     offset_px: float = 120.0
     armed: dict[str, bool] = field(default_factory=lambda: {'pan': True, 'tilt': True})
+    # the rig file's pan_sign, tilt_sign (DESIGN.md §4): -1 = the device angle runs against the view (a head
+    # mounted upside down), so the side of the image that moves it back is the other one
+    signs: tuple[float, float] = (1.0, 1.0)
 
     def check(self, pan: float, tilt: float) -> tuple[float, float] | None:
-        """Pixel offset (du, dv) for a re-selection, or None. VISCA signs: + pan right, + tilt up."""
+        """Pixel offset (du, dv) for a re-selection, or None. ``pan``, ``tilt``: device angles (VISCA signs:
+        + pan right, + tilt up, when ``signs`` are +1)."""
         du = dv = 0.0
         lo, hi = self.pan_range_rad
         if pan > hi - self.margin_rad:
@@ -243,6 +247,7 @@ class LimitCheck:
             dv = self.offset_px          # look lower: a point below the centre (larger v)
         elif tilt < lo + self.margin_rad:
             dv = -self.offset_px
+        du, dv = du * math.copysign(1.0, self.signs[0]), dv * math.copysign(1.0, self.signs[1])
         fire = (du != 0.0 and self.armed['pan']) or (dv != 0.0 and self.armed['tilt'])
         # re-arm only once the axis is clear of the margin, so one approach triggers one re-selection
         self.armed['pan'] = du == 0.0

@@ -46,11 +46,11 @@ _PAD = _CORNER_BLOCK // 2 + 2  # context kept around a detection box so its corn
 class FlowParams:
     """How flow points are chosen and which tracks are trusted (defaults: the papers' real set-up)."""
 
-    preset: str = 'window'          # 'paper' | 'window' | 'full'
+    preset: str = 'full'            # 'paper' | 'window' | 'full'
     window_px: int = 100            # side of the flow window centred on the fixation pixel
     paper_region_px: int = 30       # 'paper': central square of the window the points come from
     paper_points: int = 3           # 'paper': how many points
-    max_corners: int = 150          # 'window' / 'full': at most this many points
+    max_corners: int = 80           # 'window' / 'full': at most this many points
     corner_quality: float = 0.01    # goodFeaturesToTrack qualityLevel (relative to the best corner)
     min_distance_px: float = 6.0    # minimum distance between detected corners
     lk_win: int = 21                # LK window side (px)

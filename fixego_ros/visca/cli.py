@@ -19,6 +19,7 @@ from fixego_ros.visca.driver import (
     ViscaCamera,
     check_address,
     check_baud,
+    check_model,
     check_seconds,
     check_timeout,
     measure_limits,
@@ -113,9 +114,11 @@ def run(args: argparse.Namespace) -> int:
             else:
                 limits = measure_limits(cam, settle_s=args.settle)
                 cam.home(wait=True)
+                found = check_model(cam)      # the measured profile is for this model (if it says which)
+                model_ids = [found.version['model']] if found.version else list(cam.profile.model_ids)
                 measured = dict(cam.profile.to_dict(), **limits, name=cam.profile.name + '_measured',
-                                verified=True, notes='limits measured by fixego ptz calibrate; '
-                                'units per degree and speeds are still the base profile values')
+                                verified=True, model_ids=model_ids, notes='limits measured by fixego ptz '
+                                'calibrate; units per degree and speeds are still the base profile values')
                 out = {'limits': limits, 'profile': measured,
                        'pan_deg_range': [cam.profile.pan_deg(limits['pan_min']),
                                          cam.profile.pan_deg(limits['pan_max'])],

@@ -24,13 +24,14 @@ import math
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 import serial
 
 from fixego_ros.cli_options import check_float
 from fixego_ros.visca import protocol as vp
-from fixego_ros.visca.profiles import CameraProfile, get_profile
+from fixego_ros.visca.profiles import CameraProfile, get_profile, model_text
 from fixego_ros.visca.protocol import Reply, ReplyKind
 
 try:                              # pyserial's flush/reset call termios directly and let termios.error out
@@ -618,6 +619,46 @@ class ViscaCamera:
         data, _ = self.inquiry(vp.version_inquiry(self.address), 'CAM_VersionInq', data_len=7)
         return {'vendor': data[0] << 8 | data[1], 'model': data[2] << 8 | data[3],
                 'rom': data[4] << 8 | data[5], 'max_socket': data[6]}
+
+
+@dataclass(frozen=True)
+class ModelCheck:
+    """What :func:`check_model` found: ``outcome`` is 'match', 'mismatch', 'unchecked' (the profile lists no
+    model id) or 'no_answer' (silence, an error reply or a malformed one); ``message`` is one log line.
+    ``final`` is False for a no-answer that may pass (silence, garbled bytes, a lost port, e.g. just after a
+    reconnect); an error reply (old firmware refusing the inquiry) is final."""
+
+    outcome: str
+    message: str
+    version: dict[str, int] | None = None
+    expected: tuple[int, ...] = ()
+    final: bool = True
+
+
+def check_model(cam: ViscaCamera) -> ModelCheck:
+    """Ask the camera's model (CAM_VersionInq, one bounded inquiry) and compare it with the profile's
+    ``model_ids``. A wrong profile gives wrong units per degree, ranges and speeds, so every joint angle would
+    be scaled wrong without any serial error; this is the one place that can tell. Never raises a VISCA error:
+    old firmware may not know the inquiry (silence or a syntax error), which is reported, not fatal."""
+    pr = cam.profile
+    expected = tuple(pr.model_ids)
+    try:
+        v = cam.version()
+    except vp.ViscaError as e:
+        return ModelCheck('no_answer', f'{cam.port}: no usable answer to CAM_VersionInq ({type(e).__name__}: {e}); '
+                                       f'camera model not checked against profile {pr.name}', None, expected,
+                          final=isinstance(e, vp.ViscaReplyError))
+    found = (f'model {model_text(v["model"])}, vendor {v["vendor"]:#06x}, ROM {v["rom"]:#06x}, '
+             f'{v["max_socket"]} sockets')
+    if not expected:
+        return ModelCheck('unchecked', f'{cam.port}: camera answers {found}; profile {pr.name} lists no model id, '
+                                       'so it is not checked', v, expected)
+    if v['model'] in expected:
+        return ModelCheck('match', f'{cam.port}: camera {found}: matches profile {pr.name}', v, expected)
+    want = ' or '.join(model_text(m) for m in expected)
+    return ModelCheck('mismatch', f'{cam.port}: camera model mismatch: profile {pr.name} expects model {want}, the '
+                                  f'camera answers {found}; its units per degree, ranges and speeds may differ '
+                                  '(set the profile parameter to the camera\'s)', v, expected)
 
 
 def measure_limits(cam: ViscaCamera, settle_s: float = 0.3, timeout_s: float = 30.0) -> dict[str, int]:

@@ -17,7 +17,8 @@ documented here because a driver could depend on them):
 
 Faults (:class:`EmulatorFaults`) are real bytes on the pty: silence, lost or corrupted bytes, unsolicited
 packets now or part-way through a move (a network change mid-AbsolutePosition), replies replaced by
-truncated, foreign-address or error packets, and a position counter reporting impossible values.
+truncated, foreign-address or error packets, a position counter reporting impossible values, and a
+CAM_VersionInq answered with another model, with silence or with a syntax error (old firmware).
 
 The true angles over time (:meth:`ViscaEmulator.pan_tilt_rad`) let the simulator render what the
 camera sees. Angles follow VISCA: positive pan = right, positive tilt = up.
@@ -82,6 +83,10 @@ class EmulatorFaults:
         # Pan-tiltPosInq answers this (pan, tilt) in units (signed 16-bit) instead of the true position:
         # a camera with a corrupted counter, or another model than the profile says
         self.position_override: tuple[int, int] | None = None
+        # CAM_VersionInq: 'answer' (the profile's version, or ``version_override``), 'silent' (no reply) or
+        # 'syntax_error' (``z0 60 02 FF``): old firmware that does not know the inquiry
+        self.version_reply = 'answer'
+        self.version_override: tuple[int, int, int, int] | None = None   # (vendor, model, rom, max socket)
         self.rng = random.Random(seed)
         self._replace: deque[bytes] = deque()
         self._mid_motion: deque[tuple[bytes, float]] = deque()
@@ -443,7 +448,11 @@ class ViscaEmulator:
         elif q == b'\x04\x47':
             self._send(vp.inquiry_reply(a, vp.encode_nibbles(self._zoom, 4, signed=False)), t)
         elif q == b'\x00\x02':
-            vendor, model, rom, sockets = pr.version
+            if self.faults.version_reply == 'silent':
+                return
+            if self.faults.version_reply == 'syntax_error':
+                raise _SyntaxError
+            vendor, model, rom, sockets = self.faults.version_override or pr.version
             data = bytes(((vendor >> 8) & 0x7F, vendor & 0x7F, (model >> 8) & 0x7F, model & 0x7F,
                           (rom >> 8) & 0x7F, rom & 0x7F, sockets & 0x7F))
             self._send(vp.inquiry_reply(a, data), t)

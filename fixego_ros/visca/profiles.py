@@ -5,6 +5,14 @@ reprinted in the D100 manual's "D30/31 mode" section) and the EVI-D70 technical 
 table). The D70 speed table is not in the pages we had: its speeds are a linear approximation to the
 documented maxima and marked unverified. The EVI-G20 has **no public VISCA numbers**: its profile
 copies the D30 and is marked unverified; measure a real unit with ``fixego ptz calibrate``.
+
+Model ids (``CAM_VersionInq``, ``y0 50 GG GG HH HH JJ JJ KK FF``: vendor, model, ROM, max socket), checked by
+camera_node on connect: only ids a Sony manual gives. The EVI-D70 technical manual lists 040E (EVI-D70/P) and
+0402 (EVI-D30/D31, also what a D70 answers in its D30/D31 mode, where it speaks D30 units); the EVI-D80/D90,
+EVI-HD7V/HD3V and FCB-EV7500 manuals give their own ids (:data:`MODEL_NAMES`, for messages). The EVI-D100 manual
+names the field but gives no value (a third-party table says 040D: not used), and the EVI-G20 has no public
+VISCA documentation, so ``evi_d100`` and ``evi_g20`` list no model id and are not checked. The vendor id is not
+checked either: Sony's manuals give 0001 (D80, D100), 0010 (HD7V) and 0020 (D70, FCB) for Sony.
 """
 
 from __future__ import annotations
@@ -39,6 +47,8 @@ class CameraProfile:
     notes: str = ''
     extra: dict[str, float] = field(default_factory=dict)
     baud_rates: tuple[int, ...] = ()      # rates beyond BAUD_RATES this device supports
+    # CAM_VersionInq model ids this profile's numbers are right for; empty = unknown, not checked
+    model_ids: tuple[int, ...] = ()
 
     def __post_init__(self) -> None:
         # a profile drives timeouts, range checks and unit conversions: a NaN or an empty speed table
@@ -60,6 +70,8 @@ class CameraProfile:
             raise ValueError(f'profile {self.name!r}: version must be (vendor, model, rom, max socket 1..7)')
         if not all(isinstance(b, int) and b > 0 for b in self.baud_rates):
             raise ValueError(f'profile {self.name!r}: baud_rates must be positive integers')
+        if not all(isinstance(m, int) and not isinstance(m, bool) and 0 <= m <= 0xFFFF for m in self.model_ids):
+            raise ValueError(f'profile {self.name!r}: model_ids must be integers 0..0xFFFF (CAM_VersionInq HHHH)')
 
     @property
     def max_socket(self) -> int:
@@ -138,7 +150,7 @@ class CameraProfile:
         return d
 
 
-_TUPLE_FIELDS = ('pan_speeds_deg_s', 'tilt_speeds_deg_s', 'version', 'baud_rates')
+_TUPLE_FIELDS = ('pan_speeds_deg_s', 'tilt_speeds_deg_s', 'version', 'baud_rates', 'model_ids')
 
 
 def _positive(v: object) -> bool:
@@ -181,20 +193,32 @@ PROFILES: dict[str, CameraProfile] = {
     # documented: pan +-100 deg = +-880 (FC90..0370), tilt +-25 deg = +-300 (FED4..012C);
     # pan speed 01..18h = 3.3..80 deg/s, tilt 01..14h = 2.5..50 deg/s (linear)
     'evi_d30': CameraProfile('evi_d30', -880, 880, -300, 300, 8.8, 12.0, _linear(80.0, 0x18),
-                             _linear(50.0, 0x14), 0x03FF, (0x0001, 0x0402, 0x0100, 0x02)),
+                             _linear(50.0, 0x14), 0x03FF, (0x0001, 0x0402, 0x0100, 0x02), model_ids=(0x0402,)),
     # documented: pan +-100 deg = FA60..05A0 (+-1440), tilt +-25 deg = FE98..0168 (+-360)
     'evi_d100': CameraProfile('evi_d100', -1440, 1440, -360, 360, 14.4, 14.4, _D100_SPEEDS,
-                              _D100_SPEEDS[:0x14], 0x4000, (0x0001, 0x040D, 0x0100, 0x02)),
+                              _D100_SPEEDS[:0x14], 0x4000, (0x0001, 0x040D, 0x0100, 0x02),
+                              notes='model id not in the manual: not checked on connect'),
     # documented positions: pan +-170 deg = F725..08DB, tilt -30..+90 deg = FE70..04B0 (0.075 deg/unit);
     # speeds: linear to 100 deg/s (pan, 18h) and 90 deg/s (tilt, 17h) - approximation, unverified
     'evi_d70': CameraProfile('evi_d70', -2267, 2267, -400, 1200, 2267 / 170.0, 1200 / 90.0,
-                             _linear(100.0, 0x18), _linear(90.0, 0x17), 0x4000, (0x0001, 0x040E, 0x0100, 0x02),
-                             notes='speed table is a linear approximation (unverified)'),
+                             _linear(100.0, 0x18), _linear(90.0, 0x17), 0x4000, (0x0020, 0x040E, 0x0100, 0x02),
+                             notes='speed table is a linear approximation (unverified)', model_ids=(0x040E,)),
     # no public numbers: D30 values until measured with `fixego ptz calibrate`
     'evi_g20': CameraProfile('evi_g20', -880, 880, -300, 300, 8.8, 12.0, _linear(80.0, 0x18),
                              _linear(50.0, 0x14), 0x03FF, (0x0001, 0x0000, 0x0100, 0x02), verified=False,
                              notes='UNVERIFIED: copied from evi_d30; run `fixego ptz calibrate` on the device'),
 }
+
+# CAM_VersionInq model ids named in Sony's technical manuals (see the module docstring), for messages
+MODEL_NAMES: dict[int, str] = {
+    0x0402: 'EVI-D30/D31, or a camera in D30/D31 mode', 0x040E: 'EVI-D70/P', 0x050C: 'EVI-D80', 0x050D: 'EVI-D90',
+    0x0508: 'EVI-HD7V', 0x0509: 'EVI-HD3V', 0x0467: 'FCB-EV7500'}
+
+
+def model_text(model: int) -> str:
+    """``0x040E (EVI-D70/P)``; the name only when a manual gives it."""
+    name = MODEL_NAMES.get(model)
+    return f'{model:#06x}' + (f' ({name})' if name else '')
 
 
 def get_profile(name_or_path: str) -> CameraProfile:
