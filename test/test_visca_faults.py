@@ -298,7 +298,7 @@ UNSOLICITED = [
 
 
 def _tx_times(emu: ViscaEmulator, pkt: bytes) -> list[float]:
-    return [t for t, d, p in emu.log if d == 'tx' and p == pkt]
+    return [t for t, d, p in list(emu.log) if d == 'tx' and p == pkt]   # a copy: the emulator thread appends
 
 
 @pytest.mark.parametrize('name,pkt', UNSOLICITED, ids=[n for n, _ in UNSOLICITED])
@@ -324,7 +324,7 @@ def test_cli_goto_survives_network_change_mid_move(visca_rig, capsys):
     assert rc == 0 and err == ''
     d = json.loads(out)
     assert d['ok'] and d['pan_units'] == 264 and d['pan_deg'] == pytest.approx(30.0)
-    assert any(p == NETWORK_CHANGE for _, k, p in emu.log if k == 'tx')
+    assert any(p == NETWORK_CHANGE for _, k, p in list(emu.log) if k == 'tx')
 
 
 def test_stray_completion_before_the_ack_is_not_taken(visca_rig):

@@ -348,10 +348,12 @@ class ViscaEmulator:
     def _write(self, data: bytes, pkt: bytes, t: float) -> None:
         if self._master is None or not data:
             return
+        # logged before the write: the driver may read the bytes and a test look at the log before the
+        # line after os.write runs
+        self.log.append((t, 'tx', pkt))
         try:
             os.write(self._master, data)
             self.stats['tx_packets'] += 1
-            self.log.append((t, 'tx', pkt))
         except OSError:
             pass
 
