@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 import yaml
 
-from fixego_ros.geometry.rotation import from_quat_xyzw, quat_xyzw, rot_x, rot_y
+from fixego_ros.geometry.rotation import Pose, default_mount, from_quat_xyzw, quat_xyzw, rot_x, rot_y
 
 SIDES = ('right', 'left')
 
@@ -133,7 +133,8 @@ class PanTiltCalibration:
 
 @dataclass(frozen=True)
 class Rig:
-    """Two cameras, the left camera's zero pose in the rig frame, and each camera's pan/tilt calibration."""
+    """Two cameras, the left camera's zero pose in the rig frame, each camera's pan/tilt calibration and
+    the mount: the rig frame in ``base_link`` (``rig_in_base_link``; None = the default axes of DESIGN.md §2)."""
 
     right: CameraModel
     left: CameraModel
@@ -142,6 +143,12 @@ class Rig:
     pan_tilt_right: PanTiltCalibration = PanTiltCalibration()
     pan_tilt_left: PanTiltCalibration = PanTiltCalibration()
     extra: dict[str, Any] = field(default_factory=dict)
+    mount: Pose | None = None
+
+    @property
+    def rig_in_base_link(self) -> Pose:
+        """The mount, the default one when the rig file gives none."""
+        return default_mount() if self.mount is None else self.mount
 
     def camera(self, side: str) -> CameraModel:
         return {'right': self.right, 'left': self.left}[_check_side(side)]
@@ -182,6 +189,9 @@ class Rig:
                             'rotation_xyzw': [float(x) for x in quat_xyzw(self.R_L)]},
             'pan_tilt': {'right': self.pan_tilt_right.to_dict(), 'left': self.pan_tilt_left.to_dict()},
         })
+        if self.mount is not None:
+            out['rig_in_base_link'] = {'translation': [float(x) for x in self.mount.t],
+                                       'rotation_xyzw': [float(x) for x in quat_xyzw(self.mount.R)]}
         return out
 
     def save(self, path: str | Path) -> None:
@@ -337,10 +347,15 @@ def rig_from_dict(d: Any, warnings: list[str] | None = None) -> Rig:
     if not MIN_BASELINE_M <= baseline <= MAX_BASELINE_M:
         raise RigError(f'rig file: left_in_rig.translation {c_L.tolist()}: a baseline of {baseline:g} m is not a '
                        f'rig ({MIN_BASELINE_M:g}..{MAX_BASELINE_M:g} m; the left camera centre, in metres)')
+    mount = None
     if 'rig_in_base_link' in d:
-        _pose_block(d, 'rig_in_base_link')      # checked; kept (in extra) as given
+        t_m, R_m = _pose_block(d, 'rig_in_base_link')
+        if float(np.linalg.norm(t_m)) > MAX_BASELINE_M:
+            raise RigError(f'rig file: rig_in_base_link.translation {t_m.tolist()}: {np.linalg.norm(t_m):g} m from '
+                           f'base_link is not a mount (at most {MAX_BASELINE_M:g} m; metres)')
+        mount = Pose(R_m, t_m)
     calibrations = _calibration(d, 'right'), _calibration(d, 'left')
-    known = {'right', 'left', 'left_in_rig', 'pan_tilt'}
+    known = {'right', 'left', 'left_in_rig', 'pan_tilt', 'rig_in_base_link'}
     extra = {k: v for k, v in d.items() if k not in known}
     notes = [f'rig file: unknown top-level key {k!r} kept as extra data{_did_you_mean(str(k), TOP_KEYS)}'
              for k in extra if k not in TOP_KEYS]
@@ -349,7 +364,7 @@ def rig_from_dict(d: Any, warnings: list[str] | None = None) -> Rig:
             _log.warning(note)
     else:
         warnings.extend(notes)
-    return Rig(right, left, R_L, c_L, *calibrations, extra)
+    return Rig(right, left, R_L, c_L, *calibrations, extra, mount)
 
 
 MAX_RIG_FILE_BYTES = 1 << 20    # a rig file is a few hundred bytes; anything this large is the wrong file

@@ -51,7 +51,7 @@ from fixego_ros.estimation.estimator import Estimator, FrameResult
 from fixego_ros.estimation.scale_requests import ScaleRequests
 from fixego_ros.estimation.status import StepStatus
 from fixego_ros.geometry.rig import default_rig_path, load_rig
-from fixego_ros.geometry.rotation import RIG_TO_BASE, Pose, rig_pose_to_base_link
+from fixego_ros.geometry.rotation import Pose, base_link_covariance, rig_pose_to_base_link
 from fixego_ros.nodes.common import (
     ERROR,
     LATCHED_QOS,
@@ -87,15 +87,10 @@ LIVE_NODE = ('max_lag_s', 'max_keyframe_lag_s', 'max_future_s', 'backward_reset_
              'diagnostics_period_s', 'vergence_request_rel_std', 'vergence_request_min_interval_s', 'scale_drift_per_s')
 
 
-def odom_covariance(pose_cov_rig: np.ndarray) -> list[float]:
-    """Row-major 6x6 Odometry pose covariance (x, y, z, rot x, rot y, rot z in ``odom``) of the
-    estimator's covariance over [rotation, position] in the rig frame at frame 0."""
-    B = np.zeros((6, 6))
-    B[:3, 3:] = RIG_TO_BASE           # position rows come from the rig position block
-    B[3:, :3] = RIG_TO_BASE           # rotation rows from the rig rotation block
-    cov = B @ pose_cov_rig @ B.T
-    cov = 0.5 * (cov + cov.T)
-    return [float(x) for x in cov.ravel()]
+def odom_covariance(cov_rig: np.ndarray, pose_rig: Pose, mount: Pose | None = None) -> list[float]:
+    """Row-major 6x6 Odometry covariance (x, y, z, rot x, rot y, rot z; ``odom`` axes) of the estimator's
+    covariance over [rotation, position] of ``pose_rig`` (rig frame at frame 0), through the rig's mount."""
+    return [float(x) for x in base_link_covariance(cov_rig, pose_rig, mount).ravel()]
 
 
 class EstimatorNode(Node):
@@ -121,7 +116,7 @@ class EstimatorNode(Node):
         self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', RELIABLE_QOS)
         self.tf = self._make_tf_broadcaster() if bool(g('publish_tf')) else None
         self.create_subscription(PointCloud2, str(g('observation_topic')), self._on_observation, RELIABLE_QOS)
-        self.speed = SpeedInput(SpeedSettings.from_getter(g, self.base_frame))
+        self.speed = SpeedInput(SpeedSettings.from_getter(g, self.base_frame), self.rig.mount)
         self.speed_topic = self.speed.settings.topic
         self.speed_stats: Counter[str] = Counter()
         self.speed_last: float | None = None       # stamp of the newest sample forwarded
@@ -281,7 +276,8 @@ class EstimatorNode(Node):
     def _correct_last(self, stamp: float, pose: Pose, pose_raw: Pose) -> None:
         """A blind step (nothing seen across it) was re-estimated once the step after it was solved: the path's
         last pose, that frame's, is replaced (the pose and odometry published then stay as they were)."""
-        pose, pose_raw = rig_pose_to_base_link(pose), rig_pose_to_base_link(pose_raw)
+        mount = self.rig.mount
+        pose, pose_raw = rig_pose_to_base_link(pose, mount), rig_pose_to_base_link(pose_raw, mount)
         if not (self.path and pose.is_finite() and pose_raw.is_finite()
                 and abs(stamp_to_sec(self.path[-1].header.stamp) - stamp) <= 1e-6):
             return
@@ -290,8 +286,8 @@ class EstimatorNode(Node):
         self.stats['blind_steps_bridged'] = self.stats.get('blind_steps_bridged', 0) + 1
 
     def _publish(self, stamp, res: FrameResult) -> None:
-        pose = rig_pose_to_base_link(res.pose)
-        pose_raw = rig_pose_to_base_link(res.pose_raw)
+        pose = rig_pose_to_base_link(res.pose, self.rig.mount)
+        pose_raw = rig_pose_to_base_link(res.pose_raw, self.rig.mount)
         if not (pose.is_finite() and pose_raw.is_finite() and np.all(np.isfinite(res.pose_covariance))):
             self.once.error('nan', 'estimator produced a non-finite pose: not published (please report)')
             return
@@ -327,14 +323,14 @@ class EstimatorNode(Node):
         od.header.frame_id = self.odom_frame
         od.child_frame_id = self.base_frame
         pose_to_msg(pose, od.pose.pose)
-        od.pose.covariance = odom_covariance(res.pose_covariance)
+        od.pose.covariance = odom_covariance(res.pose_covariance, res.pose, self.rig.mount)
         dt = res.stamp - res.ref_stamp if res.ref_stamp is not None else 0.0
         if dt > 0 and res.status is not StepStatus.INIT:
-            step = rig_pose_to_base_link(res.step)          # base_link at t in base_link at the keyframe
+            step = rig_pose_to_base_link(res.step, self.rig.mount)   # base_link at t in base_link at the keyframe
             v, w = step.R.T @ step.t / dt, step.rvec() / dt   # twist in the child frame (base_link at t)
             od.twist.twist.linear.x, od.twist.twist.linear.y, od.twist.twist.linear.z = (float(x) for x in v)
             od.twist.twist.angular.x, od.twist.twist.angular.y, od.twist.twist.angular.z = (float(x) for x in w)
-            tw = odom_covariance(res.step_covariance)
+            tw = odom_covariance(res.step_covariance, res.step, self.rig.mount)
             od.twist.covariance = [float(min(x / (dt * dt), 1e12)) for x in tw]
         else:
             od.twist.covariance = [0.0] * 36

@@ -170,7 +170,7 @@ class SimRigNode(Node):
         self._render_ms.append((time.perf_counter() - t_render) * 1e3 / 2)
         if self._inv0 is None:
             self._inv0 = pose.inverse()
-        gt = pose_msg(rig_pose_to_base_link(self._inv0 @ pose), 0.0)
+        gt = pose_msg(rig_pose_to_base_link(self._inv0 @ pose, self.rig.mount), 0.0)
         gt.header.stamp = stamp
         self.pub_gt.publish(gt)
         self.frames += 1

@@ -195,12 +195,14 @@ def _add_point(estimator: Estimator, p: _FixationPoint) -> _Refused | None:
 def _update(estimator: Estimator, stamp: float, obs) -> _Estimate:
     t0 = time.perf_counter()
     r = estimator.update(obs)
+    mount = estimator.rig.mount
     corrected = None
     if r.corrected is not None:
         c_stamp, c_pose, c_raw = r.corrected
-        corrected = (c_stamp, rig_pose_to_base_link(c_pose), rig_pose_to_base_link(c_raw))
-    return _Estimate(stamp, r.placed, r.status.value, r.message, rig_pose_to_base_link(r.pose),
-                     rig_pose_to_base_link(r.pose_raw), (time.perf_counter() - t0) * 1e3, r.prefix_scale, corrected)
+        corrected = (c_stamp, rig_pose_to_base_link(c_pose, mount), rig_pose_to_base_link(c_raw, mount))
+    return _Estimate(stamp, r.placed, r.status.value, r.message, rig_pose_to_base_link(r.pose, mount),
+                     rig_pose_to_base_link(r.pose_raw, mount), (time.perf_counter() - t0) * 1e3, r.prefix_scale,
+                     corrected)
 
 
 @dataclass
@@ -405,7 +407,7 @@ def replay(bag: Bag, rig: Rig, settings: ReplaySettings, topics: ReplayTopics = 
         routes[speed_topic] = ('speed', '')
     if settings.vergence_topic:
         routes[settings.vergence_topic] = ('vergence', '')
-    speed = SpeedInput(settings.speed)
+    speed = SpeedInput(settings.speed, rig.mount)
     last_frame: float | None = None      # stamp of the newest frame given to the estimator
     res = ReplayResult()
     clock = _Timer(res)
