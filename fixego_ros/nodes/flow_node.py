@@ -170,7 +170,8 @@ class FlowNode(Node):
         values.update({'frames': s.frames, 'stereo_frames': s.stereo_frames,
                        'single_camera_frames': s.single_camera_frames, 'late_images': s.late_images,
                        'overflow_images': s.overflow_images, 'no_joints': s.no_joints, 'no_fixation': s.no_fixation,
-                       'rejected_inputs': s.rejected, 'preset': self.flow_params.preset})
+                       'rejected_inputs': s.rejected, 'preset': self.flow_params.preset,
+                       'slop_s_used': f'{self.sync.slop_s:.4f}'})
         values.update(self.frontend.stats)     # each camera's last status, reason and point counts
         totals = self.frontend.totals           # which LK attempt the tracks came from, RANSAC runs
         values.update({f'{side}.{k}_total': totals[f'{side}.{k}'] for side in SIDES

@@ -233,7 +233,8 @@ FLOW_PARAMS: Table = _table(
          ge=0.0, le=1.0, live=True),
     _num('keyframe_max_rotation_deg', 8.0, 'new keyframe once the rig rotation since the keyframe exceeds this '
                                            '(deg; 0 = off)', ge=0.0, le=180.0, live=True),
-    _num('slop_s', 0.01, 'images of the two cameras closer than this form one frame (s)', ge=0.0, le=10.0,
+    _num('slop_s', 0.0, 'images of the two cameras closer than this form one frame (s); 0 = automatic: half the '
+                        'median frame period measured from the image stamps, within [0.001, 0.05] s', ge=0.0, le=10.0,
          live=True),
     _num('max_wait_s', 0.25, 'bound on waiting for a partner image, joint state or fixation (s)', ge=0.0, le=60.0,
          live=True),
