@@ -38,6 +38,7 @@ from sensor_msgs.msg import Image, JointState
 from std_msgs.msg import Empty
 from std_srvs.srv import Trigger
 
+from fixego_ros.geometry.frames import optical_transform
 from fixego_ros.geometry.rig import default_rig_path, load_rig
 from fixego_ros.nodes.common import (
     ERROR,
@@ -57,6 +58,8 @@ from fixego_ros.nodes.common import (
     sec_to_stamp,
     set_timer_period,
     stamp_to_sec,
+    tf_broadcaster,
+    transform_msg,
     vergence_to_msg,
 )
 from fixego_ros.pipeline.messages import pan_tilt
@@ -128,6 +131,7 @@ class CameraNode(Node):
         self.pub_fix = self.create_publisher(PointStamped, f'{ns}/fixation', RELIABLE_QOS)
         self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', RELIABLE_QOS)
         self.pub_joint = None
+        self.tf = tf_broadcaster(self)       # <side>_zero -> <side>_optical_frame from the joint readings
         if self.passive:
             self.history = JointHistory()
             self.create_subscription(JointState, f'{ns}/joint_states', self._on_joint_state, RELIABLE_QOS)
@@ -181,6 +185,7 @@ class CameraNode(Node):
             self.once.warn('joint_nan', 'non-finite pan/tilt in joint_states: ignored')
             return
         self.history.add(stamp_to_sec(msg.header.stamp), pan, tilt)
+        self._send_optical_tf(msg.header.stamp, pan, tilt)
 
     def _poll_video(self) -> None:
         if self.video is None:
@@ -284,6 +289,12 @@ class CameraNode(Node):
             js.position = [float(q[0]), float(q[1])]
             self.pub_joint.publish(js)
             self.stats['joint_states'] += 1
+            self._send_optical_tf(stamp, float(q[0]), float(q[1]))
+
+    def _send_optical_tf(self, stamp, pan: float, tilt: float) -> None:
+        """The optical frame turns with the head: one transform per joint state (tf2_ros importable only)."""
+        if self.tf is not None:
+            self.tf.sendTransform(transform_msg(*optical_transform(self.rig, self.side, pan, tilt), stamp))
 
     # ---------------------------------------------------------------------------------------- parameters
     def _apply_params(self, changes: dict[str, object], g: Getter) -> None:

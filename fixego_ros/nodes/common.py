@@ -235,6 +235,30 @@ def pose_to_msg(pose: Pose, out: PoseMsg | None = None) -> PoseMsg:
     return out
 
 
+def transform_msg(parent: str, child: str, pose: Pose, stamp: Time):
+    """geometry_msgs/TransformStamped of a (parent, child, Pose) tuple of :mod:`fixego_ros.geometry.frames`."""
+    from geometry_msgs.msg import TransformStamped
+    tf = TransformStamped()
+    tf.header.stamp = stamp
+    tf.header.frame_id = parent
+    tf.child_frame_id = child
+    p = pose_to_msg(pose)
+    tf.transform.translation.x, tf.transform.translation.y, tf.transform.translation.z = (
+        p.position.x, p.position.y, p.position.z)
+    tf.transform.rotation = p.orientation
+    return tf
+
+
+def tf_broadcaster(node: Node, static: bool = False):
+    """A tf2_ros (Static)TransformBroadcaster, or None when tf2_ros is not importable (DESIGN.md §3: TF is
+    published only on a full ROS install, never required)."""
+    try:
+        from tf2_ros import StaticTransformBroadcaster, TransformBroadcaster
+    except ImportError:
+        return None
+    return StaticTransformBroadcaster(node) if static else TransformBroadcaster(node)
+
+
 def vergence_to_msg(stamp: Time, point_rig: np.ndarray, cov_rig: np.ndarray) -> PoseWithCovarianceStamped:
     """/fixego/vergence message: the vergence point in ``rig`` with its 3x3 covariance in the position block;
     the orientation carries no information (identity, variance 1e6). camera_node and the simulator's bags

@@ -4,8 +4,10 @@ Subscribes ``/fixego/flow/observation`` (sensor_msgs/PointCloud2, the row table 
 :mod:`fixego_ros.pipeline.observation`) and feeds the core :class:`~fixego_ros.estimation.estimator.Estimator`:
 a two-frame solve per step, then the local bundle adjustment over the last n frames. Publishes
 ``/fixego/pose`` (refined), ``/fixego/path``, ``/fixego/path_raw`` (two-frame only), ``/fixego/odom`` (with
-covariance; weakly observed axes get large variances), ``/diagnostics``, and TF ``odom -> base_link``
-when tf2_ros is importable. ``~/reset`` (std_srvs/Trigger) restarts the trajectory.
+covariance; weakly observed axes get large variances) and ``/diagnostics``, all in ``odom_frame`` /
+``base_frame``. When tf2_ros is importable: TF ``odom -> base_link`` (``publish_tf``: auto = only without a
+speed source, whose robot usually broadcasts it) and, once, the static ``base_link -> rig -> right_zero /
+left_zero`` of the rig file (``publish_static_tf``). ``~/reset`` (std_srvs/Trigger) restarts the trajectory.
 
 Scale aid (off by default): with ``speed_topic`` set it subscribes that nav_msgs/Odometry (e.g. wheel
 odometry; twist in ``base_frame``, REP-105) and forwards each valid sample, in stamp order, to
@@ -50,6 +52,7 @@ from std_srvs.srv import Trigger
 from fixego_ros.estimation.estimator import Estimator, FrameResult
 from fixego_ros.estimation.scale_requests import ScaleRequests
 from fixego_ros.estimation.status import StepStatus
+from fixego_ros.geometry.frames import static_transforms
 from fixego_ros.geometry.rig import default_rig_path, load_rig
 from fixego_ros.geometry.rotation import Pose, base_link_covariance, rig_pose_to_base_link
 from fixego_ros.nodes.common import (
@@ -68,6 +71,8 @@ from fixego_ros.nodes.common import (
     run_node,
     set_timer_period,
     stamp_to_sec,
+    tf_broadcaster,
+    transform_msg,
 )
 from fixego_ros.pipeline.observation import ROW_DTYPE, ObservationError, rows_to_observation
 from fixego_ros.pipeline.odometry import (
@@ -114,7 +119,9 @@ class EstimatorNode(Node):
         self.pub_path_raw = self.create_publisher(Path, '/fixego/path_raw', RELIABLE_QOS)
         self.pub_odom = self.create_publisher(Odometry, '/fixego/odom', RELIABLE_QOS)
         self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', RELIABLE_QOS)
-        self.tf = self._make_tf_broadcaster() if bool(g('publish_tf')) else None
+        self.tf = self._make_tf_broadcaster(str(g('publish_tf')), str(g('speed_topic')))
+        if bool(g('publish_static_tf')):
+            self._send_static_tf()
         self.create_subscription(PointCloud2, str(g('observation_topic')), self._on_observation, RELIABLE_QOS)
         self.speed = SpeedInput(SpeedSettings.from_getter(g, self.base_frame), self.rig.mount)
         self.speed_topic = self.speed.settings.topic
@@ -146,13 +153,29 @@ class EstimatorNode(Node):
                                f'TF {"on" if self.tf else "off"}, speed aid '
                                f'{self.speed_topic or "off"}')
 
-    def _make_tf_broadcaster(self):
-        try:
-            from tf2_ros import TransformBroadcaster
-        except ImportError:
-            self.get_logger().info('tf2_ros not importable: no TF odom -> base_link (topics carry the pose)')
+    def _make_tf_broadcaster(self, mode: str, speed_topic: str):
+        """publish_tf 'auto' is on only without a speed source: a robot with wheel odometry (or
+        robot_localization) usually broadcasts odom -> base_link itself, and two parents of one frame break TF."""
+        if mode == 'false' or (mode == 'auto' and speed_topic):
+            if mode == 'auto':
+                self.get_logger().info(f'publish_tf auto: no TF {self.odom_frame} -> {self.base_frame}, a speed '
+                                       f'source ({speed_topic}) is configured (set publish_tf true to force it)')
             return None
-        return TransformBroadcaster(self)
+        tf = tf_broadcaster(self)
+        if tf is None:
+            self.get_logger().info(f'tf2_ros not importable: no TF {self.odom_frame} -> {self.base_frame} '
+                                   '(topics carry the pose)')
+        return tf
+
+    def _send_static_tf(self) -> None:
+        """base_frame -> rig (the mount) -> right_zero / left_zero, once (latched by tf2_ros)."""
+        static = tf_broadcaster(self, static=True)
+        if static is None:
+            return
+        stamp = self.get_clock().now().to_msg()
+        static.sendTransform([transform_msg(parent, child, pose, stamp)
+                              for parent, child, pose in static_transforms(self.rig, self.base_frame)])
+        self._static_tf = static        # kept alive: its latched publisher serves late joiners
 
     # -------------------------------------------------------------------------------------- input
     def _on_observation(self, msg: PointCloud2) -> None:
@@ -339,16 +362,7 @@ class EstimatorNode(Node):
         return od
 
     def _send_tf(self, stamp, pose: Pose) -> None:
-        from geometry_msgs.msg import TransformStamped
-        tf = TransformStamped()
-        tf.header.stamp = stamp
-        tf.header.frame_id = self.odom_frame
-        tf.child_frame_id = self.base_frame
-        p = pose_to_msg(pose)
-        tf.transform.translation.x, tf.transform.translation.y, tf.transform.translation.z = (
-            p.position.x, p.position.y, p.position.z)
-        tf.transform.rotation = p.orientation
-        self.tf.sendTransform(tf)
+        self.tf.sendTransform(transform_msg(self.odom_frame, self.base_frame, pose, stamp))
 
     # -------------------------------------------------------------------------------------- parameters
     def _set_stamp_bounds(self, g: Getter) -> None:

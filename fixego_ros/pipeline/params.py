@@ -119,6 +119,8 @@ class ParamSpec:
                 raise self._error(value, 'has the wrong type')
             return value
         if t is str:
+            if isinstance(value, bool) and {'true', 'false'} <= set(self.choices):
+                value = 'true' if value else 'false'      # `-p publish_tf:=false` arrives as a bool
             if not isinstance(value, str):
                 raise self._error(value, 'has the wrong type')
             if self.choices and value not in self.choices:
@@ -410,10 +412,18 @@ ESTIMATOR_NODE_PARAMS: Table = _table(
     _num('scale_drift_per_s', 0.005, 'relative scale std added per second since the last scale measurement (the '
                                      'speed changes; the fixations change)', ge=0.0, live=True),
     _str('odom_frame', 'odom', 'frame of the published trajectory'),
-    _str('base_frame', 'base_link', 'frame of the rig body (x forward, y left, z up)'),
+    _str('base_frame', 'base_link', "the robot's base frame (x forward, y left, z up): child of the published "
+                                    "odometry, parent of the rig file's rig_in_base_link, frame of speed_topic's "
+                                    'twist'),
     _num('path_max_length', 20000, 'poses kept in /fixego/path and /fixego/path_raw (oldest dropped)', ge=1,
          le=10_000_000),
-    _bool('publish_tf', True, 'broadcast odom -> base_link when tf2_ros is importable'),
+    _str('publish_tf', 'auto', "broadcast odom -> base_frame when tf2_ros is importable: 'true', 'false', or "
+                               "'auto' = only when no speed source is configured (speed_topic empty; a robot with "
+                               'wheel odometry usually publishes that transform itself)',
+         choices=('auto', 'true', 'false')),
+    _bool('publish_static_tf', True, "broadcast the static base_frame -> rig (the rig file's rig_in_base_link) and "
+                                     'rig -> right_zero / left_zero (left_in_rig) when tf2_ros is importable; '
+                                     "false when the robot's URDF already has them"),
     _diagnostics_period(),
 )
 
