@@ -130,7 +130,6 @@ def test_default_rig_file_loads_and_roundtrips(tmp_path):
 
 
 @pytest.mark.parametrize('mutate, key', [
-    (lambda d: d.pop('left'), 'left'),
     (lambda d: d['right'].pop('fx'), 'right.fx'),
     (lambda d: d['right'].__setitem__('fy', 'abc'), 'right.fy'),
     (lambda d: d['left'].__setitem__('fx', -3.0), 'left.fx'),

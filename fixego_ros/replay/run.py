@@ -48,6 +48,7 @@ from fixego_ros.bags.reader import Bag, DecodeError
 from fixego_ros.estimation.estimator import Estimator, EstimatorConfig
 from fixego_ros.geometry.rig import SIDES, Rig
 from fixego_ros.geometry.rotation import Pose, rig_pose_to_base_link
+from fixego_ros.pipeline.camera_info import CAMERA_INFO_TYPE, IntrinsicsFromInfo
 from fixego_ros.pipeline.frontend import CameraSample, KeyframePolicy, StereoFrontEnd
 from fixego_ros.pipeline.messages import ImageError, gray_for_camera, msg_to_pose, pan_tilt, stamp_to_sec
 from fixego_ros.pipeline.odometry import (
@@ -394,6 +395,35 @@ def check_topics(bag: Bag, topics: ReplayTopics, speed_topic: str = '', vergence
             if t.msgtype not in types:
                 raise ReplayError(f'{bag.path}: {name} is {t.msgtype or "of unknown type"}, expected '
                                   f'{" or ".join(types)}')
+
+
+def intrinsics_from_bag(bag: Bag, rig: Rig, topics: ReplayTopics = ReplayTopics()) -> tuple[Rig, list[str]]:
+    """The rig with the intrinsics it lacks taken from the first ``<ns>/<side>/camera_info`` of the bag, and the
+    problems found (a CameraInfo that disagrees with the rig file, which wins, or cannot be used). ReplayError
+    when a camera still has no intrinsics. Reads only up to the first CameraInfo of each camera."""
+    wanted = {topics.name(f'{side}/camera_info'): side for side in SIDES}
+    wanted = {t: s for t, s in wanted.items() if t in bag.topics and bag.topics[t].msgtype == CAMERA_INFO_TYPE}
+    fill = IntrinsicsFromInfo(rig)
+    if wanted:
+        for m in bag.messages(wanted):
+            side = wanted[m.topic]
+            if side in fill.seen:
+                continue
+            try:
+                fill.on_info(side, bag.decode(m))
+            except DecodeError as e:
+                fill.seen.add(side)
+                fill.errors[side] = f'{m.topic}: {e}'
+            if fill.seen >= set(wanted.values()):
+                break
+    missing = fill.rig.missing_intrinsics()
+    if missing:
+        why = '; '.join(fill.errors[s] for s in missing if s in fill.errors)
+        raise ReplayError(f'no intrinsics for the {" and ".join(missing)} camera: the rig file gives none and the '
+                          f'bag has no usable {" / ".join(topics.name(f"{s}/camera_info") for s in missing)}'
+                          + (f' ({why})' if why else '') + ' (add them to the rig file, or '
+                          f'{missing[0]}: {{calibration: FILE.yaml}})')
+    return fill.rig, [fill.errors[s] for s in SIDES if s in fill.errors]
 
 
 def replay(bag: Bag, rig: Rig, settings: ReplaySettings, topics: ReplayTopics = ReplayTopics(),
