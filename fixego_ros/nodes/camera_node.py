@@ -47,6 +47,7 @@ from fixego_ros.nodes.common import (
     RELIABLE_QOS,
     SENSOR_QOS,
     WARN,
+    CameraInfoIntrinsics,
     ImageError,
     OnceLogger,
     array_to_image,
@@ -105,6 +106,12 @@ class CameraNode(Node):
         rig = load_rig(g('rig_file') or default_rig_path(), warnings=rig_notes)
         for note in rig_notes:
             self.get_logger().warning(note)
+        # the left node's vergence steps also use the right camera; what the rig file lacks comes from camera_info
+        verging = self.side == 'left' and bool(g('vergence_enabled')) and bool(str(g('port'))) and not bool(
+            g('passive'))
+        self.intrinsics = CameraInfoIntrinsics(self, rig, (self.side, 'right') if verging else (self.side,))
+        self.intrinsics.wait(float(g('camera_info_wait_s')))
+        rig = self.intrinsics.rig
         self.rig = rig
         self.camera = rig.camera(self.side)
         self.calibration = rig.calibration(self.side)
@@ -541,7 +548,7 @@ class CameraNode(Node):
                 level, message = ERROR, f'serial port {self.driver.state}: {self.driver.last_error}'
         publish_diagnostics(self, self.pub_diag, [diagnostic_status(
             f'fixego camera_node {self.side}', self.driver.port if self.driver else 'passive', level, message,
-            values), self._vergence_status()])
+            values), self._vergence_status(), self.intrinsics.status(f'fixego camera_node {self.side}: intrinsics')])
 
     def destroy_node(self) -> None:
         if self.loop is not None:

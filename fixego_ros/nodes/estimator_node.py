@@ -53,7 +53,7 @@ from fixego_ros.estimation.estimator import Estimator, FrameResult
 from fixego_ros.estimation.scale_requests import ScaleRequests
 from fixego_ros.estimation.status import StepStatus
 from fixego_ros.geometry.frames import static_transforms
-from fixego_ros.geometry.rig import default_rig_path, load_rig
+from fixego_ros.geometry.rig import SIDES, default_rig_path, load_rig
 from fixego_ros.geometry.rotation import Pose, base_link_covariance, rig_pose_to_base_link
 from fixego_ros.nodes.common import (
     ERROR,
@@ -61,6 +61,7 @@ from fixego_ros.nodes.common import (
     OK,
     RELIABLE_QOS,
     WARN,
+    CameraInfoIntrinsics,
     CloudError,
     OnceLogger,
     cloud_to_table,
@@ -106,6 +107,9 @@ class EstimatorNode(Node):
         self.rig = load_rig(g('rig_file') or default_rig_path(), warnings=rig_notes)
         for note in rig_notes:
             self.get_logger().warning(note)
+        self.intrinsics = CameraInfoIntrinsics(self, self.rig, SIDES)   # what the rig file lacks: camera_info
+        self.intrinsics.wait(float(g('camera_info_wait_s')))
+        self.rig = self.intrinsics.rig
         self.config = estimator_config(g, self.rig)
         self.estimator = Estimator(self.rig, self.config)
         self.odom_frame, self.base_frame = str(g('odom_frame')), str(g('base_frame'))
@@ -432,7 +436,7 @@ class EstimatorNode(Node):
         if self.once.active('malformed'):
             level, message = ERROR, self.last_error
         statuses = [diagnostic_status('fixego estimator_node', 'estimator', level, message, values),
-                    self._scale_status()]
+                    self._scale_status(), self.intrinsics.status('fixego estimator_node: intrinsics')]
         if self.speed_topic:
             statuses.append(self._speed_status())
         publish_diagnostics(self, self.pub_diag, statuses)

@@ -321,6 +321,8 @@ CAMERA_NODE_PARAMS: Table = _table(
     _str('video_device', '', 'V4L2 device (index or path) read with OpenCV instead of subscribing image_raw'),
     _num('video_fps', 30.0, 'frame rate to poll video_device at', gt=0.0, le=1000.0),
     _str('rig_file', '', RIG_FILE),
+    _num('camera_info_wait_s', 30.0, 'when the rig file gives no intrinsics for a camera this node needs: wait at '
+                                     'most this long (s) at start for its camera_info', ge=0.0, le=3600.0),
     _num('serial_timeout_s', 0.3, 'bound on every serial reply wait', gt=0.0, le=MAX_TIMEOUT_S),
     _num('servo_gain', 0.9, 'fraction of the angular error corrected per command', gt=0.0, le=2.0, live=True),
     _num('servo_deadband_px', 0.75, 'no command while the fixation is this close to the principal point', ge=0.0,
@@ -383,6 +385,8 @@ FLOW_NODE_PARAMS: Table = _table(
 
 ESTIMATOR_NODE_PARAMS: Table = _table(
     _str('rig_file', '', RIG_FILE),
+    _num('camera_info_wait_s', 30.0, 'when the rig file gives no intrinsics for a camera this node needs: wait at '
+                                     'most this long (s) at start for its camera_info', ge=0.0, le=3600.0),
     _str('observation_topic', '/fixego/flow/observation', 'flow observations (PointCloud2 rows, see README)'),
     ESTIMATOR_PARAMS,
     SPEED_PARAMS,
