@@ -187,3 +187,11 @@ def test_replay_without_intrinsics_anywhere_fails_with_one_line(tmp_path):
     assert p.returncode == 2 and 'Traceback' not in p.stderr
     assert 'no intrinsics for the left camera' in p.stderr and '/fixego/left/camera_info' in p.stderr
     assert len(p.stderr.strip().splitlines()) == 1, p.stderr
+
+
+def test_the_simulator_needs_the_intrinsics_in_the_rig_file(tmp_path):
+    from fixego_ros.cli_options import OptionError
+    from fixego_ros.sim.cli import read_rig
+    (tmp_path / 'rig.yaml').write_text(yaml.safe_dump(rig_dict(left=None)))
+    with pytest.raises(OptionError, match=r'the simulator .* needs the intrinsics of the left camera'):
+        read_rig(tmp_path / 'rig.yaml')

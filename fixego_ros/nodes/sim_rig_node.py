@@ -67,6 +67,7 @@ class SimRigNode(Node):
         rig = load_rig(p['rig_file'] or default_rig_path(), warnings=rig_notes)
         for note in rig_notes:
             self.get_logger().warning(note)
+        rig.require_intrinsics('sim_rig_node')      # it renders the images: camera_info cannot stand in
         if p['width'] > 0 or p['height'] > 0:
             w = p['width'] or round(rig.right.width * p['height'] / rig.right.height)
             h = p['height'] or round(rig.right.height * p['width'] / rig.right.width)
