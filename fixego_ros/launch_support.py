@@ -28,7 +28,11 @@ COMMON_ARGUMENTS: tuple[Argument, ...] = (
     ('rig_file', '', "rig calibration YAML (DESIGN.md §4); '' = the nodes' rig_file (the installed config/rig.yaml)"),
     ('respawn', 'false', 'restart a node that exits (true/false)'),
     ('respawn_delay', '2.0', 'seconds before a respawn'),
+    ('publish_tf', 'auto', 'estimator broadcasts odom -> base_link when tf2_ros is importable: auto (only without '
+                           'a speed source), true or false'),
 )
+
+PUBLISH_TF = ('auto', 'true', 'false')
 
 TRUE, FALSE = ('true', '1', 'yes', 'on'), ('false', '0', 'no', 'off')
 
@@ -50,6 +54,14 @@ def flag(text: str, name: str) -> bool:
     if t in FALSE:
         return False
     raise ValueError(f'launch argument {name}:={text!r} must be true or false')
+
+
+def choice(text: str, name: str, choices: Sequence[str]) -> str:
+    """A launch argument that must be one of ``choices``; anything else is an error naming it."""
+    t = text.strip().lower()
+    if t not in choices:
+        raise ValueError(f'launch argument {name}:={text!r} must be one of {", ".join(choices)}')
+    return t
 
 
 def number(text: str, name: str) -> float:
@@ -81,6 +93,9 @@ class Args:
 
     def number(self, name: str) -> float:
         return number(self[name], name)
+
+    def choice(self, name: str, choices: Sequence[str]) -> str:
+        return choice(self[name], name, choices)
 
 
 def node(args: Args, executable: str, name: str, params: Mapping[str, object], *, config: str | None = None,

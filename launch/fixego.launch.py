@@ -10,7 +10,7 @@ README "Launch files".
 from launch import LaunchDescription
 from launch.actions import OpaqueFunction
 
-from fixego_ros.launch_support import COMMON_ARGUMENTS, Args, declare, pipeline_nodes
+from fixego_ros.launch_support import COMMON_ARGUMENTS, PUBLISH_TF, Args, declare, pipeline_nodes
 
 ARGUMENTS = (
     *COMMON_ARGUMENTS,
@@ -22,7 +22,6 @@ ARGUMENTS = (
                                'right/image_raw'),
     ('left_video_device', '', "V4L2 device of the left camera; '' = subscribe left/image_raw"),
     ('use_sim_time', 'false', 'use /clock (true/false)'),
-    ('publish_tf', 'true', 'estimator broadcasts odom -> base_link when tf2_ros is importable (true/false)'),
 )
 
 
@@ -34,7 +33,7 @@ def _nodes(context):
         if args[f'{side}_video_device']:
             cameras[side]['video_device'] = args[f'{side}_video_device']
     return pipeline_nodes(args, cameras, use_sim_time=args.flag('use_sim_time'),
-                          estimator={'publish_tf': args.flag('publish_tf')})
+                          estimator={'publish_tf': args.choice('publish_tf', PUBLISH_TF)})
 
 
 def generate_launch_description():

@@ -13,7 +13,7 @@ import os
 from launch import LaunchDescription
 from launch.actions import OpaqueFunction
 
-from fixego_ros.launch_support import COMMON_ARGUMENTS, Args, declare, node, pipeline_nodes
+from fixego_ros.launch_support import COMMON_ARGUMENTS, PUBLISH_TF, Args, declare, node, pipeline_nodes
 
 ARGUMENTS = (
     *COMMON_ARGUMENTS,
@@ -39,7 +39,8 @@ def _nodes(context):
     if ns != bag_ns:
         player['remap'] = [f'{bag_ns}/{t}:={ns.rstrip("/")}/{t}' for t in INPUTS]
     cameras = {side: {'passive': True} for side in ('right', 'left')}
-    return [*pipeline_nodes(args, cameras, use_sim_time=True),
+    return [*pipeline_nodes(args, cameras, use_sim_time=True,
+                           estimator={'publish_tf': args.choice('publish_tf', PUBLISH_TF)}),
             node(args, 'bag_player', 'bag_player', player, respawn=False)]
 
 

@@ -16,7 +16,7 @@ import uuid
 from launch import LaunchDescription
 from launch.actions import OpaqueFunction
 
-from fixego_ros.launch_support import COMMON_ARGUMENTS, Args, declare, node, pipeline_nodes
+from fixego_ros.launch_support import COMMON_ARGUMENTS, PUBLISH_TF, Args, declare, node, pipeline_nodes
 
 ARGUMENTS = (
     *COMMON_ARGUMENTS,
@@ -27,7 +27,6 @@ ARGUMENTS = (
     ('seed', '0', 'seed of the world, noise and the random trajectory'),
     ('loop', 'false', 'restart the trajectory at its end (true/false)'),
     ('use_sim_time', 'false', 'use /clock (true/false; the simulated rig stamps with the wall clock)'),
-    ('publish_tf', 'true', 'estimator broadcasts odom -> base_link when tf2_ros is importable (true/false)'),
 )
 
 
@@ -40,7 +39,7 @@ def _nodes(context):
         'exit_at_end': False, 'pty_file': '', 'pty_link_dir': links}, respawn=False)  # new ptys on a restart
     cameras = {side: {'port': os.path.join(links, side)} for side in ('right', 'left')}
     return [sim, *pipeline_nodes(args, cameras, use_sim_time=args.flag('use_sim_time'),
-                                 estimator={'publish_tf': args.flag('publish_tf')})]
+                                 estimator={'publish_tf': args.choice('publish_tf', PUBLISH_TF)})]
 
 
 def generate_launch_description():

@@ -170,7 +170,7 @@ def test_fixego_launch_wires_the_ports_and_the_arguments(launch_api):
     assert params['right_camera_node']['port'] == '/dev/r' and params['left_camera_node']['port'] == '/dev/l'
     assert params['right_camera_node']['video_device'] == '/dev/video2'
     assert 'video_device' not in params['left_camera_node']
-    assert params['estimator_node']['publish_tf'] is False
+    assert params['estimator_node']['publish_tf'] == 'false'
     for kw in by.values():
         assert kw['namespace'] == 'robot1' and kw['respawn'] is True and kw['respawn_delay'] == 5.0
         # own file, then the extra parameter file, then the launch arguments (later wins in ROS)

@@ -9,6 +9,7 @@ the rig file's ``pan_tilt`` block: ``angle = sign * reading + offset``.
 
 from __future__ import annotations
 
+import dataclasses
 import difflib
 import logging
 import math
@@ -21,7 +22,7 @@ import cv2
 import numpy as np
 import yaml
 
-from fixego_ros.geometry.rotation import from_quat_xyzw, quat_xyzw, rot_x, rot_y
+from fixego_ros.geometry.rotation import Pose, default_mount, from_quat_xyzw, quat_xyzw, rot_x, rot_y
 
 SIDES = ('right', 'left')
 
@@ -133,18 +134,45 @@ class PanTiltCalibration:
 
 @dataclass(frozen=True)
 class Rig:
-    """Two cameras, the left camera's zero pose in the rig frame, and each camera's pan/tilt calibration."""
+    """Two cameras, the left camera's zero pose in the rig frame, each camera's pan/tilt calibration and
+    the mount: the rig frame in ``base_link`` (``rig_in_base_link``; None = the default axes of DESIGN.md §2)."""
 
-    right: CameraModel
-    left: CameraModel
+    right: CameraModel | None            # None: no intrinsics in the rig file (they come from camera_info)
+    left: CameraModel | None
     R_L: np.ndarray = field(default_factory=lambda: np.eye(3))
     c_L: np.ndarray = field(default_factory=lambda: np.array([-0.2, 0.0, 0.0]))
     pan_tilt_right: PanTiltCalibration = PanTiltCalibration()
     pan_tilt_left: PanTiltCalibration = PanTiltCalibration()
     extra: dict[str, Any] = field(default_factory=dict)
+    mount: Pose | None = None
+    expected_size: dict[str, tuple[int, int]] = field(default_factory=dict)   # of cameras without intrinsics
+
+    @property
+    def rig_in_base_link(self) -> Pose:
+        """The mount, the default one when the rig file gives none."""
+        return default_mount() if self.mount is None else self.mount
 
     def camera(self, side: str) -> CameraModel:
-        return {'right': self.right, 'left': self.left}[_check_side(side)]
+        cam = {'right': self.right, 'left': self.left}[_check_side(side)]
+        if cam is None:
+            raise RigError(f'the rig file gives no intrinsics for the {side} camera (they come from its '
+                           f'camera_info, or give them in the rig file or as {side}: {{calibration: FILE.yaml}})')
+        return cam
+
+    def missing_intrinsics(self) -> tuple[str, ...]:
+        """The sides whose intrinsics the rig file does not give."""
+        return tuple(side for side in SIDES if {'right': self.right, 'left': self.left}[side] is None)
+
+    def require_intrinsics(self, who: str, sides: tuple[str, ...] = SIDES) -> None:
+        """RigError naming ``who`` when a side it needs has no intrinsics."""
+        missing = [s for s in self.missing_intrinsics() if s in sides]
+        if missing:
+            raise RigError(f'{who} needs the intrinsics of the {" and ".join(missing)} camera in the rig file '
+                           f'(or a calibration file: {missing[0]}: {{calibration: FILE.yaml}})')
+
+    def with_camera(self, side: str, camera: CameraModel) -> Rig:
+        """This rig with ``side``'s intrinsics set (e.g. from the first CameraInfo)."""
+        return dataclasses.replace(self, **{_check_side(side): camera})
 
     def calibration(self, side: str) -> PanTiltCalibration:
         return {'right': self.pan_tilt_right, 'left': self.pan_tilt_left}[_check_side(side)]
@@ -175,13 +203,19 @@ class Rig:
 
     def to_dict(self) -> dict[str, Any]:
         out = dict(self.extra)
+        for side, cam in (('right', self.right), ('left', self.left)):
+            if cam is not None:
+                out[side] = cam.to_dict()
+            elif side in self.expected_size:
+                out[side] = dict(zip(('width', 'height'), self.expected_size[side], strict=True))
         out.update({
-            'right': self.right.to_dict(),
-            'left': self.left.to_dict(),
             'left_in_rig': {'translation': [float(x) for x in self.c_L],
                             'rotation_xyzw': [float(x) for x in quat_xyzw(self.R_L)]},
             'pan_tilt': {'right': self.pan_tilt_right.to_dict(), 'left': self.pan_tilt_left.to_dict()},
         })
+        if self.mount is not None:
+            out['rig_in_base_link'] = {'translation': [float(x) for x in self.mount.t],
+                                       'rotation_xyzw': [float(x) for x in quat_xyzw(self.mount.R)]}
         return out
 
     def save(self, path: str | Path) -> None:
@@ -280,29 +314,112 @@ MAX_DISTORTION = 100.0          # |k1..k3, p1, p2|: beyond this no lens model is
 MIN_BASELINE_M, MAX_BASELINE_M = 1e-3, 100.0   # the rig's scale comes from the baseline: zero is no rig
 
 
-def _camera(d: dict[str, Any], side: str) -> CameraModel:
+INTRINSIC_KEYS = ('fx', 'fy', 'cx', 'cy', 'dist')
+DIST_TOL = 1e-6        # camera_info vs rig file: distortion coefficients differ beyond this
+PX_TOL = 0.5           # ... focal lengths or principal point differ beyond this (px)
+
+
+def camera_model(width: Any, height: Any, fx: float, fy: float, cx: float, cy: float, dist: Any,
+                 where: str) -> CameraModel:
+    """A checked :class:`CameraModel`: a real camera's numbers, so a typo (an exponent, a wrong unit) is an
+    error naming ``where``, not a trajectory. ``dist``: OpenCV/plumb_bob (k1, k2, p1, p2, k3); an empty or
+    shorter list is padded with zeros."""
+    if not (_is_number(width) and _is_number(height) and width == int(width) and height == int(height)
+            and width > 0 and height > 0):
+        raise RigError(f'{where}.width/height must be integers > 0, got {width!r} x {height!r}')
+    width, height = int(width), int(height)
+    dist = np.asarray(list(dist) + [0.0] * (5 - len(dist)), dtype=float)
+    if not (width <= MAX_IMAGE_SIDE and height <= MAX_IMAGE_SIDE):
+        raise RigError(f'{where}: image {width:g} x {height:g} px is larger than {MAX_IMAGE_SIDE} px a side')
+    for k, f in (('fx', fx), ('fy', fy)):
+        if not (math.isfinite(f) and 0.05 * width <= f <= 100.0 * width):
+            raise RigError(f'{where}.{k} = {f:g} px is not a focal length for a {width:g} px wide image '
+                           f'(expected {0.05 * width:g}..{100 * width:g}: 0.6..170 deg of view)')
+    if not (0 <= cx <= width and 0 <= cy <= height):
+        raise RigError(f'{where}: principal point ({cx:g}, {cy:g}) lies outside the {width:g} x {height:g} image')
+    if dist.shape != (5,) or not np.all(np.isfinite(dist)):
+        raise RigError(f'{where}.dist {dist.tolist()}: not 5 finite coefficients (plumb_bob: k1, k2, p1, p2, k3)')
+    if np.any(np.abs(dist) > MAX_DISTORTION):
+        raise RigError(f'{where}.dist {dist.tolist()}: coefficients beyond +-{MAX_DISTORTION:g} are not a lens model')
+    return CameraModel(width, height, float(fx), float(fy), float(cx), float(cy), tuple(float(x) for x in dist))
+
+
+def camera_from_calibration(data: Any, where: str) -> CameraModel:
+    """The camera of a camera_calibration / camera_info_manager YAML (``image_width``, ``image_height``,
+    ``camera_matrix: {rows, cols, data}``, ``distortion_model`` plumb_bob, ``distortion_coefficients``)."""
+    if not isinstance(data, dict):
+        raise RigError(f'{where}: not a camera calibration file (a mapping with image_width, camera_matrix, ...)')
+
+    def matrix(key: str, size: int | None) -> list[float]:
+        m = data.get(key)
+        if not isinstance(m, dict) or not isinstance(m.get('data'), list):
+            raise RigError(f'{where}: missing {key}: {{rows, cols, data}}')
+        values = m['data']
+        if (size is not None and len(values) != size) or not all(_is_number(x) for x in values):
+            raise RigError(f'{where}: {key}.data must be {size or "a list of"} numbers, got {values!r}')
+        return [float(x) for x in values]
+    for key in ('image_width', 'image_height'):
+        if key not in data:
+            raise RigError(f'{where}: missing {key}')
+    model = data.get('distortion_model', 'plumb_bob')
+    if model != 'plumb_bob':
+        raise RigError(f"{where}: distortion_model {model!r} is not supported (plumb_bob only)")
+    K = matrix('camera_matrix', 9)
+    dist = matrix('distortion_coefficients', None) if 'distortion_coefficients' in data else []
+    if len(dist) > 5:
+        raise RigError(f'{where}: plumb_bob takes 5 distortion coefficients, got {len(dist)}')
+    return camera_model(data['image_width'], data['image_height'], K[0], K[4], K[2], K[5], dist, where)
+
+
+def load_calibration_file(path: str | Path) -> CameraModel:
+    """:func:`camera_from_calibration` of a YAML file; RigError naming the file."""
+    path = Path(path)
+    try:
+        data = yaml.safe_load(path.read_text())
+    except OSError as e:
+        raise RigError(f'camera calibration {path}: cannot read ({e.strerror})') from None
+    except (yaml.YAMLError, UnicodeDecodeError) as e:
+        raise RigError(f'camera calibration {path}: not valid YAML ({" ".join(str(e).split())})') from None
+    return camera_from_calibration(data, f'camera calibration {path}')
+
+
+def _camera(d: dict[str, Any], side: str, base_dir: Path | None) -> CameraModel | None:
+    """The side's intrinsics, or None when the rig file leaves them to camera_info (no block, or a block without
+    fx, fy, cx, cy, dist: then width and height, when given, must match the CameraInfo)."""
+    if side not in d or d[side] is None:
+        return None
     c = _mapping(d, side, '')
-    _known_keys(c, CAMERA_KEYS, side)
+    _known_keys(c, CAMERA_KEYS + ('calibration',), side)
+    if 'calibration' in c:
+        if set(c) != {'calibration'}:
+            raise RigError(f'rig file: {side}.calibration names a calibration file: give no other {side} keys '
+                           f'(got {", ".join(sorted(k for k in c if k != "calibration"))})')
+        if not isinstance(c['calibration'], str) or not c['calibration']:
+            raise RigError(f'rig file: {side}.calibration must be a file name, got {c["calibration"]!r}')
+        path = Path(c['calibration']).expanduser()
+        if not path.is_absolute() and base_dir is not None:
+            path = base_dir / path          # relative to the rig file
+        return load_calibration_file(path)
+    if not any(k in c for k in INTRINSIC_KEYS):
+        return None
     width, height = _number(c, 'width', side, True), _number(c, 'height', side, True)
-    if width != int(width) or height != int(height):
-        raise RigError(f'rig file: {side}.width/height must be integers, got {c["width"]!r} x {c["height"]!r}')
     dist = _vector(c, 'dist', side, 5) if 'dist' in c else np.zeros(5)
     fx, fy, cx, cy = (_number(c, 'fx', side, True), _number(c, 'fy', side, True), _number(c, 'cx', side),
                       _number(c, 'cy', side))
-    # plausibility: a real camera's numbers, so a typo (an exponent, a wrong unit) is an error, not a trajectory
-    if not (width <= MAX_IMAGE_SIDE and height <= MAX_IMAGE_SIDE):
-        raise RigError(f'rig file: {side}: image {width:g} x {height:g} px is larger than {MAX_IMAGE_SIDE} px a side')
-    for k, f in (('fx', fx), ('fy', fy)):
-        if not 0.05 * width <= f <= 100.0 * width:
-            raise RigError(f'rig file: {side}.{k} = {f:g} px is not a focal length for a {width:g} px wide image '
-                           f'(expected {0.05 * width:g}..{100 * width:g}: 0.6..170 deg of view)')
-    if not (0 <= cx <= width and 0 <= cy <= height):
-        raise RigError(f'rig file: {side}: principal point ({cx:g}, {cy:g}) lies outside the {width:g} x {height:g} '
-                       'image')
-    if np.any(np.abs(dist) > MAX_DISTORTION):
-        raise RigError(f'rig file: {side}.dist {dist.tolist()}: coefficients beyond +-{MAX_DISTORTION:g} are not '
-                       'a lens model')
-    return CameraModel(int(width), int(height), fx, fy, cx, cy, tuple(float(x) for x in dist))
+    return camera_model(width, height, fx, fy, cx, cy, dist, f'rig file: {side}')
+
+
+def _expected_sizes(d: dict[str, Any]) -> dict[str, tuple[int, int]]:
+    """width/height of camera blocks without intrinsics (checked against the CameraInfo)."""
+    out = {}
+    for side in SIDES:
+        c = d.get(side)
+        if isinstance(c, dict) and 'calibration' not in c and not any(k in c for k in INTRINSIC_KEYS) and c:
+            w, h = _number(c, 'width', side, True), _number(c, 'height', side, True)
+            if w != int(w) or h != int(h):
+                raise RigError(f'rig file: {side}.width/height must be integers, got {c["width"]!r} x {c["height"]!r}')
+            out[side] = (int(w), int(h))
+    return out
 
 
 def _calibration(d: dict[str, Any], side: str) -> PanTiltCalibration:
@@ -325,22 +442,30 @@ def _calibration(d: dict[str, Any], side: str) -> PanTiltCalibration:
     return PanTiltCalibration(**values)
 
 
-def rig_from_dict(d: Any, warnings: list[str] | None = None) -> Rig:
+def rig_from_dict(d: Any, warnings: list[str] | None = None, base_dir: Path | None = None) -> Rig:
     """Validate a parsed rig file (DESIGN.md §4); :class:`RigError` names the offending key, where it is and,
     for a misspelt one, the closest known key. Unknown top-level keys are allowed (kept in ``Rig.extra``)
-    but reported: appended to ``warnings`` when given, otherwise logged."""
+    but reported: appended to ``warnings`` when given, otherwise logged. A camera may be left out (or give only
+    width/height): its intrinsics then come from its camera_info; ``right: {calibration: FILE}`` reads a
+    camera_calibration YAML, relative to ``base_dir`` (the rig file's directory)."""
     if not isinstance(d, dict):
         raise RigError(f'rig file: top level must be a mapping with keys right, left, left_in_rig, got {d!r}')
-    right, left = _camera(d, 'right'), _camera(d, 'left')
+    right, left = _camera(d, 'right', base_dir), _camera(d, 'left', base_dir)
+    sizes = _expected_sizes(d)
     c_L, R_L = _pose_block(d, 'left_in_rig')
     baseline = float(np.linalg.norm(c_L))
     if not MIN_BASELINE_M <= baseline <= MAX_BASELINE_M:
         raise RigError(f'rig file: left_in_rig.translation {c_L.tolist()}: a baseline of {baseline:g} m is not a '
                        f'rig ({MIN_BASELINE_M:g}..{MAX_BASELINE_M:g} m; the left camera centre, in metres)')
+    mount = None
     if 'rig_in_base_link' in d:
-        _pose_block(d, 'rig_in_base_link')      # checked; kept (in extra) as given
+        t_m, R_m = _pose_block(d, 'rig_in_base_link')
+        if float(np.linalg.norm(t_m)) > MAX_BASELINE_M:
+            raise RigError(f'rig file: rig_in_base_link.translation {t_m.tolist()}: {np.linalg.norm(t_m):g} m from '
+                           f'base_link is not a mount (at most {MAX_BASELINE_M:g} m; metres)')
+        mount = Pose(R_m, t_m)
     calibrations = _calibration(d, 'right'), _calibration(d, 'left')
-    known = {'right', 'left', 'left_in_rig', 'pan_tilt'}
+    known = {'right', 'left', 'left_in_rig', 'pan_tilt', 'rig_in_base_link'}
     extra = {k: v for k, v in d.items() if k not in known}
     notes = [f'rig file: unknown top-level key {k!r} kept as extra data{_did_you_mean(str(k), TOP_KEYS)}'
              for k in extra if k not in TOP_KEYS]
@@ -349,7 +474,7 @@ def rig_from_dict(d: Any, warnings: list[str] | None = None) -> Rig:
             _log.warning(note)
     else:
         warnings.extend(notes)
-    return Rig(right, left, R_L, c_L, *calibrations, extra)
+    return Rig(right, left, R_L, c_L, *calibrations, extra, mount, sizes)
 
 
 MAX_RIG_FILE_BYTES = 1 << 20    # a rig file is a few hundred bytes; anything this large is the wrong file
@@ -372,7 +497,7 @@ def load_rig(path: str | Path, warnings: list[str] | None = None) -> Rig:
         raise RigError(f'rig file {path}: not valid YAML ({" ".join(str(e).split())})') from None
     notes: list[str] = []
     try:
-        rig = rig_from_dict(data, notes)
+        rig = rig_from_dict(data, notes, path.parent)
     except RigError as e:
         raise RigError(f'{path}: {e}') from None
     notes = [f'{path}: {n}' for n in notes]

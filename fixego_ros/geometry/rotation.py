@@ -142,14 +142,44 @@ def compose_all(motions: list[Pose]) -> Pose:
     return out
 
 
-def rig_pose_to_base_link(pose_rig: Pose) -> Pose:
-    """Pose of the rig at t in the rig frame at 0 -> pose of base_link in odom (REP-105 axes)."""
-    return Pose(RIG_TO_BASE @ pose_rig.R @ RIG_TO_BASE.T, RIG_TO_BASE @ pose_rig.t)
+def default_mount() -> Pose:
+    """The rig frame in ``base_link`` when the rig file gives no ``rig_in_base_link`` (DESIGN.md §2): same
+    origin, x forward = rig z, y left = -rig x, z up = -rig y."""
+    return Pose(RIG_TO_BASE.copy(), np.zeros(3))
 
 
-def base_link_pose_to_rig(pose_base: Pose) -> Pose:
-    """Inverse of :func:`rig_pose_to_base_link`."""
-    return Pose(RIG_TO_BASE.T @ pose_base.R @ RIG_TO_BASE, RIG_TO_BASE.T @ pose_base.t)
+def rig_pose_to_base_link(pose_rig: Pose, mount: Pose | None = None) -> Pose:
+    """Pose of the rig at t in the rig frame at 0 -> pose of base_link in odom (odom = base_link at 0).
+
+    ``mount`` is the rig frame in ``base_link`` (``x_base = mount.R x_rig + mount.t``; the rig file's
+    ``rig_in_base_link``); None = the default axes, computed exactly as before mounts existed. With a mount
+    the base_link motion is the rig motion seen from base_link: ``mount @ pose_rig @ mount⁻¹``."""
+    if mount is None:
+        return Pose(RIG_TO_BASE @ pose_rig.R @ RIG_TO_BASE.T, RIG_TO_BASE @ pose_rig.t)
+    return mount @ pose_rig @ mount.inverse()
+
+
+def base_link_pose_to_rig(pose_base: Pose, mount: Pose | None = None) -> Pose:
+    """Inverse of :func:`rig_pose_to_base_link` (same ``mount``)."""
+    if mount is None:
+        return Pose(RIG_TO_BASE.T @ pose_base.R @ RIG_TO_BASE, RIG_TO_BASE.T @ pose_base.t)
+    return mount.inverse() @ pose_base @ mount
+
+
+def base_link_covariance(cov_rig: np.ndarray, pose_rig: Pose, mount: Pose | None = None) -> np.ndarray:
+    """First-order 6x6 covariance over [position, rotation] (ROS order, ``odom`` axes) of
+    ``rig_pose_to_base_link(pose_rig, mount)``, from the estimator's covariance over [rotation, position] of
+    ``pose_rig`` (world-frame rotation perturbation). A mount translation adds the lever arm: the base_link
+    origin moves when the rig rotates about its own origin."""
+    R_m = RIG_TO_BASE if mount is None else mount.R
+    J = np.zeros((6, 6))
+    J[:3, 3:] = R_m                   # position rows from the rig position block
+    J[3:, :3] = R_m                   # rotation rows from the rig rotation block
+    if mount is not None and np.any(mount.t):
+        a = pose_rig.R @ mount.R.T @ mount.t
+        J[:3, :3] = R_m @ skew(a)     # t_base = R_m t + t_m - R_m R R_m^T t_m, perturbed R -> exp(d)R
+    cov = J @ np.asarray(cov_rig, dtype=float) @ J.T
+    return 0.5 * (cov + cov.T)
 
 
 def rotation_error_paper(R_est: np.ndarray, R_true: np.ndarray) -> float:

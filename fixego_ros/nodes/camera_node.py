@@ -38,6 +38,7 @@ from sensor_msgs.msg import Image, JointState
 from std_msgs.msg import Empty
 from std_srvs.srv import Trigger
 
+from fixego_ros.geometry.frames import optical_transform
 from fixego_ros.geometry.rig import default_rig_path, load_rig
 from fixego_ros.nodes.common import (
     ERROR,
@@ -46,6 +47,7 @@ from fixego_ros.nodes.common import (
     RELIABLE_QOS,
     SENSOR_QOS,
     WARN,
+    CameraInfoIntrinsics,
     ImageError,
     OnceLogger,
     array_to_image,
@@ -58,6 +60,8 @@ from fixego_ros.nodes.common import (
     sec_to_stamp,
     set_timer_period,
     stamp_to_sec,
+    tf_broadcaster,
+    transform_msg,
     vergence_to_msg,
 )
 from fixego_ros.pipeline.messages import pan_tilt
@@ -104,6 +108,12 @@ class CameraNode(Node):
         rig = load_rig(g('rig_file') or default_rig_path(), warnings=rig_notes)
         for note in rig_notes:
             self.get_logger().warning(note)
+        # the left node's vergence steps also use the right camera; what the rig file lacks comes from camera_info
+        verging = self.side == 'left' and bool(g('vergence_enabled')) and bool(str(g('port'))) and not bool(
+            g('passive'))
+        self.intrinsics = CameraInfoIntrinsics(self, rig, (self.side, 'right') if verging else (self.side,))
+        self.intrinsics.wait(float(g('camera_info_wait_s')))
+        rig = self.intrinsics.rig
         self.rig = rig
         self.camera = rig.camera(self.side)
         self.calibration = rig.calibration(self.side)
@@ -135,6 +145,7 @@ class CameraNode(Node):
         self.pub_fix = self.create_publisher(PointStamped, f'{ns}/fixation', RELIABLE_QOS)
         self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', RELIABLE_QOS)
         self.pub_joint = None
+        self.tf = tf_broadcaster(self)       # <side>_zero -> <side>_optical_frame from the joint readings
         if self.passive:
             self.history = JointHistory()
             self.create_subscription(JointState, f'{ns}/joint_states', self._on_joint_state, RELIABLE_QOS)
@@ -238,6 +249,7 @@ class CameraNode(Node):
             self.once.warn('joint_nan', 'non-finite pan/tilt in joint_states: ignored')
             return
         self.history.add(stamp_to_sec(msg.header.stamp), pan, tilt)
+        self._send_optical_tf(msg.header.stamp, pan, tilt)
 
     def _poll_video(self) -> None:
         if self.video is None:
@@ -341,6 +353,12 @@ class CameraNode(Node):
             js.position = [float(q[0]), float(q[1])]
             self.pub_joint.publish(js)
             self.stats['joint_states'] += 1
+            self._send_optical_tf(stamp, float(q[0]), float(q[1]))
+
+    def _send_optical_tf(self, stamp, pan: float, tilt: float) -> None:
+        """The optical frame turns with the head: one transform per joint state (tf2_ros importable only)."""
+        if self.tf is not None:
+            self.tf.sendTransform(transform_msg(*optical_transform(self.rig, self.side, pan, tilt), stamp))
 
     # ---------------------------------------------------------------------------------------- parameters
     def _apply_params(self, changes: dict[str, object], g: Getter) -> None:
@@ -587,7 +605,8 @@ class CameraNode(Node):
                 level, message = ERROR, f'serial port {self.driver.state}: {self.driver.last_error}'
         publish_diagnostics(self, self.pub_diag, [diagnostic_status(
             f'fixego camera_node {self.side}', self.driver.port if self.driver else 'passive', level, message,
-            values), self._vergence_status(), *([self._model_status()] if self.driver is not None else [])])
+            values), self._vergence_status(), *([self._model_status()] if self.driver is not None else []),
+            self.intrinsics.status(f'fixego camera_node {self.side}: intrinsics')])
 
     def destroy_node(self) -> None:
         if self.loop is not None:

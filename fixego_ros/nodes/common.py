@@ -230,6 +230,83 @@ def run_node(factory: Callable[[], Node], prog: str, args: list[str] | None = No
     return 0
 
 
+class CameraInfoIntrinsics:
+    """A node's use of ``<side>/camera_info`` (:mod:`fixego_ros.pipeline.camera_info`): intrinsics the rig file
+    leaves out come from each camera's first CameraInfo (``on_rig(rig)`` is called with the completed rig), and
+    a CameraInfo that disagrees with the rig file is logged once as an error and reported on /diagnostics
+    (:meth:`status`, ERROR) while the rig file is kept. Subscribed with sensor-data QoS (matches reliable and
+    best-effort publishers)."""
+
+    def __init__(self, node: Node, rig, sides: Iterable[str], on_rig: Callable[[object], None] | None = None) -> None:
+        from sensor_msgs.msg import CameraInfo
+
+        from fixego_ros.pipeline.camera_info import IntrinsicsFromInfo
+        self.node, self.sides, self.on_rig = node, tuple(sides), on_rig
+        self.fill = IntrinsicsFromInfo(rig)
+        self._logged: set[str] = set()
+        for side in self.sides:
+            node.create_subscription(CameraInfo, f'{side}/camera_info',
+                                     lambda m, s=side: self._on_info(s, m), SENSOR_QOS)
+
+    @property
+    def rig(self):
+        return self.fill.rig
+
+    def ready(self, sides: Iterable[str] | None = None) -> bool:
+        return all(self.fill.ready(s) for s in (self.sides if sides is None else sides))
+
+    def _on_info(self, side: str, msg) -> None:
+        if self.fill.on_info(side, msg):
+            self.node.get_logger().info(f'{side} intrinsics from {side}/camera_info: {self.fill.rig.camera(side)}')
+            if self.on_rig is not None:
+                self.on_rig(self.fill.rig)
+        for s, text in self.fill.errors.items():
+            if s not in self._logged:
+                self._logged.add(s)
+                self.node.get_logger().error(text)
+
+    def wait(self, timeout_s: float, sides: Iterable[str] | None = None) -> None:
+        """Spin this node (nothing else is subscribed yet) until the ``sides`` have intrinsics, at most
+        ``timeout_s``; RigError saying what is missing otherwise."""
+        import time
+
+        from rclpy.executors import SingleThreadedExecutor
+        sides = tuple(self.sides if sides is None else sides)
+        if self.ready(sides):
+            return
+        missing = ', '.join(self.fill.rig.missing_intrinsics())
+        self.node.get_logger().info(f'the rig file gives no intrinsics for {missing}:'
+                                    f' waiting up to {timeout_s:g} s for camera_info')
+        ex = SingleThreadedExecutor(context=self.node.context)
+        ex.add_node(self.node)
+        try:
+            deadline = time.monotonic() + timeout_s
+            while not self.ready(sides) and time.monotonic() < deadline and self.node.context.ok():
+                ex.spin_once(timeout_sec=min(0.1, max(0.0, deadline - time.monotonic())))
+        finally:
+            ex.remove_node(self.node)
+            ex.shutdown(timeout_sec=1.0)
+        if not self.ready(sides):
+            missing = [s for s in sides if not self.fill.ready(s)]
+            why = '; '.join(self.fill.errors[s] for s in missing if s in self.fill.errors)
+            raise RigError(f'no intrinsics for the {" and ".join(missing)} camera: none in the rig file and no usable '
+                           f'{" / ".join(f"{s}/camera_info" for s in missing)} within {timeout_s:g} s'
+                           + (f' ({why})' if why else ''))
+
+    def status(self, name: str) -> DiagnosticStatus:
+        """OK (where each camera's intrinsics come from), WARN while one is missing, ERROR on a disagreement."""
+        f = self.fill
+        values = {f'{s}_intrinsics': f.source.get(s, 'missing') for s in self.sides}
+        errors = [f.errors[s] for s in self.sides if s in f.errors]
+        missing = [s for s in self.sides if not f.ready(s)]
+        if errors:
+            return diagnostic_status(name, 'intrinsics', ERROR, '; '.join(errors), values)
+        if missing:
+            return diagnostic_status(name, 'intrinsics', WARN, f'waiting for {", ".join(missing)} camera_info '
+                                                               '(no intrinsics in the rig file)', values)
+        return diagnostic_status(name, 'intrinsics', OK, 'intrinsics known', values)
+
+
 def sec_to_stamp(t: float) -> Time:
     if not math.isfinite(t) or t < 0:
         raise ValueError(f'stamp must be finite and >= 0, got {t}')
@@ -244,6 +321,30 @@ def pose_to_msg(pose: Pose, out: PoseMsg | None = None) -> PoseMsg:
     o = out.orientation
     o.x, o.y, o.z, o.w = (float(x) for x in quat_xyzw(pose.R))
     return out
+
+
+def transform_msg(parent: str, child: str, pose: Pose, stamp: Time):
+    """geometry_msgs/TransformStamped of a (parent, child, Pose) tuple of :mod:`fixego_ros.geometry.frames`."""
+    from geometry_msgs.msg import TransformStamped
+    tf = TransformStamped()
+    tf.header.stamp = stamp
+    tf.header.frame_id = parent
+    tf.child_frame_id = child
+    p = pose_to_msg(pose)
+    tf.transform.translation.x, tf.transform.translation.y, tf.transform.translation.z = (
+        p.position.x, p.position.y, p.position.z)
+    tf.transform.rotation = p.orientation
+    return tf
+
+
+def tf_broadcaster(node: Node, static: bool = False):
+    """A tf2_ros (Static)TransformBroadcaster, or None when tf2_ros is not importable (DESIGN.md §3: TF is
+    published only on a full ROS install, never required)."""
+    try:
+        from tf2_ros import StaticTransformBroadcaster, TransformBroadcaster
+    except ImportError:
+        return None
+    return StaticTransformBroadcaster(node) if static else TransformBroadcaster(node)
 
 
 def vergence_to_msg(stamp: Time, point_rig: np.ndarray, cov_rig: np.ndarray) -> PoseWithCovarianceStamped:

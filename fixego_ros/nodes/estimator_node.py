@@ -6,8 +6,10 @@ Topics are relative names in the node namespace (default ``/fixego``). Subscribe
 adjustment over the last n frames. Publishes ``pose`` (refined) and ``odom`` (with covariance; weakly observed
 axes get large variances) every frame, ``path`` and ``path_raw`` (two-frame only) at most once per
 ``path_publish_period_s`` of observation time plus once when the poses stop coming (so the last Path holds the
-whole run, up to ``path_max_length`` poses), ``/diagnostics``, and TF ``odom -> base_link`` when tf2_ros is
-importable. ``~/reset`` (std_srvs/Trigger) restarts the trajectory.
+whole run, up to ``path_max_length`` poses), and ``/diagnostics``, all in ``odom_frame`` / ``base_frame``. When
+tf2_ros is importable: TF ``odom -> base_link`` (``publish_tf``: auto = only without a speed source, whose robot
+usually broadcasts it) and, once, the static ``base_link -> rig -> right_zero / left_zero`` of the rig file
+(``publish_static_tf``). ``~/reset`` (std_srvs/Trigger) restarts the trajectory.
 
 Scale aid (off by default): with ``speed_topic`` set it subscribes that nav_msgs/Odometry (e.g. wheel
 odometry; twist in ``base_frame``, REP-105) and forwards each valid sample, in stamp order, to
@@ -53,14 +55,16 @@ from std_srvs.srv import Trigger
 from fixego_ros.estimation.estimator import Estimator, FrameResult
 from fixego_ros.estimation.scale_requests import ScaleRequests
 from fixego_ros.estimation.status import StepStatus
-from fixego_ros.geometry.rig import default_rig_path, load_rig
-from fixego_ros.geometry.rotation import RIG_TO_BASE, Pose, rig_pose_to_base_link
+from fixego_ros.geometry.frames import static_transforms
+from fixego_ros.geometry.rig import SIDES, default_rig_path, load_rig
+from fixego_ros.geometry.rotation import Pose, base_link_covariance, rig_pose_to_base_link
 from fixego_ros.nodes.common import (
     ERROR,
     LATCHED_QOS,
     OK,
     RELIABLE_QOS,
     WARN,
+    CameraInfoIntrinsics,
     CloudError,
     OnceLogger,
     cloud_to_table,
@@ -72,6 +76,8 @@ from fixego_ros.nodes.common import (
     run_node,
     set_timer_period,
     stamp_to_sec,
+    tf_broadcaster,
+    transform_msg,
 )
 from fixego_ros.pipeline.observation import ROW_DTYPE, ObservationError, rows_to_observation
 from fixego_ros.pipeline.odometry import (
@@ -91,15 +97,10 @@ LIVE_NODE = ('max_lag_s', 'max_keyframe_lag_s', 'max_future_s', 'backward_reset_
              'diagnostics_period_s', 'vergence_request_rel_std', 'vergence_request_min_interval_s', 'scale_drift_per_s')
 
 
-def odom_covariance(pose_cov_rig: np.ndarray) -> list[float]:
-    """Row-major 6x6 Odometry pose covariance (x, y, z, rot x, rot y, rot z in ``odom``) of the
-    estimator's covariance over [rotation, position] in the rig frame at frame 0."""
-    B = np.zeros((6, 6))
-    B[:3, 3:] = RIG_TO_BASE           # position rows come from the rig position block
-    B[3:, :3] = RIG_TO_BASE           # rotation rows from the rig rotation block
-    cov = B @ pose_cov_rig @ B.T
-    cov = 0.5 * (cov + cov.T)
-    return [float(x) for x in cov.ravel()]
+def odom_covariance(cov_rig: np.ndarray, pose_rig: Pose, mount: Pose | None = None) -> list[float]:
+    """Row-major 6x6 Odometry covariance (x, y, z, rot x, rot y, rot z; ``odom`` axes) of the estimator's
+    covariance over [rotation, position] of ``pose_rig`` (rig frame at frame 0), through the rig's mount."""
+    return [float(x) for x in base_link_covariance(cov_rig, pose_rig, mount).ravel()]
 
 
 class EstimatorNode(Node):
@@ -110,6 +111,9 @@ class EstimatorNode(Node):
         self.rig = load_rig(g('rig_file') or default_rig_path(), warnings=rig_notes)
         for note in rig_notes:
             self.get_logger().warning(note)
+        self.intrinsics = CameraInfoIntrinsics(self, self.rig, SIDES)   # what the rig file lacks: camera_info
+        self.intrinsics.wait(float(g('camera_info_wait_s')))
+        self.rig = self.intrinsics.rig
         self.config = estimator_config(g, self.rig)
         self.estimator = Estimator(self.rig, self.config)
         self.odom_frame, self.base_frame = str(g('odom_frame')), str(g('base_frame'))
@@ -129,9 +133,11 @@ class EstimatorNode(Node):
         self.pub_path_raw = self.create_publisher(Path, 'path_raw', RELIABLE_QOS)
         self.pub_odom = self.create_publisher(Odometry, 'odom', RELIABLE_QOS)
         self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', RELIABLE_QOS)
-        self.tf = self._make_tf_broadcaster() if bool(g('publish_tf')) else None
+        self.tf = self._make_tf_broadcaster(str(g('publish_tf')), str(g('speed_topic')))
+        if bool(g('publish_static_tf')):
+            self._send_static_tf()
         self.create_subscription(PointCloud2, str(g('observation_topic')), self._on_observation, RELIABLE_QOS)
-        self.speed = SpeedInput(SpeedSettings.from_getter(g, self.base_frame))
+        self.speed = SpeedInput(SpeedSettings.from_getter(g, self.base_frame), self.rig.mount)
         self.speed_topic = self.speed.settings.topic
         self.speed_stats: Counter[str] = Counter()
         self.speed_last: float | None = None       # stamp of the newest sample forwarded
@@ -164,13 +170,29 @@ class EstimatorNode(Node):
                                f'TF {"on" if self.tf else "off"}, speed aid '
                                f'{self.speed_topic or "off"}')
 
-    def _make_tf_broadcaster(self):
-        try:
-            from tf2_ros import TransformBroadcaster
-        except ImportError:
-            self.get_logger().info('tf2_ros not importable: no TF odom -> base_link (topics carry the pose)')
+    def _make_tf_broadcaster(self, mode: str, speed_topic: str):
+        """publish_tf 'auto' is on only without a speed source: a robot with wheel odometry (or
+        robot_localization) usually broadcasts odom -> base_link itself, and two parents of one frame break TF."""
+        if mode == 'false' or (mode == 'auto' and speed_topic):
+            if mode == 'auto':
+                self.get_logger().info(f'publish_tf auto: no TF {self.odom_frame} -> {self.base_frame}, a speed '
+                                       f'source ({speed_topic}) is configured (set publish_tf true to force it)')
             return None
-        return TransformBroadcaster(self)
+        tf = tf_broadcaster(self)
+        if tf is None:
+            self.get_logger().info(f'tf2_ros not importable: no TF {self.odom_frame} -> {self.base_frame} '
+                                   '(topics carry the pose)')
+        return tf
+
+    def _send_static_tf(self) -> None:
+        """base_frame -> rig (the mount) -> right_zero / left_zero, once (latched by tf2_ros)."""
+        static = tf_broadcaster(self, static=True)
+        if static is None:
+            return
+        stamp = self.get_clock().now().to_msg()
+        static.sendTransform([transform_msg(parent, child, pose, stamp)
+                              for parent, child, pose in static_transforms(self.rig, self.base_frame)])
+        self._static_tf = static        # kept alive: its latched publisher serves late joiners
 
     # -------------------------------------------------------------------------------------- input
     def _on_observation(self, msg: PointCloud2) -> None:
@@ -294,7 +316,8 @@ class EstimatorNode(Node):
     def _correct_last(self, stamp: float, pose: Pose, pose_raw: Pose) -> None:
         """A blind step (nothing seen across it) was re-estimated once the step after it was solved: the path's
         last pose, that frame's, is replaced (the pose and odometry published then stay as they were)."""
-        pose, pose_raw = rig_pose_to_base_link(pose), rig_pose_to_base_link(pose_raw)
+        mount = self.rig.mount
+        pose, pose_raw = rig_pose_to_base_link(pose, mount), rig_pose_to_base_link(pose_raw, mount)
         if not (self.path and pose.is_finite() and pose_raw.is_finite()
                 and abs(stamp_to_sec(self.path[-1].header.stamp) - stamp) <= 1e-6):
             return
@@ -303,8 +326,8 @@ class EstimatorNode(Node):
         self.stats['blind_steps_bridged'] = self.stats.get('blind_steps_bridged', 0) + 1
 
     def _publish(self, stamp, res: FrameResult) -> None:
-        pose = rig_pose_to_base_link(res.pose)
-        pose_raw = rig_pose_to_base_link(res.pose_raw)
+        pose = rig_pose_to_base_link(res.pose, self.rig.mount)
+        pose_raw = rig_pose_to_base_link(res.pose_raw, self.rig.mount)
         if not (pose.is_finite() and pose_raw.is_finite() and np.all(np.isfinite(res.pose_covariance))):
             self.once.error('nan', 'estimator produced a non-finite pose: not published (please report)')
             return
@@ -360,14 +383,14 @@ class EstimatorNode(Node):
         od.header.frame_id = self.odom_frame
         od.child_frame_id = self.base_frame
         pose_to_msg(pose, od.pose.pose)
-        od.pose.covariance = odom_covariance(res.pose_covariance)
+        od.pose.covariance = odom_covariance(res.pose_covariance, res.pose, self.rig.mount)
         dt = res.stamp - res.ref_stamp if res.ref_stamp is not None else 0.0
         if dt > 0 and res.status is not StepStatus.INIT:
-            step = rig_pose_to_base_link(res.step)          # base_link at t in base_link at the keyframe
+            step = rig_pose_to_base_link(res.step, self.rig.mount)   # base_link at t in base_link at the keyframe
             v, w = step.R.T @ step.t / dt, step.rvec() / dt   # twist in the child frame (base_link at t)
             od.twist.twist.linear.x, od.twist.twist.linear.y, od.twist.twist.linear.z = (float(x) for x in v)
             od.twist.twist.angular.x, od.twist.twist.angular.y, od.twist.twist.angular.z = (float(x) for x in w)
-            tw = odom_covariance(res.step_covariance)
+            tw = odom_covariance(res.step_covariance, res.step, self.rig.mount)
             od.twist.covariance = [float(min(x / (dt * dt), 1e12)) for x in tw]
         else:
             od.twist.covariance = [0.0] * 36
@@ -376,16 +399,7 @@ class EstimatorNode(Node):
         return od
 
     def _send_tf(self, stamp, pose: Pose) -> None:
-        from geometry_msgs.msg import TransformStamped
-        tf = TransformStamped()
-        tf.header.stamp = stamp
-        tf.header.frame_id = self.odom_frame
-        tf.child_frame_id = self.base_frame
-        p = pose_to_msg(pose)
-        tf.transform.translation.x, tf.transform.translation.y, tf.transform.translation.z = (
-            p.position.x, p.position.y, p.position.z)
-        tf.transform.rotation = p.orientation
-        self.tf.sendTransform(tf)
+        self.tf.sendTransform(transform_msg(self.odom_frame, self.base_frame, pose, stamp))
 
     # -------------------------------------------------------------------------------------- parameters
     def _set_stamp_bounds(self, g: Getter) -> None:
@@ -456,7 +470,7 @@ class EstimatorNode(Node):
         if self.once.active('malformed'):
             level, message = ERROR, self.last_error
         statuses = [diagnostic_status('fixego estimator_node', 'estimator', level, message, values),
-                    self._scale_status()]
+                    self._scale_status(), self.intrinsics.status('fixego estimator_node: intrinsics')]
         if self.speed_topic:
             statuses.append(self._speed_status())
         publish_diagnostics(self, self.pub_diag, statuses)

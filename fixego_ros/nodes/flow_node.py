@@ -36,6 +36,7 @@ from fixego_ros.nodes.common import (
     RELIABLE_QOS,
     SENSOR_QOS,
     WARN,
+    CameraInfoIntrinsics,
     ImageError,
     OnceLogger,
     declare_parameters,
@@ -69,6 +70,8 @@ class FlowNode(Node):
         self.rig = load_rig(g('rig_file') or default_rig_path(), warnings=rig_notes)
         for note in rig_notes:
             self.get_logger().warning(note)
+        # intrinsics the rig file leaves out come from camera_info; no image is used until both are known
+        self.intrinsics = CameraInfoIntrinsics(self, self.rig, SIDES, self._on_rig)
         self.flow_params = flow_params(g)
         self.frontend = StereoFrontEnd(self.rig, self.flow_params, keyframe_policy(g))
         self.sync = StereoSync(sync_params(g))
@@ -95,8 +98,16 @@ class FlowNode(Node):
         return self.get_clock().now().nanoseconds * 1e-9
 
     # -------------------------------------------------------------------------------------- input
+    def _on_rig(self, rig) -> None:
+        self.rig = self.frontend.rig = rig
+
     def _on_image(self, side: str, msg: Image) -> None:
         self.stats['images'] += 1
+        if not self.intrinsics.ready():
+            self.stats['images_before_intrinsics'] = self.stats.get('images_before_intrinsics', 0) + 1
+            self.once.warn('intrinsics', 'images ignored until both cameras have intrinsics (rig file or '
+                                         'camera_info)')
+            return
         try:
             gray = gray_for_camera(msg, self.rig.camera(side))
         except ImageError as e:
@@ -172,7 +183,8 @@ class FlowNode(Node):
         values.update({'frames': s.frames, 'stereo_frames': s.stereo_frames,
                        'single_camera_frames': s.single_camera_frames, 'late_images': s.late_images,
                        'overflow_images': s.overflow_images, 'no_joints': s.no_joints, 'no_fixation': s.no_fixation,
-                       'rejected_inputs': s.rejected, 'preset': self.flow_params.preset})
+                       'rejected_inputs': s.rejected, 'preset': self.flow_params.preset,
+                       'slop_s_used': f'{self.sync.slop_s:.4f}'})
         values.update(self.frontend.stats)     # each camera's last status, reason and point counts
         totals = self.frontend.totals           # which LK attempt the tracks came from, RANSAC runs
         values.update({f'{side}.{k}_total': totals[f'{side}.{k}'] for side in SIDES
@@ -187,7 +199,8 @@ class FlowNode(Node):
         elif s.single_camera_frames > 0 and s.stereo_frames == 0:
             level, message = WARN, 'only one camera delivers frames'
         publish_diagnostics(self, self.pub_diag, [diagnostic_status('fixego flow_node', 'flow', level, message,
-                                                                    values)])
+                                                                    values),
+                                                  self.intrinsics.status('fixego flow_node: intrinsics')])
 
 
 def main(args: list[str] | None = None) -> int:

@@ -72,6 +72,7 @@ class SimRigNode(Node):
         rig = load_rig(p['rig_file'] or default_rig_path(), warnings=rig_notes)
         for note in rig_notes:
             self.get_logger().warning(note)
+        rig.require_intrinsics('sim_rig_node')      # it renders the images: camera_info cannot stand in
         if p['width'] > 0 or p['height'] > 0:
             w = p['width'] or round(rig.right.width * p['height'] / rig.right.height)
             h = p['height'] or round(rig.right.height * p['width'] / rig.right.width)
@@ -192,7 +193,7 @@ class SimRigNode(Node):
         self._render_ms.append((time.perf_counter() - t_render) * 1e3 / 2)
         if self._inv0 is None:
             self._inv0 = pose.inverse()
-        gt = pose_msg(rig_pose_to_base_link(self._inv0 @ pose), 0.0)
+        gt = pose_msg(rig_pose_to_base_link(self._inv0 @ pose, self.rig.mount), 0.0)
         gt.header.stamp = stamp
         self.pub_gt.publish(gt)
         self.frames += 1

@@ -12,8 +12,11 @@ import numpy as np
 from fixego_ros.geometry.rig import CameraModel
 from fixego_ros.geometry.rotation import Pose, from_quat_xyzw
 
-# encoding -> (channels, dtype) of the encodings the pipeline accepts
-ENCODINGS = {'mono8': (1, np.uint8), 'rgb8': (3, np.uint8), 'bgr8': (3, np.uint8)}
+# encoding -> (bytes per pixel, how it becomes grey). ROS's ``yuv422`` is UYVY (U Y V Y per two pixels) and
+# ``yuv422_yuy2`` is YUYV; grey is their Y. ``mono16`` keeps its high byte (>> 8): the tracker works on 8 bits,
+# and a 16-bit camera's useful range is its top.
+ENCODINGS = {'mono8': (1, 'mono'), 'rgb8': (3, 'rgb'), 'bgr8': (3, 'bgr'), 'mono16': (2, 'mono16'),
+             'yuv422': (2, 'uyvy'), 'yuv422_yuy2': (2, 'yuyv')}
 
 
 class ImageError(ValueError):
@@ -25,25 +28,39 @@ class ImageError(ValueError):
 
 
 def image_to_gray(msg: Any) -> np.ndarray:
-    """Grey uint8 array of an Image (or CompressedImage) message; raises :class:`ImageError` with the reason."""
+    """Grey uint8 array of an Image (or CompressedImage) message; raises :class:`ImageError` with the reason.
+    Rows may be padded (``step`` > width * bytes per pixel)."""
     if not hasattr(msg, 'encoding') and hasattr(msg, 'format'):
         return _compressed_to_gray(msg)
     if msg.encoding not in ENCODINGS:
         raise ImageError(f'unsupported encoding {msg.encoding!r} (use one of {sorted(ENCODINGS)})', 'encoding')
-    ch, _ = ENCODINGS[msg.encoding]
+    bpp, kind = ENCODINGS[msg.encoding]
     h, w, step = int(msg.height), int(msg.width), int(msg.step)
-    if h <= 0 or w <= 0 or step < w * ch or len(msg.data) < step * h:
-        raise ImageError(f'inconsistent image: {w}x{h}, step {step}, {len(msg.data)} bytes, {msg.encoding}')
+    if h <= 0 or w <= 0:
+        raise ImageError(f'inconsistent image: {w}x{h} ({msg.encoding})')
+    if step < w * bpp:
+        raise ImageError(f'inconsistent image: step {step} bytes is less than width {w} x {bpp} bytes per pixel '
+                         f'({msg.encoding})')
+    if len(msg.data) < step * h:
+        raise ImageError(f'inconsistent image: {len(msg.data)} bytes of data, {w}x{h} {msg.encoding} with step '
+                         f'{step} needs {step * h}')
+    if kind in ('uyvy', 'yuyv') and w % 2:
+        raise ImageError(f'inconsistent image: {msg.encoding} needs an even width (two pixels share U and V), got {w}')
     data = msg.data
     if not isinstance(data, (bytes, bytearray, memoryview, np.ndarray)):
         data = bytes(data)
     buf = np.frombuffer(data, dtype=np.uint8, count=step * h)
-    img = buf.reshape(h, step)[:, : w * ch].reshape(h, w, ch)
-    if ch == 1:
-        return img[:, :, 0]
+    rows = buf.reshape(h, step)[:, : w * bpp]
+    if kind == 'mono':
+        return rows
+    if kind == 'mono16':
+        big = bool(getattr(msg, 'is_bigendian', False))
+        return rows.reshape(h, w, 2)[:, :, 0 if big else 1].copy()      # the high byte: value >> 8
     import cv2
-    code = cv2.COLOR_RGB2GRAY if msg.encoding == 'rgb8' else cv2.COLOR_BGR2GRAY
-    return cv2.cvtColor(np.ascontiguousarray(img), code)
+    img = np.ascontiguousarray(rows).reshape(h, w, bpp)
+    code = {'rgb': cv2.COLOR_RGB2GRAY, 'bgr': cv2.COLOR_BGR2GRAY, 'uyvy': cv2.COLOR_YUV2GRAY_UYVY,
+            'yuyv': cv2.COLOR_YUV2GRAY_YUY2}[kind]
+    return cv2.cvtColor(img, code)
 
 
 def _compressed_to_gray(msg: Any) -> np.ndarray:

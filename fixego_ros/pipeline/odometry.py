@@ -1,10 +1,16 @@
 """External speed aid: a nav_msgs/Odometry twist (e.g. wheel odometry) as a rig-frame velocity sample.
 
 ROS-free (messages are read by attribute, so rclpy messages and rosbags' decoded ones both work). REP-105
-puts an Odometry twist in its child frame; the only child frame accepted is the rig body ``base_link``
-(x forward, y left, z up; DESIGN.md §2), or an empty one, taken to mean ``base_link``. The linear part
-becomes the velocity of the rig origin in the rig frame (x right, y down, z forward) with
-``RIG_TO_BASE``, its 3x3 covariance block rotated the same way; the angular part is not used.
+puts an Odometry twist in its child frame; the only child frame accepted is the robot's base
+(``base_frame``, default ``base_link``: x forward, y left, z up), or an empty one, taken to mean it. The
+twist becomes the velocity of the rig origin in the rig frame (x right, y down, z forward) through the
+rig's mount (``rig_in_base_link``: rotation ``R``, rig origin ``r`` in the base frame):
+``v_rig = Rᵀ (v_base + ω × r)``. The covariance is ``Rᵀ (C_v + [r]× C_ω [r]×ᵀ) R`` (linear and angular
+blocks taken as independent; the cross blocks are ignored). ``ω`` is the twist's angular part as given:
+a source that does not measure it (all zeros) contributes no lever-arm velocity, and an all-zero angular
+covariance adds no variance (ω taken as exact), so with a mount offset from the base origin a robot that
+turns must report ω. Without a mount (the default axes, origin at the rig origin) ``r = 0``: only the
+linear part counts.
 
 A sample is rejected whole, with an :class:`OdometryError` whose ``kind`` names the check, when its
 stamp is not finite, goes backwards (or repeats), is older than ``max_age_s`` relative to the newest
@@ -28,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from fixego_ros.geometry.rotation import RIG_TO_BASE
+from fixego_ros.geometry.rotation import RIG_TO_BASE, Pose, skew
 from fixego_ros.pipeline.messages import stamp_to_sec
 
 ODOMETRY_TYPE = 'nav_msgs/msg/Odometry'
@@ -86,32 +92,55 @@ def psd_eigen(c: np.ndarray, what: str) -> tuple[np.ndarray, np.ndarray, np.ndar
     return c, w, V
 
 
-def twist_to_rig(linear: Any, covariance: Any, default_std: float) -> tuple[np.ndarray, np.ndarray]:
-    """(v_rig, cov_rig) of a ``base_link`` linear twist (x, y, z or a Vector3) and the row-major 6x6 twist
-    covariance; :class:`OdometryError` (kind ``velocity`` / ``covariance``) when they are unusable."""
-    if hasattr(linear, 'x'):
-        linear = (linear.x, linear.y, linear.z)
+def _vector3(v: Any, what: str) -> np.ndarray:
+    if hasattr(v, 'x'):
+        v = (v.x, v.y, v.z)
     try:
-        v_base = np.asarray(linear, dtype=float).reshape(3)
+        out = np.asarray(v, dtype=float).reshape(3)
+    except (TypeError, ValueError) as e:
+        raise OdometryError(f'{what} not numeric: {e}', 'velocity') from None
+    if not np.all(np.isfinite(out)):
+        raise OdometryError(f'non-finite {what} {out.tolist()}', 'velocity')
+    return out
+
+
+def _psd_floor(c: np.ndarray, what: str) -> np.ndarray:
+    if np.any(np.diag(c) < 0):
+        raise OdometryError(f'negative {what} variance {np.diag(c).tolist()}', 'covariance')
+    c, w, V = psd_eigen(c, f'twist covariance ({what})')
+    return (V * np.maximum(w, MIN_STD ** 2)) @ V.T if w[0] < MIN_STD ** 2 else c
+
+
+def twist_to_rig(linear: Any, covariance: Any, default_std: float, angular: Any = None,
+                 mount: Pose | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(v_rig, cov_rig) of a base-frame twist (x, y, z or a Vector3 each) and its row-major 6x6 covariance:
+    the velocity of the rig origin in the rig frame (see the module docstring; ``mount`` None = the default
+    axes, rig origin at the base origin). :class:`OdometryError` (kind ``velocity`` / ``covariance``) when
+    they are unusable."""
+    v_base = _vector3(linear, 'linear velocity')
+    w_base = np.zeros(3) if angular is None else _vector3(angular, 'angular velocity')
+    try:
         cov6 = np.asarray(covariance, dtype=float)
     except (TypeError, ValueError) as e:
-        raise OdometryError(f'twist not numeric: {e}', 'velocity') from None
-    if not np.all(np.isfinite(v_base)):
-        raise OdometryError(f'non-finite linear velocity {v_base.tolist()}', 'velocity')
+        raise OdometryError(f'twist covariance not numeric: {e}', 'covariance') from None
     c = covariance_block(cov6, 'twist covariance')
     if not math.isfinite(default_std) or default_std <= 0:
         raise ValueError(f'speed_default_std must be a positive number of m/s, got {default_std}')
-    if not np.any(c):
-        c = np.eye(3) * default_std ** 2          # all zeros: "unknown" (REP-105 practice)
-    else:
-        if np.any(np.diag(c) < 0):
-            raise OdometryError(f'negative velocity variance {np.diag(c).tolist()}', 'covariance')
-        c, w, V = psd_eigen(c, 'twist covariance')
-        if w[0] < MIN_STD ** 2:
-            c = (V * np.maximum(w, MIN_STD ** 2)) @ V.T
-    v_rig = RIG_TO_BASE.T @ v_base
-    cov_rig = RIG_TO_BASE.T @ c @ RIG_TO_BASE
-    return v_rig, 0.5 * (cov_rig + cov_rig.T)
+    c = np.eye(3) * default_std ** 2 if not np.any(c) else _psd_floor(c, 'velocity')   # zeros: "unknown"
+    if mount is None:
+        v_rig = RIG_TO_BASE.T @ v_base
+        cov_rig = RIG_TO_BASE.T @ c @ RIG_TO_BASE
+        return v_rig, 0.5 * (cov_rig + cov_rig.T)
+    R, r = mount.R, mount.t
+    v_origin = v_base + np.cross(w_base, r)          # velocity of the rig origin, base axes
+    c_w = cov6.reshape(6, 6)[3:, 3:]
+    if not np.all(np.isfinite(c_w)):
+        raise OdometryError('twist covariance (angular) not finite', 'covariance')
+    if np.any(c_w) and np.any(r):
+        S = skew(r)                                   # w x r = -[r]x w
+        c = c + S @ _psd_floor(c_w, 'angular') @ S.T
+    cov_rig = R.T @ c @ R
+    return R.T @ v_origin, 0.5 * (cov_rig + cov_rig.T)
 
 
 @dataclass(frozen=True)
@@ -141,8 +170,9 @@ class SpeedInput:
     it. ``assumed_frame`` is set when a sample had no child frame and was taken as ``base_frame``.
     """
 
-    def __init__(self, settings: SpeedSettings = SpeedSettings()) -> None:
+    def __init__(self, settings: SpeedSettings = SpeedSettings(), mount: Pose | None = None) -> None:
         self.settings = settings
+        self.mount = mount            # the rig frame in the base frame (Rig.mount; None = default axes)
         self.base_frame, self.default_std, self.max_age_s = (settings.base_frame, settings.default_std,
                                                              settings.max_age_s)
         self.last_stamp: float | None = None
@@ -152,19 +182,20 @@ class SpeedInput:
         self.last_stamp = None
 
     def convert(self, stamp: float, child_frame_id: str, linear: Any, covariance: Any,
-                frame_stamp: float | None = None) -> VelocitySample:
+                frame_stamp: float | None = None, angular: Any = None) -> VelocitySample:
         if not math.isfinite(stamp):
             raise OdometryError(f'non-finite stamp {stamp}', 'stamp')
         if child_frame_id and child_frame_id != self.base_frame:
             raise OdometryError(f"twist in frame '{child_frame_id}', expected '{self.base_frame}' (REP-105: the "
-                                'twist is in child_frame_id; transform it to the rig body first)', 'frame')
+                                'twist is in child_frame_id; set base_frame to the frame the rig file\'s '
+                                'rig_in_base_link is given in)', 'frame')
         if self.last_stamp is not None and stamp <= self.last_stamp:
             raise OdometryError(f'stamp {stamp:.6f} s not after the previous sample ({self.last_stamp:.6f} s)',
                                 'order')
         if frame_stamp is not None and stamp < frame_stamp - self.max_age_s:
             raise OdometryError(f'sample at {stamp:.3f} s is {frame_stamp - stamp:.3f} s older than the newest '
                                 f'frame (speed_max_age_s {self.max_age_s:g})', 'stale')
-        v, cov = twist_to_rig(linear, covariance, self.default_std)
+        v, cov = twist_to_rig(linear, covariance, self.default_std, angular, self.mount)
         self.last_stamp = stamp
         if not child_frame_id:
             self.assumed_frame = True
@@ -173,7 +204,7 @@ class SpeedInput:
     def from_msg(self, msg: Any, frame_stamp: float | None = None) -> VelocitySample:
         """Sample of a nav_msgs/Odometry message (rclpy or rosbags)."""
         return self.convert(stamp_to_sec(msg.header.stamp), str(msg.child_frame_id), msg.twist.twist.linear,
-                            msg.twist.covariance, frame_stamp)
+                            msg.twist.covariance, frame_stamp, msg.twist.twist.angular)
 
 
 def vergence_from_msg(msg: Any) -> tuple[float, np.ndarray, np.ndarray]:

@@ -119,6 +119,8 @@ class ParamSpec:
                 raise self._error(value, 'has the wrong type')
             return value
         if t is str:
+            if isinstance(value, bool) and {'true', 'false'} <= set(self.choices):
+                value = 'true' if value else 'false'      # `-p publish_tf:=false` arrives as a bool
             if not isinstance(value, str):
                 raise self._error(value, 'has the wrong type')
             if self.choices and value not in self.choices:
@@ -233,7 +235,8 @@ FLOW_PARAMS: Table = _table(
          ge=0.0, le=1.0, live=True),
     _num('keyframe_max_rotation_deg', 8.0, 'new keyframe once the rig rotation since the keyframe exceeds this '
                                            '(deg; 0 = off)', ge=0.0, le=180.0, live=True),
-    _num('slop_s', 0.01, 'images of the two cameras closer than this form one frame (s)', ge=0.0, le=10.0,
+    _num('slop_s', 0.0, 'images of the two cameras closer than this form one frame (s); 0 = automatic: half the '
+                        'median frame period measured from the image stamps, within [0.001, 0.05] s', ge=0.0, le=10.0,
          live=True),
     _num('max_wait_s', 0.25, 'bound on waiting for a partner image, joint state or fixation (s)', ge=0.0, le=60.0,
          live=True),
@@ -321,6 +324,8 @@ CAMERA_NODE_PARAMS: Table = _table(
     _str('video_device', '', 'V4L2 device (index or path) read with OpenCV instead of subscribing image_raw'),
     _num('video_fps', 30.0, 'frame rate to poll video_device at', gt=0.0, le=1000.0),
     _str('rig_file', '', RIG_FILE),
+    _num('camera_info_wait_s', 30.0, 'when the rig file gives no intrinsics for a camera this node needs: wait at '
+                                     'most this long (s) at start for its camera_info', ge=0.0, le=3600.0),
     _num('serial_timeout_s', 0.3, 'bound on every serial reply wait', gt=0.0, le=MAX_TIMEOUT_S),
     _num('servo_gain', 0.9, 'fraction of the angular error corrected per command', gt=0.0, le=2.0, live=True),
     _num('servo_deadband_px', 0.75, 'no command while the fixation is this close to the principal point', ge=0.0,
@@ -384,6 +389,8 @@ FLOW_NODE_PARAMS: Table = _table(
 
 ESTIMATOR_NODE_PARAMS: Table = _table(
     _str('rig_file', '', RIG_FILE),
+    _num('camera_info_wait_s', 30.0, 'when the rig file gives no intrinsics for a camera this node needs: wait at '
+                                     'most this long (s) at start for its camera_info', ge=0.0, le=3600.0),
     _str('observation_topic', 'flow/observation', 'flow observations (PointCloud2 rows, see README; relative: in '
                                                'the node namespace)'),
     ESTIMATOR_PARAMS,
@@ -414,14 +421,22 @@ ESTIMATOR_NODE_PARAMS: Table = _table(
     _num('scale_drift_per_s', 0.005, 'relative scale std added per second since the last scale measurement (the '
                                      'speed changes; the fixations change)', ge=0.0, live=True),
     _str('odom_frame', 'odom', 'frame of the published trajectory'),
-    _str('base_frame', 'base_link', 'frame of the rig body (x forward, y left, z up)'),
+    _str('base_frame', 'base_link', "the robot's base frame (x forward, y left, z up): child of the published "
+                                    "odometry, parent of the rig file's rig_in_base_link, frame of speed_topic's "
+                                    'twist'),
     _num('path_max_length', 5000, 'poses kept in path and path_raw (oldest dropped; each Path message carries them '
                                   'all, so its cost grows with this)', ge=1, le=10_000_000),
     _num('path_publish_period_s', 1.0, 'path and path_raw are published at most once per this much observation '
                                        'time, and once more when no observation has come for this long of wall time '
                                        '(the end of a run); pose and odom go out every frame. 0 = paths every frame',
          ge=0.0, le=3600.0),
-    _bool('publish_tf', True, 'broadcast odom -> base_link when tf2_ros is importable'),
+    _str('publish_tf', 'auto', "broadcast odom -> base_frame when tf2_ros is importable: 'true', 'false', or "
+                               "'auto' = only when no speed source is configured (speed_topic empty; a robot with "
+                               'wheel odometry usually publishes that transform itself)',
+         choices=('auto', 'true', 'false')),
+    _bool('publish_static_tf', True, "broadcast the static base_frame -> rig (the rig file's rig_in_base_link) and "
+                                     'rig -> right_zero / left_zero (left_in_rig) when tf2_ros is importable; '
+                                     "false when the robot's URDF already has them"),
     _diagnostics_period(),
 )
 

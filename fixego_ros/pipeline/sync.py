@@ -6,6 +6,13 @@ arrive after the image) and its fixation pixel has arrived or will not come (cam
 fixation for a frame without one). Every wait is bounded by ``max_wait_s`` of the caller's clock, so
 a silent stream degrades to single-camera frames or frames without a fixation, never to a stall.
 Frames come out in stamp order; anything older than the last emitted frame is dropped and counted.
+
+Pairing tolerance ``slop_s``: 0 (the default) means automatic, half the median frame period measured from
+the images' own stamps (the consecutive stamps of each camera, the last :data:`AUTO_PERIOD_SAMPLES`
+intervals of both), so two unsynchronised cameras at 30 Hz (up to 16.7 ms apart) always pair with their
+nearest partner. It is bounded to [:data:`AUTO_SLOP_MIN_S`, :data:`AUTO_SLOP_MAX_S`] (a 10 Hz camera or
+slower gets 50 ms); until two images of one camera have arrived, the upper bound is used. An explicit
+value > 0 is used as given.
 """
 
 from __future__ import annotations
@@ -18,10 +25,13 @@ from typing import Any
 from fixego_ros.geometry.rig import SIDES
 from fixego_ros.tracking.servo import JointHistory
 
+AUTO_SLOP_MIN_S, AUTO_SLOP_MAX_S = 0.001, 0.05   # bounds of the automatic slop (half the frame period)
+AUTO_PERIOD_SAMPLES = 31                         # frame intervals the median is taken over
+
 
 @dataclass(frozen=True)
 class SyncParams:
-    slop_s: float = 0.01              # two images closer than this belong to the same frame
+    slop_s: float = 0.0               # two images closer than this belong to the same frame; 0 = automatic
     max_wait_s: float = 0.25          # how long a frame may wait for a partner, joints or fixation
     joint_extrapolation_s: float = 0.0  # how far beyond the newest joint reading an image may be
     fixation_tolerance_s: float = 1e-4  # a fixation belongs to an image with this stamp difference
@@ -83,10 +93,29 @@ class StereoSync:
         self.reset()
 
     def reset(self) -> None:
+        self._periods: deque[float] = deque(maxlen=AUTO_PERIOD_SAMPLES)   # consecutive-stamp intervals
+        self._last_stamp: dict[str, float] = {}
         self._images: dict[str, deque[_Pending]] = {s: deque() for s in SIDES}
         self._joints: dict[str, JointHistory] = {s: JointHistory(maxlen=2048) for s in SIDES}
         self._fix: dict[str, dict[float, tuple[tuple[float, float], int]]] = {s: {} for s in SIDES}
         self._last_emitted = -math.inf
+
+    @property
+    def frame_period_s(self) -> float | None:
+        """Median interval between consecutive images of one camera so far (None before two of one camera)."""
+        if not self._periods:
+            return None
+        return float(sorted(self._periods)[len(self._periods) // 2])
+
+    @property
+    def slop_s(self) -> float:
+        """The pairing tolerance in use: ``params.slop_s``, or the automatic one when that is 0."""
+        if self.params.slop_s > 0:
+            return self.params.slop_s
+        period = self.frame_period_s
+        if period is None:
+            return AUTO_SLOP_MAX_S
+        return min(max(0.5 * period, AUTO_SLOP_MIN_S), AUTO_SLOP_MAX_S)
 
     # ------------------------------------------------------------------------------------------ input
     def add_image(self, side: str, stamp: float, image: Any, now: float) -> bool:
@@ -101,6 +130,10 @@ class StereoSync:
         if q and stamp <= q[-1].stamp:
             self.stats.late_images += 1         # out of order within one camera
             return False
+        last = self._last_stamp.get(side)
+        if last is not None and stamp > last:
+            self._periods.append(stamp - last)
+        self._last_stamp[side] = stamp
         if len(q) >= self.params.max_queue:
             q.popleft()
             self.stats.overflow_images += 1
@@ -146,14 +179,15 @@ class StereoSync:
         if not heads:
             return None
         first = min(heads.values(), key=lambda x: x.stamp)
+        slop = self.slop_s
         members: dict[str, _Pending] = {}
         for s, h in heads.items():
-            if abs(h.stamp - first.stamp) <= p.slop_s:
+            if abs(h.stamp - first.stamp) <= slop:
                 members[s] = h
         if len(members) < len(SIDES):
             # a partner may still come: wait unless the other camera is already past this stamp
             missing = [s for s in SIDES if s not in members]
-            partner_past = all(self._images[s] and self._images[s][0].stamp > first.stamp + p.slop_s
+            partner_past = all(self._images[s] and self._images[s][0].stamp > first.stamp + slop
                                for s in missing)
             if not (flush or partner_past or now - first.arrived > p.max_wait_s):
                 return None

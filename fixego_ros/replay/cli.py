@@ -163,7 +163,7 @@ def _run(args: argparse.Namespace, bars: list) -> int:
     from fixego_ros.geometry.rig import SIDES, RigError, load_rig
     from fixego_ros.pipeline.params import ParamsError
     from fixego_ros.progress import Progress
-    from fixego_ros.replay.run import ReplayError, ReplayTopics, replay
+    from fixego_ros.replay.run import ReplayError, ReplayTopics, intrinsics_from_bag, replay
 
     def fail(msg: str) -> int:
         print(f'{PROG}: {msg}', file=sys.stderr)
@@ -184,6 +184,9 @@ def _run(args: argparse.Namespace, bars: list) -> int:
     try:
         rig = load_rig(rig_path)
         topics = ReplayTopics(args.namespace, tuple(_pairs(args.remap, '--remap')))
+        rig, problems = intrinsics_from_bag(bag, rig, topics)     # what the rig file lacks; disagreements
+        for problem in problems:
+            print(f'{PROG}: error: {problem}', file=sys.stderr)
         if args.vergence_topic is None:      # default: the bag's vergence measurements when it has them
             args.vergence_topic = vergence_topic_in(bag, topics)
         settings = settings_from_args(args, rig)
@@ -191,7 +194,7 @@ def _run(args: argparse.Namespace, bars: list) -> int:
             # a relative speed_topic (as the node takes it, in its namespace) names the bag topic under --namespace
             settings = dataclasses.replace(settings, speed=dataclasses.replace(
                 settings.speed, topic=topics.name(settings.speed.topic)))
-    except (RigError, ParamsError, ValueError) as e:
+    except (RigError, ParamsError, ValueError, ReplayError, BagError) as e:
         return fail(str(e))
     counts = [bag.topics[t].count for t in (topics.name(f'{s}/image_raw') for s in SIDES) if t in bag.topics]
     bar = Progress(sum(c or 0 for c in counts), PROG, enabled=not (args.no_progress or args.quiet), unit='images')

@@ -48,6 +48,7 @@ from fixego_ros.bags.reader import Bag, DecodeError
 from fixego_ros.estimation.estimator import Estimator, EstimatorConfig
 from fixego_ros.geometry.rig import SIDES, Rig
 from fixego_ros.geometry.rotation import Pose, rig_pose_to_base_link
+from fixego_ros.pipeline.camera_info import CAMERA_INFO_TYPE, IntrinsicsFromInfo
 from fixego_ros.pipeline.frontend import CameraSample, KeyframePolicy, StereoFrontEnd
 from fixego_ros.pipeline.messages import ImageError, gray_for_camera, msg_to_pose, pan_tilt, stamp_to_sec
 from fixego_ros.pipeline.odometry import (
@@ -195,12 +196,14 @@ def _add_point(estimator: Estimator, p: _FixationPoint) -> _Refused | None:
 def _update(estimator: Estimator, stamp: float, obs) -> _Estimate:
     t0 = time.perf_counter()
     r = estimator.update(obs)
+    mount = estimator.rig.mount
     corrected = None
     if r.corrected is not None:
         c_stamp, c_pose, c_raw = r.corrected
-        corrected = (c_stamp, rig_pose_to_base_link(c_pose), rig_pose_to_base_link(c_raw))
-    return _Estimate(stamp, r.placed, r.status.value, r.message, rig_pose_to_base_link(r.pose),
-                     rig_pose_to_base_link(r.pose_raw), (time.perf_counter() - t0) * 1e3, r.prefix_scale, corrected)
+        corrected = (c_stamp, rig_pose_to_base_link(c_pose, mount), rig_pose_to_base_link(c_raw, mount))
+    return _Estimate(stamp, r.placed, r.status.value, r.message, rig_pose_to_base_link(r.pose, mount),
+                     rig_pose_to_base_link(r.pose_raw, mount), (time.perf_counter() - t0) * 1e3, r.prefix_scale,
+                     corrected)
 
 
 @dataclass
@@ -394,6 +397,35 @@ def check_topics(bag: Bag, topics: ReplayTopics, speed_topic: str = '', vergence
                                   f'{" or ".join(types)}')
 
 
+def intrinsics_from_bag(bag: Bag, rig: Rig, topics: ReplayTopics = ReplayTopics()) -> tuple[Rig, list[str]]:
+    """The rig with the intrinsics it lacks taken from the first ``<ns>/<side>/camera_info`` of the bag, and the
+    problems found (a CameraInfo that disagrees with the rig file, which wins, or cannot be used). ReplayError
+    when a camera still has no intrinsics. Reads only up to the first CameraInfo of each camera."""
+    wanted = {topics.name(f'{side}/camera_info'): side for side in SIDES}
+    wanted = {t: s for t, s in wanted.items() if t in bag.topics and bag.topics[t].msgtype == CAMERA_INFO_TYPE}
+    fill = IntrinsicsFromInfo(rig)
+    if wanted:
+        for m in bag.messages(wanted):
+            side = wanted[m.topic]
+            if side in fill.seen:
+                continue
+            try:
+                fill.on_info(side, bag.decode(m))
+            except DecodeError as e:
+                fill.seen.add(side)
+                fill.errors[side] = f'{m.topic}: {e}'
+            if fill.seen >= set(wanted.values()):
+                break
+    missing = fill.rig.missing_intrinsics()
+    if missing:
+        why = '; '.join(fill.errors[s] for s in missing if s in fill.errors)
+        raise ReplayError(f'no intrinsics for the {" and ".join(missing)} camera: the rig file gives none and the '
+                          f'bag has no usable {" / ".join(topics.name(f"{s}/camera_info") for s in missing)}'
+                          + (f' ({why})' if why else '') + ' (add them to the rig file, or '
+                          f'{missing[0]}: {{calibration: FILE.yaml}})')
+    return fill.rig, [fill.errors[s] for s in SIDES if s in fill.errors]
+
+
 def replay(bag: Bag, rig: Rig, settings: ReplaySettings, topics: ReplayTopics = ReplayTopics(),
            progress: Callable[[int], None] | None = None, workers: int = 1) -> ReplayResult:
     """Run the pipeline over ``bag``; ``progress(images_done)`` is called as it goes. ``workers=2`` runs
@@ -405,7 +437,7 @@ def replay(bag: Bag, rig: Rig, settings: ReplaySettings, topics: ReplayTopics = 
         routes[speed_topic] = ('speed', '')
     if settings.vergence_topic:
         routes[settings.vergence_topic] = ('vergence', '')
-    speed = SpeedInput(settings.speed)
+    speed = SpeedInput(settings.speed, rig.mount)
     last_frame: float | None = None      # stamp of the newest frame given to the estimator
     res = ReplayResult()
     clock = _Timer(res)

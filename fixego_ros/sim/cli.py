@@ -61,7 +61,9 @@ def read_rig(path: Path | None, option: str = '--rig'):
     from fixego_ros.geometry.rig import default_rig_path, load_rig
     rig_path = Path(path) if path is not None else default_rig_path()
     try:
-        return load_rig(rig_path)
+        rig = load_rig(rig_path)
+        rig.require_intrinsics(f'the simulator ({rig_path})')      # it renders: camera_info cannot stand in
+        return rig
     except ValueError as e:              # RigError: names the file already
         msg = ' '.join(str(e).split())
         raise OptionError(f'{option}: {msg}' if path is not None else msg) from None

@@ -189,18 +189,24 @@ class Simulation:
         return len(self.stamps)
 
     def ground_truth(self) -> list[Pose]:
-        """``base_link`` in ``odom`` (= ``base_link`` at frame 0) at every frame."""
-        return [rig_pose_to_base_link(p) for p in relative_poses(self.poses)]
+        """``base_link`` in ``odom`` (= ``base_link`` at frame 0) at every frame, with the rig's mount."""
+        return [rig_pose_to_base_link(p, self.rig.mount) for p in relative_poses(self.poses)]
 
     def base_velocities(self, h: float = DT) -> np.ndarray:
         """(n, 3) true linear velocity of ``base_link`` in ``base_link`` (REP-105 twist) at every frame, m/s:
-        central differences of the true poses over ±``h`` (one-sided at the ends)."""
+        central differences of the true poses over ±``h`` (one-sided at the ends), with the rig's mount."""
         out = np.zeros((len(self.stamps), 3))
+        mount = self.rig.mount
+        inv = mount.inverse() if mount is not None else None
+
+        def origin(t: float) -> np.ndarray:       # base_link origin in the world
+            pose = self.trajectory.pose_at(t)
+            return pose.t if inv is None else (pose @ inv).t
         for k, (t, pose) in enumerate(zip(self.stamps, self.poses, strict=True)):
             t0, t1 = max(t - h, 0.0), min(t + h, self.trajectory.duration)
             if t1 > t0:
-                v_world = (self.trajectory.pose_at(t1).t - self.trajectory.pose_at(t0).t) / (t1 - t0)
-                out[k] = RIG_TO_BASE @ pose.R.T @ v_world
+                v_world = (origin(t1) - origin(t0)) / (t1 - t0)
+                out[k] = (RIG_TO_BASE if mount is None else mount.R) @ pose.R.T @ v_world
         return out
 
     def frames(self) -> Iterator[Frame]:
