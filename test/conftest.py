@@ -61,3 +61,48 @@ def visca_rig():
     yield emu, cam
     cam.close()
     emu.stop()
+
+
+class DriftingView:
+    """A peer node that shows the right camera a synthetic textured view drifting at 12 / -6 px/s (from 30 / -20
+    px off centre), rendered at 30 Hz at the emulated head's angles, and collects what the camera node
+    publishes. ``kinematic`` maps the device angles to the rendered ones (the rig file's calibration); ``truth``
+    maps each image stamp to (device pan, tilt, drift x, y). Call :meth:`publish_frame` in a spin predicate."""
+
+    def __init__(self, context, node, emu, seed: int, kinematic=None) -> None:
+        import time
+
+        import rclpy
+        from geometry_msgs.msg import PointStamped
+        from sensor_msgs.msg import Image, JointState
+
+        from fixego_ros.bench.servo import SyntheticView
+        from fixego_ros.nodes.common import RELIABLE_QOS, SENSOR_QOS
+        self.node, self.emu = node, emu
+        self.kinematic = kinematic or (lambda pan, tilt: (pan, tilt))
+        self.peer = rclpy.create_node('peer', context=context)
+        self.fixes: list = []
+        self.joints: list = []
+        self.truth: dict[tuple[int, int], tuple[float, float, float, float]] = {}
+        self.peer.create_subscription(PointStamped, '/fixego/right/fixation', self.fixes.append, RELIABLE_QOS)
+        self.peer.create_subscription(JointState, '/fixego/right/joint_states', self.joints.append, RELIABLE_QOS)
+        self.pub = self.peer.create_publisher(Image, '/fixego/right/image_raw', SENSOR_QOS)
+        self.view = SyntheticView(node.rig.camera('right'), seed=seed)
+        self.t0 = self._next = time.monotonic()
+
+    def publish_frame(self) -> bool:
+        """Publish the next image when it is due; always False (for use in ``spin_until`` predicates)."""
+        import time
+
+        from fixego_ros.nodes.common import array_to_image, sec_to_stamp
+        now = time.monotonic()
+        if now >= self._next:
+            self._next = now + 1 / 30
+            el = now - self.t0
+            ox, oy = 30.0 + 12.0 * el, -20.0 - 6.0 * el      # start off-centre, then drift
+            pan, tilt = self.emu.pan_tilt_rad(now)
+            stamp = sec_to_stamp(self.node.get_clock().now().nanoseconds * 1e-9)
+            self.truth[(stamp.sec, stamp.nanosec)] = (pan, tilt, ox, oy)
+            self.pub.publish(array_to_image(self.view.render(*self.kinematic(pan, tilt), ox, oy), stamp,
+                                            'right_optical_frame'))
+        return False

@@ -20,16 +20,13 @@ import pytest
 
 rclpy = pytest.importorskip('rclpy')
 
-from conftest import executor_for, spin_until  # noqa: E402
+from conftest import DriftingView, executor_for, spin_until  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
-from geometry_msgs.msg import PointStamped  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
-from sensor_msgs.msg import Image, JointState  # noqa: E402
 
-from fixego_ros.bench.servo import SyntheticView  # noqa: E402
 from fixego_ros.geometry.rig import CameraModel, PanTiltCalibration, Rig, pan_tilt_rotation  # noqa: E402
 from fixego_ros.nodes.camera_node import CameraNode  # noqa: E402
-from fixego_ros.nodes.common import RELIABLE_QOS, SENSOR_QOS, array_to_image, sec_to_stamp  # noqa: E402
+from fixego_ros.nodes.common import RELIABLE_QOS  # noqa: E402
 from fixego_ros.pipeline.params import ParamsError  # noqa: E402
 from fixego_ros.tracking.servo import FixationServo, ServoParams  # noqa: E402
 from fixego_ros.visca.emulator import ViscaEmulator  # noqa: E402
@@ -230,33 +227,12 @@ def test_camera_node_servoes_an_inverted_head_and_publishes_device_angles(ros_co
     with ViscaEmulator('evi_d30', baud=115200) as emu:
         node = _node(ros_context, emu.link_path, str(rig_path), search_radius_px=30.0, border_margin_px=25.0,
                      vergence_enabled=False)
-        peer = rclpy.create_node('peer', context=ros_context)
+        scene = DriftingView(ros_context, node, emu, seed=5, kinematic=INVERTED.kinematic)
+        peer, fixes, joints, truth, view = scene.peer, scene.fixes, scene.joints, scene.truth, scene.view
         ex = executor_for(ros_context, node, peer)
-        fixes: list[PointStamped] = []
-        joints: list[JointState] = []
-        peer.create_subscription(PointStamped, '/fixego/right/fixation', fixes.append, RELIABLE_QOS)
-        peer.create_subscription(JointState, '/fixego/right/joint_states', joints.append, RELIABLE_QOS)
-        pub = peer.create_publisher(Image, '/fixego/right/image_raw', SENSOR_QOS)
-        view = SyntheticView(CAM, seed=5)
-        truth: dict[tuple[int, int], tuple[float, float, float, float]] = {}   # stamp -> device pan, tilt, ox, oy
-        t0 = time.monotonic()
-        state = {'next': t0}
-
-        def publish_frame() -> bool:
-            now = time.monotonic()
-            if now >= state['next']:
-                state['next'] = now + 1 / 30
-                el = now - t0
-                ox, oy = 30.0 + 12.0 * el, -20.0 - 6.0 * el
-                pan, tilt = emu.pan_tilt_rad(now)
-                stamp = sec_to_stamp(node.get_clock().now().nanoseconds * 1e-9)
-                truth[(stamp.sec, stamp.nanosec)] = (pan, tilt, ox, oy)
-                pub.publish(array_to_image(view.render(*INVERTED.kinematic(pan, tilt), ox, oy), stamp,
-                                           'right_optical_frame'))
-            return False
-
         try:
-            spin_until(ex, lambda: publish_frame() or time.monotonic() - t0 > 4.0, timeout_s=10.0, step_s=0.005)
+            spin_until(ex, lambda: scene.publish_frame() or time.monotonic() - scene.t0 > 4.0, timeout_s=10.0,
+                       step_s=0.005)
             assert fixes and joints, 'node published nothing'
             assert {int(f.point.z) for f in fixes} == {0}
             f0 = fixes[0]

@@ -20,7 +20,7 @@ import pytest
 
 rclpy = pytest.importorskip('rclpy')
 
-from conftest import executor_for, spin_until  # noqa: E402
+from conftest import DriftingView, executor_for, spin_until  # noqa: E402
 from geometry_msgs.msg import PointStamped  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from sensor_msgs.msg import Image, JointState  # noqa: E402
@@ -52,34 +52,13 @@ def test_active_node_converges_and_publishes_consistent_joint_states(ros_context
     node = CameraNode(context=ros_context, parameter_overrides=[
         Parameter('side', value='right'), Parameter('port', value=port), Parameter('rig_file', value=rig_file),
         Parameter('search_radius_px', value=30.0), Parameter('border_margin_px', value=25.0)])
-    peer = rclpy.create_node('peer', context=ros_context)
+    scene = DriftingView(ros_context, node, emu, seed=3)
+    peer, fixes, joints, truth, view, publish_frame = (scene.peer, scene.fixes, scene.joints, scene.truth, scene.view,
+                                                       scene.publish_frame)
     ex = executor_for(ros_context, node, peer)
-    fixes: list[PointStamped] = []
-    joints: list[JointState] = []
-    peer.create_subscription(PointStamped, '/fixego/right/fixation', fixes.append, RELIABLE_QOS)
-    peer.create_subscription(JointState, '/fixego/right/joint_states', joints.append, RELIABLE_QOS)
-    pub = peer.create_publisher(Image,
-                                '/fixego/right/image_raw', SENSOR_QOS)
-    view = SyntheticView(CAM, seed=3)
-    truth: dict[tuple[int, int], tuple[float, float, float, float]] = {}   # stamp -> pan, tilt, ox, oy
     import time
-    t0 = time.monotonic()
-    state = {'next': t0}
-
-    def publish_frame() -> bool:
-        now = time.monotonic()
-        if now >= state['next']:
-            state['next'] = now + 1 / 30
-            el = now - t0
-            ox, oy = 30.0 + 12.0 * el, -20.0 - 6.0 * el      # start off-centre, then drift
-            pan, tilt = emu.pan_tilt_rad(now)
-            stamp = sec_to_stamp(_mono(node))
-            truth[(stamp.sec, stamp.nanosec)] = (pan, tilt, ox, oy)
-            pub.publish(array_to_image(view.render(pan, tilt, ox, oy), stamp, 'right_optical_frame'))
-        return False
-
     try:
-        spin_until(ex, lambda: publish_frame() or time.monotonic() - t0 > 4.0, timeout_s=10.0, step_s=0.005)
+        spin_until(ex, lambda: publish_frame() or time.monotonic() - scene.t0 > 4.0, timeout_s=10.0, step_s=0.005)
         assert fixes and joints, 'node published nothing'
         # --- fixation: one id, same scene point, at the centre after convergence
         ids = {int(f.point.z) for f in fixes}
