@@ -29,9 +29,9 @@ estimator asks when its scale has grown uncertain), every ``vergence_period_s`` 
 ``vergence_retry_s`` (doubling). Every phase is bounded; the counts are a ``vergence`` status on ``/diagnostics``.
 
 Parameters (:data:`fixego_ros.pipeline.params.CAMERA_NODE_PARAMS`) are checked at start and on ``ros2 param
-set``; the tracker thresholds, servo gains, limit re-selection, joint wait, diagnostics period and vergence schedule
-(period, min interval, retry) change at run time, the rest (side, port, profile, rig, template size, the vergence
-step itself) is read-only.
+set``; the tracker thresholds, servo gains, limit re-selection, joint mode and waits, diagnostics period and
+vergence schedule (period, min interval, retry) change at run time, the rest (side, port, profile, rig, template
+size, the vergence step itself) is read-only.
 """
 
 from __future__ import annotations
