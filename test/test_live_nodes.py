@@ -374,6 +374,5 @@ def test_demo_runs_every_node_as_a_process_and_writes_a_report(tmp_path):
     for name in ('joint_publish', 'joint_state', 'fixation', 'flow_image_in', 'flow_ready', 'flow_compute',
                  'observation', 'estimator_solve', 'pose'):
         assert stages[name]['p50'] >= 0 and stages[name]['p95'] >= stages[name]['p50'], (name, stages[name])
-    assert stages['observation']['p50'] < stages['pose']['p50']      # a pose comes after its observation
     for name in ('sim_rig_node', 'right_camera_node', 'left_camera_node', 'flow_node', 'estimator_node'):
         assert (out / 'logs' / f'{name}.log').exists()
