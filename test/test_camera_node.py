@@ -355,3 +355,74 @@ def test_left_node_repeats_vergence_steps_on_start_up_request_and_right_reselect
             n.destroy_node()
         sim.close()
         sim.destroy_node()
+
+
+def test_joint_state_is_published_at_once_past_the_last_reading_and_wait_mode_waits(ros_context, rig_file):
+    """predict (default): an image stamped after every PosInq reading gets its joint state at once, predicted from
+    the servo's command, before any later reading (the servo loop is paused), with its 1-sigma in effort; wait: the
+    same image gets nothing until a reading after its stamp exists, then the interpolated angles."""
+    from fixego_ros.nodes.common import stamp_to_sec
+    from fixego_ros.tracking.servo import Target
+
+    emu = ViscaEmulator('evi_d30', baud=9600, start_pan_deg=0.0)
+    port = emu.start()
+    node = CameraNode(context=ros_context, parameter_overrides=[
+        Parameter('side', value='right'), Parameter('port', value=port), Parameter('rig_file', value=rig_file),
+        Parameter('joint_max_wait_s', value=2.0), Parameter('vergence_enabled', value=False)])
+    peer = rclpy.create_node('peer_js', context=ros_context)
+    joints: list[JointState] = []
+    peer.create_subscription(JointState, '/fixego/right/joint_states', joints.append, RELIABLE_QOS)
+    pub = peer.create_publisher(Image, '/fixego/right/image_raw', SENSOR_QOS)
+    view = SyntheticView(CAM, seed=2)
+    ex = executor_for(ros_context, node, peer)
+    pr = node.profile
+    unit = math.radians(1.0 / pr.pan_units_per_deg)
+
+    def shoot():
+        """An image of the head's true view now, stamped now; returns (stamp, true pan)."""
+        stamp = sec_to_stamp(_mono(node))
+        pan, tilt = emu.pan_tilt_rad()
+        pub.publish(array_to_image(view.render(pan, tilt), stamp, 'right_optical_frame'))
+        return stamp, pan
+
+    def published(stamp):
+        return next((j for j in joints if j.header.stamp == stamp), None)
+
+    try:
+        assert node.joint_mode == 'predict'
+        # the head turns right at ~20 deg/s, commanded by the servo loop (which tells the predictor)
+        node.loop.set_target(Target(pr.pan_units(60.0), 0, pr.pan_code_for(20.0), 1))
+        assert spin_until(ex, lambda: (node.history.latest() or (0, 0.0))[1] > math.radians(1.0), timeout_s=5.0)
+        assert len(node.loop.predictor.commands()) == 1
+        node.loop.stop()                    # no reading from now on
+        t_last = node.history.latest()[0]
+        stamp, true_pan = shoot()
+        assert spin_until(ex, lambda: published(stamp) is not None, timeout_s=3.0)
+        js = published(stamp)
+        assert node.history.latest()[0] == t_last < stamp_to_sec(stamp)     # published before any later reading
+        assert node.stats['joint_states_predicted'] == 1 and js.name == ['right_pan', 'right_tilt']
+        sigma = list(js.effort)
+        assert len(sigma) == 2 and all(math.isfinite(s) for s in sigma) and sigma[0] > unit / math.sqrt(12)
+        err = abs(js.position[0] - true_pan)
+        held = abs(node.history.latest()[1] - true_pan)     # what holding the last reading would give
+        print(f'predicted pan error {math.degrees(err):.3f} deg (1-sigma {math.degrees(sigma[0]):.3f}), last '
+              f'reading {math.degrees(held):.3f} deg off, {1e3 * (stamp_to_sec(stamp) - t_last):.0f} ms before')
+        assert err < 3 * sigma[0] + unit and err < held
+        # wait: nothing for a stamp past the last reading until a reading after it exists
+        assert node.set_parameters([Parameter('joint_mode', value='wait')])[0].successful
+        assert node.joint_mode == 'wait'
+        stamp, true_pan = shoot()
+        spin_until(ex, lambda: False, timeout_s=0.3)
+        assert published(stamp) is None and node.stats['joint_states_dropped'] == 0
+        node.loop.start()
+        assert spin_until(ex, lambda: published(stamp) is not None, timeout_s=3.0)
+        js = published(stamp)
+        assert node.history.latest()[0] >= stamp_to_sec(stamp) and node.stats['joint_states_predicted'] == 1
+        assert abs(js.position[0] - true_pan) < 2 * unit and js.effort[0] <= unit
+        # a mode that does not exist is refused at run time (and at start: ParamSpec choices)
+        assert not node.set_parameters([Parameter('joint_mode', value='guess')])[0].successful
+    finally:
+        ex.shutdown(timeout_sec=1.0)
+        node.destroy_node()
+        peer.destroy_node()
+        emu.stop()

@@ -369,5 +369,10 @@ def test_demo_runs_every_node_as_a_process_and_writes_a_report(tmp_path):
     assert max(yaw_deg) < 15.0, max(yaw_deg)
     assert (out / 'trajectory.png').stat().st_size > 10_000
     assert report['latency_image_to_pose_ms']['p50'] > 0
+    # the latency breakdown: every stage the recorder sees, and the nodes' own, measured (no timing asserted)
+    stages = report['latency_stages_ms']
+    for name in ('joint_publish', 'joint_state', 'fixation', 'flow_image_in', 'flow_ready', 'flow_compute',
+                 'observation', 'estimator_solve', 'pose'):
+        assert stages[name]['p50'] >= 0 and stages[name]['p95'] >= stages[name]['p50'], (name, stages[name])
     for name in ('sim_rig_node', 'right_camera_node', 'left_camera_node', 'flow_node', 'estimator_node'):
         assert (out / 'logs' / f'{name}.log').exists()

@@ -1,5 +1,9 @@
-"""Live pipeline: latency image -> pose, dropped frames and accuracy of ``fixego demo`` (every node a
-separate process over DDS, 640x480 at 30 Hz) over the first ``DURATION_S`` of the paper loop."""
+"""Live pipeline: latency image -> pose (and by stage, :func:`fixego_ros.demo.report.latency_stages`), dropped
+frames and accuracy of ``fixego demo`` (every node a separate process over DDS, 640x480 at 30 Hz) over the first
+``DURATION_S`` of the paper loop.
+
+    python -m fixego_ros.bench.live [--joint-mode predict|wait]
+"""
 
 from __future__ import annotations
 
@@ -13,12 +17,15 @@ from pathlib import Path
 DURATION_S = 12.0
 
 
-def run() -> dict[str, float]:
+def run(joint_mode: str | None = None) -> dict[str, float]:
+    """One demo run; ``joint_mode`` sets the camera nodes' (default: theirs)."""
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / 'demo'
         env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST', MPLBACKEND='Agg')
         cmd = [sys.executable, '-m', 'fixego_ros.cli', 'demo', '--out', str(out), '--duration', str(DURATION_S),
                '--quiet', '--domain-id', str(190 + os.getpid() % 10)]
+        if joint_mode:
+            cmd += ['--joint-mode', joint_mode]
         proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env=env)
         if proc.returncode != 0:
             print(f'live bench: demo failed: {proc.stderr[-500:]}', file=sys.stderr)
@@ -27,6 +34,8 @@ def run() -> dict[str, float]:
     lat, frames = rep['latency_image_to_pose_ms'], rep['frames']
     res = {'latency_p50_ms': lat.get('p50', float('nan')), 'latency_p95_ms': lat.get('p95', float('nan')),
            'frames_rendered': frames['rendered'], 'frames_without_pose': frames['dropped']}
+    for stage, v in rep.get('latency_stages_ms', {}).items():
+        res.update({f'stage_{stage}_{q}_ms': v[q] for q in ('p50', 'p95') if q in v})
     for label in ('raw', 'refined'):
         pe = rep.get(label, {}).get('position_error_m')
         if pe:
@@ -36,4 +45,10 @@ def run() -> dict[str, float]:
 
 
 if __name__ == '__main__':
-    print(run())
+    import argparse
+
+    from fixego_ros.tracking.joint_prediction import MODES
+
+    ap = argparse.ArgumentParser(prog='python -m fixego_ros.bench.live')
+    ap.add_argument('--joint-mode', choices=MODES, help="camera nodes' joint_mode (default: theirs)")
+    print(json.dumps(run(ap.parse_args().joint_mode), indent=1))

@@ -26,6 +26,7 @@ from fixego_ros.cli_options import ROS_DOMAIN_IDS, OptionError, check_float, che
 from fixego_ros.sim.cli import image_size, read_rig
 from fixego_ros.sim.run import DURATION_MAX, FPS_RANGE, SEED_MAX, SIZE_RANGE, resize_rig
 from fixego_ros.sim.trajectories import NAMES
+from fixego_ros.tracking.joint_prediction import MODES as JOINT_MODES
 
 PROG = 'fixego demo'
 READY_TIMEOUT_MAX = 3600.0     # s
@@ -51,6 +52,9 @@ def register(subparsers) -> None:
     p.add_argument('--window', type=int, help="local BA frames n: 3..10, or 0 (disabled) or 1 (default: "
                                               "estimator_node's)")
     p.add_argument('--mode', choices=('paper', 'joint'), help="local BA mode (default: estimator_node's)")
+    p.add_argument('--joint-mode', choices=JOINT_MODES,
+                   help="camera nodes' joint states: predict (at once) or wait (for the next reading) (default: "
+                        "camera_node's)")
     p.add_argument('--seed', type=int, default=0, help=f'seed of the simulated world, 0..{SEED_MAX}')
     p.add_argument('--domain-id', type=int,
                    help='ROS_DOMAIN_ID for every process, {}..{} (default: inherited)'.format(*ROS_DOMAIN_IDS))
@@ -151,10 +155,10 @@ def _run(args: argparse.Namespace, out: Path, rig_path: Path, launcher) -> int:
         print(f'fixego demo: {why}', file=sys.stderr)
         return 1
     ptys = json.loads(pty_file.read_text())
+    given = lambda **kw: {k: v for k, v in kw.items() if v is not None}  # noqa: E731  (else the node's default)
     for side in ('right', 'left'):
         launcher.start(NodeSpec(f'{side}_camera_node', 'fixego_ros.nodes.camera_node',
-                                {**common, 'side': side, 'port': ptys[side]}))
-    given = lambda **kw: {k: v for k, v in kw.items() if v is not None}  # noqa: E731  (else the node's default)
+                                {**common, 'side': side, 'port': ptys[side], **given(joint_mode=args.joint_mode)}))
     launcher.start(NodeSpec('flow_node', 'fixego_ros.nodes.flow_node', {**common, **given(preset=args.preset)}))
     launcher.start(NodeSpec('estimator_node', 'fixego_ros.nodes.estimator_node',
                             {**common, **given(window=args.window, mode=args.mode),

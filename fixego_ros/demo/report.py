@@ -1,5 +1,5 @@
 """The demo's report folder: TUM files, evo ATE/RPE, the papers' per-step error, the scale error, the rig's
-vergence steps, latency and drops."""
+vergence steps, latency (image -> pose, and by stage) and drops."""
 
 from __future__ import annotations
 
@@ -23,6 +23,65 @@ def _ms(values: list[float]) -> dict[str, float]:
         return {}
     return {'p50': float(np.median(a)), 'p95': float(np.percentile(a, 95)), 'max': float(a.max()),
             'mean': float(a.mean())}
+
+
+def _diag_ms(statuses: dict[str, dict[str, str]], status: str, key: str) -> dict[str, float]:
+    """p50/p95 (ms) a node reported on /diagnostics as ``key_p50`` / ``key_p95`` (its last status)."""
+    st = statuses.get(status, {})
+    try:
+        return {q: float(st[f'{key}_{q}']) for q in ('p50', 'p95')}
+    except (KeyError, ValueError):
+        return {}
+
+
+# Where every millisecond goes, in pipeline order: (stage, what it measures, where the numbers come from). "after
+# the stamp" stages are the arrival (or publish) time minus the image stamp: the simulated rig stamps each image with
+# the wall clock as it renders it, so they accumulate; "compute" stages are a node's own time per frame.
+STAGES = (
+    ('joint_publish', 'after the stamp: camera_node publishes the joint state (the joint wait)',
+     'camera_node diagnostics joint_latency_ms, last 300 frames, worse camera'),
+    ('joint_state', 'after the stamp: the joint state arrives (+ DDS)', 'recorder, whole run, both cameras'),
+    ('fixation', 'after the stamp: the fixation arrives (image DDS + tracking + DDS)', 'recorder, whole run'),
+    ('flow_image_in', 'after the stamp: the image arrives at flow_node (DDS of ~300 KB)',
+     'flow_node diagnostics image_in_ms, last 300 images'),
+    ('flow_ready', 'after the stamp: flow_node has the stereo frame complete (DDS + synchroniser)',
+     'flow_node diagnostics ready_ms, last 300 frames'),
+    ('flow_compute', 'compute: flow_node front end + publish', 'flow_node diagnostics process_ms, last 300 frames'),
+    ('observation', 'after the stamp: the flow observation arrives (+ DDS)', 'recorder, whole run'),
+    ('estimator_solve', 'compute: estimator_node solve per frame', 'estimator_node diagnostics solve_ms'),
+    ('pose', 'after the stamp: the pose arrives', 'recorder, whole run'),
+)
+
+
+def latency_stages(rec) -> dict[str, dict[str, Any]]:
+    """The latency breakdown (:data:`STAGES`): p50/p95 in ms per stage, with where it was measured. The hop
+    flow -> estimator (DDS + the estimator's queue) is not measured per frame without the estimator's own stamps;
+    ``estimator_wait`` gives it by difference of medians (pose - observation - solve), marked as such."""
+    st = rec.statuses
+    cams = [_diag_ms(st, f'fixego camera_node {side}', 'joint_latency_ms') for side in ('right', 'left')]
+    cams = [c for c in cams if c]
+    seen = getattr(rec, 'stage_s', {})
+    values = {
+        'joint_publish': {q: max(c[q] for c in cams) for q in ('p50', 'p95')} if cams else {},
+        'joint_state': _ms(seen.get('joint_state_right', []) + seen.get('joint_state_left', [])),
+        'fixation': _ms(seen.get('fixation_right', []) + seen.get('fixation_left', [])),
+        'flow_image_in': _diag_ms(st, 'fixego flow_node', 'image_in_ms'),
+        'flow_ready': _diag_ms(st, 'fixego flow_node', 'ready_ms'),
+        'flow_compute': _diag_ms(st, 'fixego flow_node', 'process_ms'),
+        'observation': _ms(seen.get('observation', [])),
+        'estimator_solve': _diag_ms(st, 'fixego estimator_node', 'solve_ms'),
+        'pose': _ms(rec.latency_s),
+    }
+    out: dict[str, dict[str, Any]] = {}
+    for name, what, source in STAGES:
+        v = values[name]
+        out[name] = {**({q: round(v[q], 2) for q in ('p50', 'p95')} if v else {}), 'what': what, 'source': source}
+    pose, obs, solve = values['pose'], values['observation'], values['estimator_solve']
+    if pose and obs and solve:
+        out['estimator_wait'] = {'p50': round(pose['p50'] - obs['p50'] - solve['p50'], 2),
+                                 'what': 'flow -> estimator DDS + estimator queue (+ pose DDS)',
+                                 'source': 'difference of medians: pose - observation - estimator_solve'}
+    return out
 
 
 VERGENCE_STATUS = 'fixego camera_node left: vergence'
@@ -62,6 +121,7 @@ def write_report(out: Path, rec, t_start: float, run_args: dict[str, Any],
         'files': files,
         'frames': {'rendered': len(truth), 'poses': len(est), 'dropped': dropped},
         'latency_image_to_pose_ms': _ms(latency),
+        'latency_stages_ms': latency_stages(rec),
         'paper_table1_cm': PAPER_TABLE1,
         'diagnostics': dict(rec.statuses),      # each node's last /diagnostics status
         'vergence': vergence_summary(rec.statuses, list(vergence_stamps or []), t_start),
@@ -91,6 +151,10 @@ def write_report(out: Path, rec, t_start: float, run_args: dict[str, Any],
     if lat:
         lines.append(f'  latency image -> pose: p50 {lat["p50"]:.1f} ms, p95 {lat["p95"]:.1f} ms, '
                      f'max {lat["max"]:.1f} ms')
+    stages = [f'{k} {v["p50"]:.1f}' + (f'/{v["p95"]:.1f}' if 'p95' in v else '')
+              for k, v in report['latency_stages_ms'].items() if 'p50' in v]
+    if stages:
+        lines.append('  latency by stage, ms p50/p95 (see report.json): ' + ', '.join(stages))
     for label in ('raw', 'refined'):
         s = report.get(label, {})
         if 'error' in s:

@@ -6,6 +6,15 @@ in passive mode also ``<side>/joint_states``; publishes ``<side>/joint_states`` 
 ``<side>/fixation`` (geometry_msgs/PointStamped: x, y = pixel, z = fixation id; nothing is published
 for a frame without a valid fixation) and ``/diagnostics``. Services ``~/reselect``, ``~/home``.
 
+Joint states (active mode): one per image, stamped with the image stamp. ``joint_mode`` ``predict`` (default)
+publishes at once: interpolated between the PosInq readings around the stamp when the one after it is in, else
+predicted from the last reading and the servo's own commands
+(:class:`~fixego_ros.tracking.joint_prediction.JointPredictor`, at most ``joint_predict_max_s`` ahead); ``wait``
+publishes only once a reading after the stamp exists (25-50 ms at 9600 baud). Either way, a stamp with nothing to
+go on is dropped after ``joint_max_wait_s``. JointState has no covariance: ``effort`` carries the 1-sigma of each
+position in rad (reading quantisation when interpolated; growing with the extrapolation time and the commanded
+rate when predicted), a use of ``effort`` this package's consumers know about (a pan/tilt head reports no torque).
+
 Vergence steps (the rig's own scale aid, on by default: ``vergence_enabled``; the *left* node in active mode
 runs them, the right node needs no change): the left node drives its head so the right fixation ray's epipolar
 curve is in view, finds the right fixation point in its image
@@ -20,17 +29,19 @@ estimator asks when its scale has grown uncertain), every ``vergence_period_s`` 
 ``vergence_retry_s`` (doubling). Every phase is bounded; the counts are a ``vergence`` status on ``/diagnostics``.
 
 Parameters (:data:`fixego_ros.pipeline.params.CAMERA_NODE_PARAMS`) are checked at start and on ``ros2 param
-set``; the tracker thresholds, servo gains, limit re-selection, joint wait, diagnostics period and vergence schedule
-(period, min interval, retry) change at run time, the rest (side, port, profile, rig, template size, the vergence
-step itself) is read-only.
+set``; the tracker thresholds, servo gains, limit re-selection, joint mode and waits, diagnostics period and
+vergence schedule (period, min interval, retry) change at run time, the rest (side, port, profile, rig, template
+size, the vergence step itself) is read-only.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import sys
 from collections import deque
 
+import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PointStamped, PoseWithCovarianceStamped
 from rclpy.node import Node
@@ -83,10 +94,19 @@ PARAMS = CAMERA_NODE_PARAMS
 LIVE_TRACKER = ('search_radius_px', 'min_corner_score', 'ncc_min', 'fb_max_px', 'border_margin_px')
 LIVE_SERVO = ('servo_gain', 'servo_deadband_px', 'servo_move_time_s', 'servo_max_command_rate_hz',
               'servo_feedforward')
-LIVE_NODE = ('limit_margin_deg', 'limit_reselect_offset_px', 'joint_max_wait_s', 'diagnostics_period_s')
+LIVE_NODE = ('limit_margin_deg', 'limit_reselect_offset_px', 'joint_max_wait_s', 'joint_mode', 'joint_predict_max_s',
+             'diagnostics_period_s')
 # when vergence steps run (the scheduler's limits); the step itself is read-only
 LIVE_VERGENCE = ('vergence_period_s', 'vergence_min_interval_s', 'vergence_retry_s')
 MODEL_CHECK_TRIES = 3   # CAM_VersionInq attempts per connection before a silent camera counts as not answering
+
+
+def _percentiles(name: str, values) -> dict[str, str]:
+    """``name_p50`` / ``name_p95`` (2 decimals) of the recent values; nothing before the first."""
+    if not values:
+        return {}
+    a = np.asarray(values, dtype=float)
+    return {f'{name}_p50': f'{np.median(a):.2f}', f'{name}_p95': f'{np.percentile(a, 95):.2f}'}
 
 
 def servo_params(g: Getter) -> ServoParams:
@@ -131,6 +151,7 @@ class CameraNode(Node):
                                  signs=(self.calibration.pan_sign, self.calibration.tilt_sign))
         self.servo_params = servo_params(g)
         self.joint_max_wait_s = float(g('joint_max_wait_s'))
+        self.joint_mode = str(g('joint_mode'))
         port = str(g('port'))
         self.passive = bool(g('passive')) or not port
         self.driver: ViscaCamera | None = None
@@ -159,6 +180,7 @@ class CameraNode(Node):
             self._check_model()         # before the servo loop owns the line
             self.loop = ServoLoop(self.driver, self.servo_params, clock=self._now)
             self.history = self.loop.history
+            self._set_horizon(float(g('joint_predict_max_s')))
             self.pub_joint = self.create_publisher(JointState, f'{ns}/joint_states', RELIABLE_QOS)
             self.loop.start()
             self.create_timer(0.02, self._flush_joints)
@@ -179,7 +201,9 @@ class CameraNode(Node):
         self.create_service(Trigger, '~/reselect', self._srv_reselect)
         self.create_service(Trigger, '~/home', self._srv_home)
         self.diag_timer = self.create_timer(float(g('diagnostics_period_s')), self._publish_diagnostics)
-        self.stats = {'frames': 0, 'frames_without_fixation': 0, 'joint_states': 0, 'joint_states_dropped': 0}
+        self.stats = {'frames': 0, 'frames_without_fixation': 0, 'joint_states': 0, 'joint_states_dropped': 0,
+                      'joint_states_predicted': 0}
+        self.joint_latency_ms: deque[float] = deque(maxlen=300)     # image stamp -> joint state published
         self._setup_vergence(g)
         self.params.start(self._apply_params, LIVE_TRACKER + LIVE_SERVO + LIVE_NODE + LIVE_VERGENCE)
         self.get_logger().info(
@@ -327,21 +351,25 @@ class CameraNode(Node):
             self.once.clear('joints')
             self.loop.set_target(self.servo.target(st.pixel, joints, t, self._now()))
 
+    def _set_horizon(self, seconds: float) -> None:
+        pred = self.loop.predictor
+        pred.params = dataclasses.replace(pred.params, max_horizon_s=seconds)
+
     def _flush_joints(self) -> None:
-        """Publish joint states for image stamps once a reading after them exists (interpolation)."""
+        """Publish joint states for the pending image stamps, in order: interpolated once a reading after the
+        stamp exists; in predict mode at once from the prediction; dropped after joint_max_wait_s."""
         latest = self.history.latest()
         now = self._now()
+        predictor = self.loop.predictor
         while self._pending:
             stamp = self._pending[0]
             t = stamp_to_sec(stamp)
-            if latest is not None and latest[0] >= t:
-                q = self.history.at(t, max_extrapolation_s=0.0)
-            elif now - t > self.joint_max_wait_s:
-                q = None
-            else:
-                return
+            after = latest is not None and latest[0] >= t       # a reading after the stamp: interpolation
+            est = predictor.estimate(t) if after or self.joint_mode == 'predict' else None
+            if est is None and not after and now - t <= self.joint_max_wait_s:
+                return          # wait mode, or too far past the last reading to predict: wait (bounded)
             self._pending.popleft()
-            if q is None:
+            if est is None:
                 self.stats['joint_states_dropped'] += 1
                 self.once.warn('joint_drop', 'no PosInq readings around an image stamp: joint state dropped')
                 continue
@@ -350,10 +378,13 @@ class CameraNode(Node):
             js.header.stamp = stamp
             js.header.frame_id = ''
             js.name = list(self.joint_names)
-            js.position = [float(q[0]), float(q[1])]
+            js.position = [float(est.pan), float(est.tilt)]
+            js.effort = [float(est.pan_sigma), float(est.tilt_sigma)]      # 1-sigma (rad): see the module docstring
             self.pub_joint.publish(js)
             self.stats['joint_states'] += 1
-            self._send_optical_tf(stamp, float(q[0]), float(q[1]))
+            self.stats['joint_states_predicted'] += est.source == 'predicted'
+            self.joint_latency_ms.append(1e3 * (self._now() - t))
+            self._send_optical_tf(stamp, float(est.pan), float(est.tilt))
 
     def _send_optical_tf(self, stamp, pan: float, tilt: float) -> None:
         """The optical frame turns with the head: one transform per joint state (tf2_ros importable only)."""
@@ -374,6 +405,9 @@ class CameraNode(Node):
         self.limits.margin_rad = math.radians(float(g('limit_margin_deg')))
         self.limits.offset_px = float(g('limit_reselect_offset_px'))
         self.joint_max_wait_s = float(g('joint_max_wait_s'))
+        self.joint_mode = str(g('joint_mode'))
+        if 'joint_predict_max_s' in changes and self.loop is not None:
+            self._set_horizon(float(g('joint_predict_max_s')))
         if 'diagnostics_period_s' in changes:
             set_timer_period(self.diag_timer, float(g('diagnostics_period_s')))
         if changes.keys() & set(LIVE_VERGENCE) and self.scheduler is not None:
@@ -599,7 +633,8 @@ class CameraNode(Node):
             values.update({f'serial_{k}': v for k, v in self.driver.stats.items()})
             values.update({'serial_state': self.driver.state, 'serial_comm_errors': self.driver.comm_errors,
                            'serial_last_error': self.driver.last_error,
-                           'servo_loop_hz': round(self.loop.loop_rate_hz(), 2),
+                           'servo_loop_hz': round(self.loop.loop_rate_hz(), 2), 'joint_mode': self.joint_mode,
+                           **_percentiles('joint_latency_ms', self.joint_latency_ms),
                            'servo_commands': self.loop.stats['commands']})
             if not self.driver.connected:
                 level, message = ERROR, f'serial port {self.driver.state}: {self.driver.last_error}'

@@ -3,12 +3,15 @@
 It keeps the refined poses with their arrival latency (receipt time minus the image stamp they carry:
 the simulated rig stamps images with the wall clock, so this is image -> pose through every process),
 the ground truth, the last raw path (subscribed without deserialising each one), and the fixation and
-diagnostics traffic the console progress line shows. Names are relative in the default namespace /fixego,
+diagnostics traffic the console progress line shows. For the latency breakdown it also notes when each
+joint state, fixation and flow observation arrives, minus its (image) stamp; the observations are not
+deserialised (the stamp is read from the message's first bytes). Names are relative in the default namespace /fixego,
 like the pipeline's nodes.
 """
 
 from __future__ import annotations
 
+import struct
 from collections import Counter
 
 from diagnostic_msgs.msg import DiagnosticArray
@@ -16,6 +19,7 @@ from geometry_msgs.msg import PointStamped, PoseStamped
 from nav_msgs.msg import Path
 from rclpy.node import Node
 from rclpy.serialization import deserialize_message
+from sensor_msgs.msg import JointState, PointCloud2
 from std_srvs.srv import Trigger
 
 from fixego_ros.geometry.rig import SIDES
@@ -23,11 +27,25 @@ from fixego_ros.geometry.rotation import Pose
 from fixego_ros.nodes.common import RELIABLE_QOS, in_namespace, msg_to_pose, stamp_to_sec
 
 
+def cdr_stamp(data: bytes) -> float | None:
+    """The header stamp (s) of a serialised message that starts with a std_msgs/Header (CDR: 4 bytes of
+    encapsulation, then int32 sec, uint32 nanosec); None when too short."""
+    if len(data) < 12:
+        return None
+    sec, nsec = struct.unpack('<iI' if data[1] == 1 else '>iI', data[4:12])
+    return sec + 1e-9 * nsec
+
+
+# the stages the recorder sees arrive (s after the image stamp); see fixego_ros.demo.report.latency_stages
+STAGES = ('joint_state_right', 'joint_state_left', 'fixation_right', 'fixation_left', 'observation')
+
+
 class Recorder(Node):
     def __init__(self, **kwargs) -> None:
         super().__init__('fixego_demo', **in_namespace(kwargs))
         self.poses: list[tuple[float, Pose]] = []
         self.latency_s: list[float] = []
+        self.stage_s: dict[str, list[float]] = {k: [] for k in STAGES}
         self.truth: list[tuple[float, Pose]] = []
         self.fixations: Counter[str] = Counter()
         self.statuses: dict[str, dict[str, str]] = {}
@@ -39,12 +57,28 @@ class Recorder(Node):
         self.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, RELIABLE_QOS)
         for side in SIDES:
             self.create_subscription(PointStamped, f'{side}/fixation',
-                                     lambda m, s=side: self.fixations.update([s]), RELIABLE_QOS)
+                                     lambda m, s=side: self._on_fixation(s, m), RELIABLE_QOS)
+            self.create_subscription(JointState, f'{side}/joint_states',
+                                     lambda m, s=side: self._arrived(f'joint_state_{s}', m.header.stamp),
+                                     RELIABLE_QOS)
+        self.create_subscription(PointCloud2, 'flow/observation', self._on_observation, RELIABLE_QOS, raw=True)
         self.reset_client = self.create_client(Trigger, 'estimator_node/reset')
         self.start_client = self.create_client(Trigger, 'sim_rig_node/start')
 
     def _now(self) -> float:
         return self.get_clock().now().nanoseconds * 1e-9
+
+    def _arrived(self, stage: str, stamp) -> None:
+        self.stage_s[stage].append(self._now() - stamp_to_sec(stamp))
+
+    def _on_fixation(self, side: str, msg: PointStamped) -> None:
+        self.fixations.update([side])
+        self._arrived(f'fixation_{side}', msg.header.stamp)
+
+    def _on_observation(self, data: bytes) -> None:
+        t = cdr_stamp(data)
+        if t is not None:
+            self.stage_s['observation'].append(self._now() - t)
 
     def _on_pose(self, msg: PoseStamped) -> None:
         t = stamp_to_sec(msg.header.stamp)
@@ -96,6 +130,8 @@ class Recorder(Node):
         """Forget everything recorded so far (the run starts now)."""
         self.poses.clear()
         self.latency_s.clear()
+        for v in self.stage_s.values():
+            v.clear()
         self.truth.clear()
         self._path_raw = None
         self._path_raw_parsed = None

@@ -90,6 +90,10 @@ class FlowNode(Node):
         self.stats = {'images': 0, 'bad_images': 0, 'observations': 0, 'keyframes': 0, 'points_right': 0,
                       'points_left': 0, 'tracks_right': 0, 'tracks_left': 0}
         self.process_ms: deque[float] = deque(maxlen=300)
+        # latency stages (ms from the image stamp): an image received here (DDS), a stereo frame complete (its
+        # images, joint states and fixations in: the synchroniser's wait), as in the README's latency breakdown
+        self.image_in_ms: deque[float] = deque(maxlen=300)
+        self.ready_ms: deque[float] = deque(maxlen=300)
         self.last_problem = ''
         self.params.start(self._apply_params, LIVE_FLOW + LIVE_KEYFRAMES + LIVE_SYNC + ('diagnostics_period_s',))
         self.get_logger().info(f'flow: preset {self.flow_params.preset}, window {self.flow_params.window_px} px')
@@ -116,7 +120,9 @@ class FlowNode(Node):
             self.once.warn(f'image_{side}', self.last_problem)
             return
         self.once.clear(f'image_{side}', f'{side} images usable again')
-        self.sync.add_image(side, stamp_to_sec(msg.header.stamp), (gray, msg.header.stamp), self._now())
+        now, t = self._now(), stamp_to_sec(msg.header.stamp)
+        self.image_in_ms.append(1e3 * (now - t))
+        self.sync.add_image(side, t, (gray, msg.header.stamp), now)
         self._drain()
 
     def _on_joints(self, side: str, msg: JointState) -> None:
@@ -138,7 +144,9 @@ class FlowNode(Node):
 
     # -------------------------------------------------------------------------------------- processing
     def _drain(self) -> None:
-        for frame in self.sync.pop_ready(self._now()):
+        now = self._now()
+        for frame in self.sync.pop_ready(now):
+            self.ready_ms.append(1e3 * (now - frame.stamp))
             t = time.perf_counter()
             samples: dict[str, CameraSample | None] = {
                 side: None if c is None else CameraSample(c.image[0], c.pan, c.tilt, c.fixation_px, c.fixation_id)
@@ -189,8 +197,10 @@ class FlowNode(Node):
         totals = self.frontend.totals           # which LK attempt the tracks came from, RANSAC runs
         values.update({f'{side}.{k}_total': totals[f'{side}.{k}'] for side in SIDES
                        for k in ('lk_predicted', 'lk_zero', 'lk_stereo', 'lk_retry', 'ransac', 'epipolar')})
-        ms = np.array(self.process_ms) if self.process_ms else np.zeros(1)
-        values.update({'process_ms_p50': f'{np.median(ms):.2f}', 'process_ms_p95': f'{np.percentile(ms, 95):.2f}'})
+        for name, q in (('process_ms', self.process_ms), ('image_in_ms', self.image_in_ms),
+                        ('ready_ms', self.ready_ms)):
+            ms = np.array(q) if q else np.zeros(1)
+            values.update({f'{name}_p50': f'{np.median(ms):.2f}', f'{name}_p95': f'{np.percentile(ms, 95):.2f}'})
         level, message = OK, 'tracking flow'
         if self.stats['observations'] == 0:
             level, message = WARN, 'no synchronised frame yet (images, joint states, fixations?)'

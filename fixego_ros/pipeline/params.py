@@ -34,6 +34,7 @@ from fixego_ros.pipeline.sync import SyncParams
 from fixego_ros.sim.trajectories import NAMES as TRAJECTORIES
 from fixego_ros.tracking.fixation import FixationParams
 from fixego_ros.tracking.flow import PRESETS, FlowParams
+from fixego_ros.tracking.joint_prediction import MODES as JOINT_MODES
 from fixego_ros.visca.driver import MAX_TIMEOUT_S
 
 Value = bool | int | float | str | list[str]
@@ -340,6 +341,13 @@ CAMERA_NODE_PARAMS: Table = _table(
     _num('limit_reselect_offset_px', 120.0, 'after a limit re-selection, pick the new point this far off centre '
                                             'on the side that moves the head back into its range', ge=0.0,
          live=True),
+    _str('joint_mode', 'predict', 'joint state at each image stamp: predict = at once, interpolated when a '
+                                  'PosInq reading after the stamp exists, else predicted from the last reading and '
+                                  "the servo's own commands (1-sigma in effort); wait = only once a reading after "
+                                  'the stamp exists (interpolated; 25-50 ms at 9600 baud)',
+         choices=JOINT_MODES, live=True),
+    _num('joint_predict_max_s', 0.1, 'predict mode: no prediction further than this (s) past the last reading; such '
+                                     'a stamp waits as in wait mode', gt=0.0, le=1.0, live=True),
     _num('joint_max_wait_s', 0.25, 'how long an image stamp may wait for the PosInq reading after it', ge=0.0,
          le=60.0, live=True),
     _diagnostics_period(),

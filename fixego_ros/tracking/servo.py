@@ -9,7 +9,6 @@ limit allows, so the port is never flooded and joint readings keep coming at a s
 
 from __future__ import annotations
 
-import bisect
 import math
 import threading
 import time
@@ -20,48 +19,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from fixego_ros.geometry.rig import CameraModel, PanTiltCalibration, pan_tilt_for_direction, pan_tilt_rotation
+from fixego_ros.tracking.joint_prediction import JointHistory, JointPredictor, PredictionParams
 from fixego_ros.visca import protocol as vp
 from fixego_ros.visca.driver import ViscaCamera
 from fixego_ros.visca.profiles import CameraProfile
-
-
-class JointHistory:
-    """Timed joint readings; linear interpolation to an image stamp (bounded extrapolation)."""
-
-    def __init__(self, maxlen: int = 512) -> None:
-        self._t: deque[float] = deque(maxlen=maxlen)
-        self._q: deque[tuple[float, float]] = deque(maxlen=maxlen)
-        self._lock = threading.Lock()
-
-    def add(self, t: float, pan: float, tilt: float) -> None:
-        with self._lock:
-            if self._t and t <= self._t[-1]:
-                return
-            self._t.append(t)
-            self._q.append((pan, tilt))
-
-    def __len__(self) -> int:
-        return len(self._t)
-
-    def latest(self) -> tuple[float, float, float] | None:
-        with self._lock:
-            return (self._t[-1], *self._q[-1]) if self._t else None
-
-    def at(self, t: float, max_extrapolation_s: float = 0.05) -> tuple[float, float] | None:
-        with self._lock:
-            if not self._t:
-                return None
-            ts = list(self._t)
-            i = bisect.bisect_left(ts, t)
-            if i == 0:
-                return self._q[0] if ts[0] - t <= max_extrapolation_s else None
-            if i == len(ts):
-                # beyond the last reading: hold it (the joints may be still) only for a short while
-                return self._q[-1] if t - ts[-1] <= max_extrapolation_s else None
-            t0, t1 = ts[i - 1], ts[i]
-            a = (t - t0) / (t1 - t0)
-            (p0, q0), (p1, q1) = self._q[i - 1], self._q[i]
-            return p0 + a * (p1 - p0), q0 + a * (q1 - q0)
 
 
 @dataclass
@@ -165,7 +126,9 @@ class ServoLoop:
     """Owns the serial line of one camera on a thread: timed PosInq readings + rate-limited targets.
 
     ``clock`` gives the time base of :attr:`history` (the node passes ROS time so readings and image
-    stamps compare directly); the driver's monotonic sample times are mapped onto it.
+    stamps compare directly); the driver's monotonic sample times are mapped onto it. Every motion command
+    sent (target, speed, the moment the camera took it) goes to :attr:`predictor` too, which uses them to
+    tell the joints at an image stamp past the last reading.
     """
 
     def __init__(self, cam: ViscaCamera, params: ServoParams | None = None,
@@ -174,6 +137,9 @@ class ServoLoop:
         self.params = params or ServoParams()
         self.clock = clock
         self.history = JointHistory()
+        pr = cam.profile
+        self.predictor = JointPredictor(self.history, PredictionParams(
+            quantum_rad=(math.radians(1.0 / pr.pan_units_per_deg), math.radians(1.0 / pr.tilt_units_per_deg))))
         self._target: Target | None = None
         self._sent: Target | None = None
         self._home = False
@@ -240,6 +206,7 @@ class ServoLoop:
             target = self._target
         if home:
             self.cam.home(wait=False)
+            self._commanded(0, 0, pr.pan_speed_max, pr.tilt_speed_max)
             self._sent = None
             return
         if target is None or target == self._sent:
@@ -261,6 +228,15 @@ class ServoLoop:
                 except vp.ViscaReplyError:
                     self.cam.if_clear()
             raise
+        self._commanded(target.pan, target.tilt, target.pan_speed, target.tilt_speed)
         self._last_cmd = now
         self._sent = target
         self.stats['commands'] += 1
+
+    def _commanded(self, pan_u: int, tilt_u: int, pan_code: int, tilt_code: int) -> None:
+        """Tell the predictor about a command just ACKed: the camera took it when its ACK (3 bytes) started."""
+        pr = self.cam.profile
+        t = time.monotonic() - 3 * self.cam.byte_time + (self.clock() - time.monotonic())
+        self.predictor.add_command(t, pr.pan_rad(pan_u), pr.tilt_rad(tilt_u),
+                                   math.radians(pr.pan_speed_deg_s(pan_code)),
+                                   math.radians(pr.tilt_speed_deg_s(tilt_code)))

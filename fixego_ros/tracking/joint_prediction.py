@@ -1,0 +1,223 @@
+"""Pan/tilt at an image stamp without waiting for the next reading (ROS-free).
+
+At 9600 baud a position inquiry round trip takes 25-50 ms, so an image waiting for the reading *after* its stamp
+(to interpolate, :meth:`JointHistory.at`) waits that long. :class:`JointPredictor`
+answers at once instead: from the last reading it replays the motion the servo itself commanded (each
+AbsolutePosition/Home: a target and a speed per axis, from the moment the camera received it), the way a VISCA
+head moves - each axis at its commanded speed straight to its target. Without a known command it extrapolates
+the rate of the last two readings. The answer carries a 1-sigma per axis that grows with the extrapolation time
+and the commanded rate (reading quantisation, command timing, the head's speed being only nominal - real heads
+accelerate), so a consumer can weigh it. A later reading simply joins the history: images before it interpolate.
+"""
+
+from __future__ import annotations
+
+import bisect
+import math
+import threading
+from collections import deque
+from dataclasses import dataclass
+
+
+class JointHistory:
+    """Timed joint readings; linear interpolation to an image stamp (bounded extrapolation)."""
+
+    def __init__(self, maxlen: int = 512) -> None:
+        self._t: deque[float] = deque(maxlen=maxlen)
+        self._q: deque[tuple[float, float]] = deque(maxlen=maxlen)
+        self._lock = threading.Lock()
+
+    def add(self, t: float, pan: float, tilt: float) -> None:
+        with self._lock:
+            if self._t and t <= self._t[-1]:
+                return
+            self._t.append(t)
+            self._q.append((pan, tilt))
+
+    def __len__(self) -> int:
+        return len(self._t)
+
+    def latest(self) -> tuple[float, float, float] | None:
+        with self._lock:
+            return (self._t[-1], *self._q[-1]) if self._t else None
+
+    def bracket(self, t: float) -> tuple[tuple[float, float, float], tuple[float, float, float]] | None:
+        """The readings (t, pan, tilt) just at/before and at/after ``t`` (the same one twice when a reading is
+        at ``t``); None outside the readings."""
+        with self._lock:
+            ts = list(self._t)
+            i = bisect.bisect_left(ts, t)
+            if i == len(ts) or (i == 0 and ts[0] > t):
+                return None
+            if ts[i] == t:
+                return (ts[i], *self._q[i]), (ts[i], *self._q[i])
+            return (ts[i - 1], *self._q[i - 1]), (ts[i], *self._q[i])
+
+    def before(self, t: float) -> tuple[float, float, float] | None:
+        """The newest reading (t, pan, tilt) strictly before ``t``."""
+        with self._lock:
+            i = bisect.bisect_left(list(self._t), t)
+            return (self._t[i - 1], *self._q[i - 1]) if i > 0 else None
+
+    def at(self, t: float, max_extrapolation_s: float = 0.05) -> tuple[float, float] | None:
+        with self._lock:
+            if not self._t:
+                return None
+            ts = list(self._t)
+            i = bisect.bisect_left(ts, t)
+            if i == 0:
+                return self._q[0] if ts[0] - t <= max_extrapolation_s else None
+            if i == len(ts):
+                # beyond the last reading: hold it (the joints may be still) only for a short while
+                return self._q[-1] if t - ts[-1] <= max_extrapolation_s else None
+            t0, t1 = ts[i - 1], ts[i]
+            a = (t - t0) / (t1 - t0)
+            (p0, q0), (p1, q1) = self._q[i - 1], self._q[i]
+            return p0 + a * (p1 - p0), q0 + a * (q1 - q0)
+
+
+MODES = ('predict', 'wait')     # camera_node joint_mode: publish at once (predict), or wait for the next reading
+
+
+@dataclass(frozen=True)
+class Command:
+    """One motion command as the head received it: from ``t`` each axis runs at its rate (rad/s, >= 0) towards
+    its target (rad)."""
+
+    t: float
+    pan: float
+    tilt: float
+    pan_rate: float
+    tilt_rate: float
+
+
+@dataclass(frozen=True)
+class JointEstimate:
+    """Pan/tilt (rad) at ``t`` with 1-sigma (rad); ``source`` is 'interpolated' (readings on both sides) or
+    'predicted' (beyond the last reading, ``horizon_s`` past it)."""
+
+    t: float
+    pan: float
+    tilt: float
+    pan_sigma: float
+    tilt_sigma: float
+    source: str
+    horizon_s: float = 0.0
+
+
+@dataclass
+class PredictionParams:
+    quantum_rad: tuple[float, float] = (math.radians(0.1125), math.radians(0.075))   # one reading unit (pan, tilt)
+    timing_s: float = 0.003          # uncertainty of a reading's sample time and of a command's start
+    rate_rel: float = 0.15           # relative error of a commanded speed (nominal table; acceleration)
+    unknown_rate_rel: float = 1.0    # relative error of a rate taken from the readings (no command known)
+    rate_window_s: float = 0.1       # readings older than this give no rate
+    max_horizon_s: float = 0.1       # no prediction further than this past the last reading
+    max_rate_rad_s: float = math.radians(300.0)   # the head's top speed: bounds a rate taken from the readings
+
+
+def _advance(pos: float, target: float, rate: float, dt: float) -> tuple[float, float]:
+    """Axis position after ``dt`` at ``rate`` towards ``target``, and the distance travelled."""
+    step = min(abs(target - pos), rate * max(dt, 0.0))
+    return pos + math.copysign(step, target - pos), step
+
+
+class JointPredictor:
+    """Readings (a :class:`JointHistory`, shared with whoever adds to it) plus the
+    commands sent to the head; :meth:`estimate` interpolates or predicts. Thread-safe (the servo loop adds from
+    its thread)."""
+
+    def __init__(self, history: JointHistory | None = None, params: PredictionParams | None = None,
+                 max_commands: int = 64) -> None:
+        self.history = history if history is not None else JointHistory()
+        self.params = params or PredictionParams()
+        self._commands: deque[Command] = deque(maxlen=max_commands)
+        self._lock = threading.Lock()
+
+    # ------------------------------------------------------------------------------------------ input
+    def add_reading(self, t: float, pan: float, tilt: float) -> None:
+        self.history.add(t, pan, tilt)
+
+    def add_command(self, t: float, pan: float, tilt: float, pan_rate: float, tilt_rate: float) -> None:
+        """A command the head received at ``t`` (rad, rad/s). Out-of-order or non-finite ones are ignored."""
+        vals = (t, pan, tilt, pan_rate, tilt_rate)
+        if not all(math.isfinite(v) for v in vals):
+            return
+        with self._lock:
+            if self._commands and t < self._commands[-1].t:
+                return
+            self._commands.append(Command(t, pan, tilt, abs(pan_rate), abs(tilt_rate)))
+
+    def commands(self) -> list[Command]:
+        with self._lock:
+            return list(self._commands)
+
+    # ------------------------------------------------------------------------------------------ output
+    def estimate(self, t: float) -> JointEstimate | None:
+        """Pan/tilt at ``t``: interpolated when a reading at or after ``t`` exists, else predicted up to
+        ``max_horizon_s`` past the last reading; None without readings, before the first, or beyond the horizon."""
+        last = self.history.latest()
+        if last is None or not math.isfinite(t):
+            return None
+        t_r, pan_r, tilt_r = last
+        if t <= t_r:
+            return self._interpolate(t)
+        horizon = t - t_r
+        if horizon > self.params.max_horizon_s:
+            return None
+        return self._predict(t, (t_r, pan_r, tilt_r))
+
+    def _interpolate(self, t: float) -> JointEstimate | None:
+        pair = self.history.bracket(t)
+        if pair is None:
+            return None
+        (t0, p0, q0), (t1, p1, q1) = pair
+        a = 0.0 if t1 <= t0 else (t - t0) / (t1 - t0)
+        qp, qt = self.params.quantum_rad
+        # a head at rest reads exactly; a moving one to within a unit (uniform: unit / sqrt 12)
+        sp = qp / math.sqrt(12.0) if p0 != p1 else 0.0
+        st = qt / math.sqrt(12.0) if q0 != q1 else 0.0
+        return JointEstimate(t, p0 + a * (p1 - p0), q0 + a * (q1 - q0), sp, st, 'interpolated')
+
+    def _predict(self, t: float, last: tuple[float, float, float]) -> JointEstimate:
+        p = self.params
+        t_r, pan, tilt = last
+        cmds = self.commands()
+        times = [c.t for c in cmds]
+        i = bisect.bisect_right(times, t_r)          # cmds[:i] reached the head by the reading
+        active = cmds[i - 1] if i > 0 else None
+        later = [c for c in cmds[i:] if c.t < t]
+        if active is None and not later:
+            return self._extrapolate(t, last)
+        # replay the commanded motion from the reading, segment by segment between the commands arriving before t
+        # (before the first command the head rests)
+        seg_start, cur = t_r, active
+        moved_p = moved_t = rate_p = rate_t = 0.0
+        for c in [*later, None]:
+            seg_end = c.t if c is not None else t
+            if cur is not None:
+                pan, dp = _advance(pan, cur.pan, cur.pan_rate, seg_end - seg_start)
+                tilt, dq = _advance(tilt, cur.tilt, cur.tilt_rate, seg_end - seg_start)
+                moved_p, moved_t = moved_p + dp, moved_t + dq
+                rate_p = max(rate_p, cur.pan_rate if dp > 0 else 0.0)
+                rate_t = max(rate_t, cur.tilt_rate if dq > 0 else 0.0)
+            cur, seg_start = c, seg_end
+        qp, qt = p.quantum_rad
+        sp = math.sqrt((qp / math.sqrt(12.0)) ** 2 + (rate_p * p.timing_s) ** 2 + (p.rate_rel * moved_p) ** 2)
+        st = math.sqrt((qt / math.sqrt(12.0)) ** 2 + (rate_t * p.timing_s) ** 2 + (p.rate_rel * moved_t) ** 2)
+        return JointEstimate(t, pan, tilt, sp, st, 'predicted', t - t_r)
+
+    def _extrapolate(self, t: float, last: tuple[float, float, float]) -> JointEstimate:
+        """No command known (passive head, or moved by someone else): the rate of the last two readings."""
+        p = self.params
+        t_r, pan, tilt = last
+        prev = self.history.before(t_r)
+        vp = vt = 0.0
+        if prev is not None and 0.0 < t_r - prev[0] <= p.rate_window_s:
+            vp, vt = ((min(max(d / (t_r - prev[0]), -p.max_rate_rad_s), p.max_rate_rad_s))
+                      for d in (pan - prev[1], tilt - prev[2]))
+        dt = t - t_r
+        qp, qt = p.quantum_rad
+        sp = math.sqrt((qp / math.sqrt(12.0)) ** 2 + (vp * p.timing_s) ** 2 + (p.unknown_rate_rel * vp * dt) ** 2)
+        st = math.sqrt((qt / math.sqrt(12.0)) ** 2 + (vt * p.timing_s) ** 2 + (p.unknown_rate_rel * vt * dt) ** 2)
+        return JointEstimate(t, pan + vp * dt, tilt + vt * dt, sp, st, 'predicted', dt)

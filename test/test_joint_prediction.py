@@ -1,0 +1,150 @@
+"""JointPredictor on synthetic histories: the head runs each commanded axis at its rate straight to its target
+(as a VISCA head, and the emulator, do); readings come every 30 ms; predictions past the last reading follow the
+commands, stop at a target, turn at a reversal, and carry a 1-sigma that grows with the extrapolation and the rate,
+is never NaN and is bounded."""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import numpy as np
+import pytest
+
+from fixego_ros.tracking.joint_prediction import JointHistory, JointPredictor, PredictionParams
+
+Q = PredictionParams().quantum_rad
+
+
+def _truth(commands, t: float, start: float = 0.0) -> float:
+    """Pan at t of a head starting at ``start`` and obeying ``commands`` [(t, target, rate)]."""
+    pos, t_prev, cur = start, None, None
+    for tc, target, rate in [*commands, (t, None, None)]:
+        tc = min(tc, t)
+        if cur is not None:
+            step = min(abs(cur[0] - pos), cur[1] * (tc - t_prev))
+            pos += math.copysign(step, cur[0] - pos)
+        if target is None or tc >= t:
+            break
+        cur, t_prev = (target, rate), tc
+    return pos
+
+
+def _predictor(commands, t_readings, start: float = 0.0) -> JointPredictor:
+    jp = JointPredictor()
+    for tc, target, rate in commands:
+        jp.add_command(tc, target, 0.0, rate, 0.0)
+    for t in t_readings:
+        jp.add_reading(t, _truth(commands, t, start), 0.0)
+    return jp
+
+
+def test_constant_rate_is_followed_past_the_last_reading():
+    cmds = [(0.0, 1.0, 0.5)]
+    jp = _predictor(cmds, np.arange(0.0, 0.301, 0.03))
+    for dt in (0.005, 0.02, 0.05):
+        e = jp.estimate(0.3 + dt)
+        assert e.source == 'predicted' and e.horizon_s == pytest.approx(dt)
+        assert e.pan == pytest.approx(_truth(cmds, 0.3 + dt), abs=1e-12) and e.tilt == 0.0
+    # holding the last reading (what a waitless node without commands would do) is 10 mrad off at 20 ms
+    assert abs(jp.estimate(0.32).pan - jp.history.latest()[1]) == pytest.approx(0.01)
+
+
+def test_a_stop_at_the_target_is_predicted():
+    cmds = [(0.0, 0.2, 1.0)]
+    jp = _predictor(cmds, np.arange(0.0, 0.181, 0.03))      # last reading 0.18 rad at 0.18 s, still moving
+    e = jp.estimate(0.26)
+    assert e.pan == pytest.approx(0.2, abs=1e-12)            # not 0.26: the head stops on its target
+    # the uncertainty counts only the 0.02 rad still travelled, not 80 ms at 1 rad/s
+    assert e.pan_sigma < 0.2 * 0.02 + 0.01
+
+
+def test_a_reversal_commanded_after_the_last_reading_is_predicted():
+    cmds = [(0.0, 1.0, 0.5), (0.31, -1.0, 0.8)]
+    jp = _predictor(cmds, np.arange(0.0, 0.301, 0.03))
+    e = jp.estimate(0.36)
+    assert e.pan == pytest.approx(0.15 + 0.005 - 0.04, abs=1e-12)
+    assert e.pan == pytest.approx(_truth(cmds, 0.36), abs=1e-12)
+    # a command that reached the head before the last reading is already in that reading
+    jp.add_reading(0.33, _truth(cmds, 0.33), 0.0)
+    assert jp.estimate(0.36).pan == pytest.approx(_truth(cmds, 0.36), abs=1e-12)
+
+
+def test_uncertainty_grows_with_extrapolation_and_commanded_rate():
+    slow = _predictor([(0.0, 1.0, 0.2)], np.arange(0.0, 0.301, 0.03))
+    fast = _predictor([(0.0, 1.0, 0.8)], np.arange(0.0, 0.301, 0.03))
+    sig = [slow.estimate(0.3 + dt).pan_sigma for dt in (0.0, 0.01, 0.03, 0.06, 0.09)]
+    assert all(b > a for a, b in itertools.pairwise(sig)), sig
+    for dt in (0.01, 0.05):
+        assert fast.estimate(0.3 + dt).pan_sigma > slow.estimate(0.3 + dt).pan_sigma
+    # the axis that does not move keeps the reading's quantisation only
+    assert fast.estimate(0.35).tilt_sigma == pytest.approx(Q[1] / math.sqrt(12))
+    # interpolation between two readings is as good as a reading
+    assert fast.estimate(0.285).source == 'interpolated'
+    assert fast.estimate(0.285).pan_sigma == pytest.approx(Q[0] / math.sqrt(12))
+
+
+def test_at_rest_without_commands_the_last_reading_holds_exactly_enough():
+    jp = JointPredictor()
+    for t in np.arange(0.0, 0.3, 0.03):
+        jp.add_reading(t, 0.1, -0.05)
+    e = jp.estimate(0.35)
+    assert (e.pan, e.tilt) == (0.1, -0.05) and e.pan_sigma == pytest.approx(Q[0] / math.sqrt(12))
+    # moved by someone else (no command known): the readings' rate, with a 100 % rate uncertainty
+    jp2 = JointPredictor()
+    for t in np.arange(0.0, 0.3, 0.03):
+        jp2.add_reading(t, 0.3 * t, 0.0)
+    e = jp2.estimate(0.29)
+    assert e.pan == pytest.approx(0.3 * 0.29) and e.pan_sigma > 0.3 * 0.02
+
+
+def test_later_reading_turns_a_prediction_into_interpolation():
+    cmds = [(0.0, 1.0, 0.5)]
+    jp = _predictor(cmds, np.arange(0.0, 0.301, 0.03))
+    assert jp.estimate(0.31).source == 'predicted'
+    jp.add_reading(0.33, _truth(cmds, 0.33), 0.0)
+    e = jp.estimate(0.31)
+    assert e.source == 'interpolated' and (e.pan, e.tilt) == pytest.approx(jp.history.at(0.31, 0.0))
+
+
+def test_never_nan_and_bounded_without_readings():
+    jp = JointPredictor(params=PredictionParams(max_horizon_s=0.1))
+    jp.add_command(0.0, 1.0, 1.0, 0.5, 0.5)
+    assert jp.estimate(0.1) is None                       # no reading ever: nothing to start from
+    jp.add_command(0.01, math.nan, 0.0, 0.5, 0.5)         # ignored
+    jp.add_command(-1.0, 0.0, 0.0, 0.5, 0.5)              # out of order: ignored
+    assert len(jp.commands()) == 1
+    jp.add_reading(0.05, 0.0, 0.0)
+    assert jp.estimate(math.nan) is None and jp.estimate(math.inf) is None
+    assert jp.estimate(0.2) is None                       # past the horizon: the caller waits instead
+    assert jp.estimate(0.01) is None                      # before the first reading
+    rng = np.random.default_rng(4)
+    for _ in range(200):
+        jp = JointPredictor(params=PredictionParams(max_rate_rad_s=1.0, max_horizon_s=0.1))
+        t = 0.0
+        for _ in range(rng.integers(1, 8)):
+            t += rng.uniform(0.0, 0.05)
+            if rng.random() < 0.5:
+                jp.add_command(t, rng.uniform(-3, 3), rng.uniform(-1, 1), rng.uniform(0, 1), rng.uniform(0, 1))
+            else:
+                jp.add_reading(t, rng.uniform(-3, 3), rng.uniform(-1, 1))
+        for tq in np.linspace(0.0, t + 0.15, 17):
+            e = jp.estimate(float(tq))
+            if e is None:
+                continue
+            vals = np.array([e.pan, e.tilt, e.pan_sigma, e.tilt_sigma])
+            assert np.all(np.isfinite(vals)) and e.pan_sigma >= 0 and e.tilt_sigma >= 0
+            if e.source == 'predicted':     # at most the top speed (1 rad/s) from the last reading; sigma bounded
+                last = jp.history.latest()
+                assert abs(e.pan - last[1]) <= e.horizon_s + 1e-9 and abs(e.tilt - last[2]) <= e.horizon_s + 1e-9
+                assert max(e.pan_sigma, e.tilt_sigma) <= 0.003 + 0.1 + Q[0]
+
+
+def test_history_bracket_and_before():
+    h = JointHistory()
+    for t, p in ((1.0, 0.1), (2.0, 0.2), (3.0, 0.3)):
+        h.add(t, p, -p)
+    assert h.bracket(0.5) is None and h.bracket(3.5) is None
+    assert h.bracket(2.0) == ((2.0, 0.2, -0.2), (2.0, 0.2, -0.2))
+    assert h.bracket(2.5) == ((2.0, 0.2, -0.2), (3.0, 0.3, -0.3))
+    assert h.before(2.0) == (1.0, 0.1, -0.1) and h.before(1.0) is None
