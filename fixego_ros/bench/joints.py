@@ -19,6 +19,7 @@ import time
 
 import numpy as np
 
+from fixego_ros.tracking.joint_prediction import JointSource
 from fixego_ros.tracking.servo import ServoLoop, ServoParams, Target
 from fixego_ros.visca.driver import ViscaCamera
 from fixego_ros.visca.emulator import ViscaEmulator
@@ -92,7 +93,7 @@ def run_moves(duration_s: float = 8.0, baud: int = 9600, fps: float = 30.0, seed
             continue
         err_pred.append(math.degrees(max(abs(e.pan - tp), abs(e.tilt - tt))))
         err_wait.append(math.degrees(max(abs(q[0] - tp), abs(q[1] - tt))))
-        if e.source == 'predicted':
+        if e.source is JointSource.PREDICTED:
             predicted += 1
             horizons.append(1e3 * e.horizon_s)
             last = hist.before(f['t'] + 1e-9)

@@ -41,7 +41,6 @@ import math
 import sys
 from collections import deque
 
-import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PointStamped, PoseWithCovarianceStamped
 from rclpy.node import Node
@@ -66,6 +65,7 @@ from fixego_ros.nodes.common import (
     diagnostic_status,
     image_to_gray,
     in_namespace,
+    percentile_values,
     publish_diagnostics,
     run_node,
     sec_to_stamp,
@@ -78,6 +78,7 @@ from fixego_ros.nodes.common import (
 from fixego_ros.pipeline.messages import pan_tilt
 from fixego_ros.pipeline.params import CAMERA_NODE_PARAMS, Getter, ParamsError, fixation_params
 from fixego_ros.tracking.fixation import FixationTracker, LimitCheck
+from fixego_ros.tracking.joint_prediction import JointSource
 from fixego_ros.tracking.servo import FixationServo, JointHistory, ServoLoop, ServoParams, Target
 from fixego_ros.tracking.vergence import (
     VergenceParams,
@@ -99,14 +100,6 @@ LIVE_NODE = ('limit_margin_deg', 'limit_reselect_offset_px', 'joint_max_wait_s',
 # when vergence steps run (the scheduler's limits); the step itself is read-only
 LIVE_VERGENCE = ('vergence_period_s', 'vergence_min_interval_s', 'vergence_retry_s')
 MODEL_CHECK_TRIES = 3   # CAM_VersionInq attempts per connection before a silent camera counts as not answering
-
-
-def _percentiles(name: str, values) -> dict[str, str]:
-    """``name_p50`` / ``name_p95`` (2 decimals) of the recent values; nothing before the first."""
-    if not values:
-        return {}
-    a = np.asarray(values, dtype=float)
-    return {f'{name}_p50': f'{np.median(a):.2f}', f'{name}_p95': f'{np.percentile(a, 95):.2f}'}
 
 
 def servo_params(g: Getter) -> ServoParams:
@@ -382,7 +375,7 @@ class CameraNode(Node):
             js.effort = [float(est.pan_sigma), float(est.tilt_sigma)]      # 1-sigma (rad): see the module docstring
             self.pub_joint.publish(js)
             self.stats['joint_states'] += 1
-            self.stats['joint_states_predicted'] += est.source == 'predicted'
+            self.stats['joint_states_predicted'] += est.source is JointSource.PREDICTED
             self.joint_latency_ms.append(1e3 * (self._now() - t))
             self._send_optical_tf(stamp, float(est.pan), float(est.tilt))
 
@@ -634,7 +627,8 @@ class CameraNode(Node):
             values.update({'serial_state': self.driver.state, 'serial_comm_errors': self.driver.comm_errors,
                            'serial_last_error': self.driver.last_error,
                            'servo_loop_hz': round(self.loop.loop_rate_hz(), 2), 'joint_mode': self.joint_mode,
-                           **_percentiles('joint_latency_ms', self.joint_latency_ms),
+                           **(percentile_values('joint_latency_ms', self.joint_latency_ms)
+                              if self.joint_latency_ms else {}),
                            'servo_commands': self.loop.stats['commands']})
             if not self.driver.connected:
                 level, message = ERROR, f'serial port {self.driver.state}: {self.driver.last_error}'

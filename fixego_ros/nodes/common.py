@@ -421,6 +421,12 @@ def diagnostic_status(name: str, hardware_id: str, level: bytes, message: str,
                             values=[KeyValue(key=str(k), value=str(v)) for k, v in items])
 
 
+def percentile_values(name: str, values: Iterable[float]) -> dict[str, str]:
+    """``name_p50`` / ``name_p95`` (2 decimals) of recent timings, the keys ``fixego_ros.demo.report`` reads back."""
+    a = np.asarray(list(values), dtype=float)
+    return {f'{name}_p50': f'{np.median(a):.2f}', f'{name}_p95': f'{np.percentile(a, 95):.2f}'}
+
+
 def publish_diagnostics(node: Node, publisher, statuses: list[DiagnosticStatus]) -> None:
     """Publish a DiagnosticArray stamped with the node's clock."""
     arr = DiagnosticArray()

@@ -71,6 +71,7 @@ from fixego_ros.nodes.common import (
     declare_parameters,
     diagnostic_status,
     in_namespace,
+    percentile_values,
     pose_to_msg,
     publish_diagnostics,
     run_node,
@@ -448,8 +449,7 @@ class EstimatorNode(Node):
             std = self.scale_requests.rel_std(self.last.stamp, self.estimator.scale_measurement)
             values['scale_rel_std'] = f'{std:.4f}' if math.isfinite(std) else 'unmeasured'
         values.update({f'steps_{k}': v for k, v in sorted(self.status_counts.items())})
-        ms = np.array(self.solve_ms) if self.solve_ms else np.zeros(1)
-        values.update({'solve_ms_p50': f'{np.median(ms):.2f}', 'solve_ms_p95': f'{np.percentile(ms, 95):.2f}',
+        values.update({**percentile_values('solve_ms', self.solve_ms or (0.0,)),
                        'window': self.config.window, 'mode': self.config.mode})
         level, message = OK, 'estimating'
         if self.last is None:

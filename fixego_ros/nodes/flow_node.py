@@ -42,6 +42,7 @@ from fixego_ros.nodes.common import (
     declare_parameters,
     diagnostic_status,
     in_namespace,
+    percentile_values,
     publish_diagnostics,
     run_node,
     set_timer_period,
@@ -199,8 +200,7 @@ class FlowNode(Node):
                        for k in ('lk_predicted', 'lk_zero', 'lk_stereo', 'lk_retry', 'ransac', 'epipolar')})
         for name, q in (('process_ms', self.process_ms), ('image_in_ms', self.image_in_ms),
                         ('ready_ms', self.ready_ms)):
-            ms = np.array(q) if q else np.zeros(1)
-            values.update({f'{name}_p50': f'{np.median(ms):.2f}', f'{name}_p95': f'{np.percentile(ms, 95):.2f}'})
+            values.update(percentile_values(name, q or (0.0,)))
         level, message = OK, 'tracking flow'
         if self.stats['observations'] == 0:
             level, message = WARN, 'no synchronised frame yet (images, joint states, fixations?)'

@@ -17,6 +17,7 @@ import math
 import threading
 from collections import deque
 from dataclasses import dataclass
+from enum import StrEnum
 
 
 class JointHistory:
@@ -70,10 +71,7 @@ class JointHistory:
             if i == len(ts):
                 # beyond the last reading: hold it (the joints may be still) only for a short while
                 return self._q[-1] if t - ts[-1] <= max_extrapolation_s else None
-            t0, t1 = ts[i - 1], ts[i]
-            a = (t - t0) / (t1 - t0)
-            (p0, q0), (p1, q1) = self._q[i - 1], self._q[i]
-            return p0 + a * (p1 - p0), q0 + a * (q1 - q0)
+            return _lerp((ts[i - 1], *self._q[i - 1]), (ts[i], *self._q[i]), t)
 
 
 MODES = ('predict', 'wait')     # camera_node joint_mode: publish at once (predict), or wait for the next reading
@@ -91,17 +89,23 @@ class Command:
     tilt_rate: float
 
 
+class JointSource(StrEnum):
+    """Where a :class:`JointEstimate` comes from."""
+
+    INTERPOLATED = 'interpolated'   # readings on both sides of the stamp
+    PREDICTED = 'predicted'         # beyond the last reading (``horizon_s`` past it)
+
+
 @dataclass(frozen=True)
 class JointEstimate:
-    """Pan/tilt (rad) at ``t`` with 1-sigma (rad); ``source`` is 'interpolated' (readings on both sides) or
-    'predicted' (beyond the last reading, ``horizon_s`` past it)."""
+    """Pan/tilt (rad) at ``t`` with 1-sigma (rad) and where it comes from."""
 
     t: float
     pan: float
     tilt: float
     pan_sigma: float
     tilt_sigma: float
-    source: str
+    source: JointSource
     horizon_s: float = 0.0
 
 
@@ -114,6 +118,18 @@ class PredictionParams:
     rate_window_s: float = 0.1       # readings older than this give no rate
     max_horizon_s: float = 0.1       # no prediction further than this past the last reading
     max_rate_rad_s: float = math.radians(300.0)   # the head's top speed: bounds a rate taken from the readings
+
+
+def _lerp(r0: tuple[float, float, float], r1: tuple[float, float, float], t: float) -> tuple[float, float]:
+    """Pan/tilt at ``t`` on the line between two readings (t, pan, tilt); the first when they coincide."""
+    a = 0.0 if r1[0] <= r0[0] else (t - r0[0]) / (r1[0] - r0[0])
+    return r0[1] + a * (r1[1] - r0[1]), r0[2] + a * (r1[2] - r0[2])
+
+
+def _sigma(quantum: float, rate: float, timing_s: float, spread: float) -> float:
+    """1-sigma of a predicted axis: reading quantisation (uniform), the timing error at ``rate``, and
+    ``spread`` (the share of the motion the speed being only nominal makes uncertain)."""
+    return math.sqrt((quantum / math.sqrt(12.0)) ** 2 + (rate * timing_s) ** 2 + spread ** 2)
 
 
 def _advance(pos: float, target: float, rate: float, dt: float) -> tuple[float, float]:
@@ -171,13 +187,12 @@ class JointPredictor:
         pair = self.history.bracket(t)
         if pair is None:
             return None
-        (t0, p0, q0), (t1, p1, q1) = pair
-        a = 0.0 if t1 <= t0 else (t - t0) / (t1 - t0)
+        r0, r1 = pair
         qp, qt = self.params.quantum_rad
         # a head at rest reads exactly; a moving one to within a unit (uniform: unit / sqrt 12)
-        sp = qp / math.sqrt(12.0) if p0 != p1 else 0.0
-        st = qt / math.sqrt(12.0) if q0 != q1 else 0.0
-        return JointEstimate(t, p0 + a * (p1 - p0), q0 + a * (q1 - q0), sp, st, 'interpolated')
+        sp = _sigma(qp, 0.0, 0.0, 0.0) if r0[1] != r1[1] else 0.0
+        st = _sigma(qt, 0.0, 0.0, 0.0) if r0[2] != r1[2] else 0.0
+        return JointEstimate(t, *_lerp(r0, r1, t), sp, st, JointSource.INTERPOLATED)
 
     def _predict(self, t: float, last: tuple[float, float, float]) -> JointEstimate:
         p = self.params
@@ -203,9 +218,9 @@ class JointPredictor:
                 rate_t = max(rate_t, cur.tilt_rate if dq > 0 else 0.0)
             cur, seg_start = c, seg_end
         qp, qt = p.quantum_rad
-        sp = math.sqrt((qp / math.sqrt(12.0)) ** 2 + (rate_p * p.timing_s) ** 2 + (p.rate_rel * moved_p) ** 2)
-        st = math.sqrt((qt / math.sqrt(12.0)) ** 2 + (rate_t * p.timing_s) ** 2 + (p.rate_rel * moved_t) ** 2)
-        return JointEstimate(t, pan, tilt, sp, st, 'predicted', t - t_r)
+        sp = _sigma(qp, rate_p, p.timing_s, p.rate_rel * moved_p)
+        st = _sigma(qt, rate_t, p.timing_s, p.rate_rel * moved_t)
+        return JointEstimate(t, pan, tilt, sp, st, JointSource.PREDICTED, t - t_r)
 
     def _extrapolate(self, t: float, last: tuple[float, float, float]) -> JointEstimate:
         """No command known (passive head, or moved by someone else): the rate of the last two readings."""
@@ -218,6 +233,6 @@ class JointPredictor:
                       for d in (pan - prev[1], tilt - prev[2]))
         dt = t - t_r
         qp, qt = p.quantum_rad
-        sp = math.sqrt((qp / math.sqrt(12.0)) ** 2 + (vp * p.timing_s) ** 2 + (p.unknown_rate_rel * vp * dt) ** 2)
-        st = math.sqrt((qt / math.sqrt(12.0)) ** 2 + (vt * p.timing_s) ** 2 + (p.unknown_rate_rel * vt * dt) ** 2)
-        return JointEstimate(t, pan + vp * dt, tilt + vt * dt, sp, st, 'predicted', dt)
+        sp = _sigma(qp, vp, p.timing_s, p.unknown_rate_rel * vp * dt)
+        st = _sigma(qt, vt, p.timing_s, p.unknown_rate_rel * vt * dt)
+        return JointEstimate(t, pan + vp * dt, tilt + vt * dt, sp, st, JointSource.PREDICTED, dt)

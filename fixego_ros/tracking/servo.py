@@ -197,9 +197,8 @@ class ServoLoop:
     def step(self) -> None:
         """One cycle: read the joints, then send the newest target if due. Public for tests/benchmarks."""
         pan_u, tilt_u, t_mono = self.cam.position_timed()
-        t = t_mono + (self.clock() - time.monotonic())
         pr = self.cam.profile
-        self.history.add(t, pr.pan_rad(pan_u), pr.tilt_rad(tilt_u))
+        self.history.add(self._to_clock(t_mono), pr.pan_rad(pan_u), pr.tilt_rad(tilt_u))
         self.stats['cycles'] += 1
         with self._lock:
             home, self._home = self._home, False
@@ -233,10 +232,14 @@ class ServoLoop:
         self._sent = target
         self.stats['commands'] += 1
 
+    def _to_clock(self, t_mono: float) -> float:
+        """A driver (monotonic) time on :attr:`clock`'s time base."""
+        return t_mono + (self.clock() - time.monotonic())
+
     def _commanded(self, pan_u: int, tilt_u: int, pan_code: int, tilt_code: int) -> None:
         """Tell the predictor about a command just ACKed: the camera took it when its ACK (3 bytes) started."""
         pr = self.cam.profile
-        t = time.monotonic() - 3 * self.cam.byte_time + (self.clock() - time.monotonic())
+        t = self._to_clock(time.monotonic() - 3 * self.cam.byte_time)
         self.predictor.add_command(t, pr.pan_rad(pan_u), pr.tilt_rad(tilt_u),
                                    math.radians(pr.pan_speed_deg_s(pan_code)),
                                    math.radians(pr.tilt_speed_deg_s(tilt_code)))
