@@ -64,6 +64,34 @@ def test_reselection_reasons_and_ids():
     assert [r.reason for r in tr.reselections] == ['initial', 'left_image', 'lost', 'manual']
 
 
+def test_a_jump_lucas_kanade_loses_is_found_again_by_the_template_unless_it_has_a_twin():
+    """The scene jumps 70 px between two frames (a lagging head at a low frame rate): LK alone loses the point
+    (``relocate_radius_px`` 0: a new id), the template search finds it again with its id and LK refines it to a
+    tenth of a pixel. When the same patch also appears elsewhere in the search window, nothing is guessed."""
+    view = SyntheticView(CAM, seed=5)
+
+    def jump(params: FixationParams, twin: bool = False):
+        tr = FixationTracker(CAM, params)
+        st0 = tr.update(view.render(0, 0), 0.0)
+        scene = view.scene_point(st0.pixel, 0, 0)
+        img = view.render(0, 0, ox=70.0)
+        px = view.pixel_of(scene, 0, 0, ox=70.0)
+        if twin:                                   # a copy of the point's neighbourhood 60 px below it
+            u, v, h = round(float(px[0])), round(float(px[1])), 14
+            img = img.copy()
+            dst = img[v + 60 - h:v + 60 + h + 1, u - h:u + h + 1]
+            dst[:] = img[v - h:v + h + 1, u - h:u + h + 1]
+        return tr.update(img, 0.2), px
+
+    st, px = jump(FixationParams(relocate_radius_px=0.0))
+    assert st.reselected and st.reason == 'lost' and st.fixation_id == 1
+    st, px = jump(FixationParams())
+    assert st.valid and not st.reselected and st.fixation_id == 0 and st.quality > 0.9
+    assert np.allclose(st.pixel, px, atol=0.1)
+    st, _ = jump(FixationParams(), twin=True)
+    assert st.reselected and st.fixation_id == 1
+
+
 def test_limit_check_fires_once_per_approach_towards_the_middle():
     lc = LimitCheck((-1.0, 1.0), (-0.4, 0.4), margin_rad=0.1, offset_px=100.0)
     assert lc.check(0.0, 0.0) is None

@@ -227,3 +227,34 @@ def test_front_end_kills_epipolar_outliers(rig):
     assert len(bad) <= rep.counts.epipolar <= len(bad) + 3
     assert not set(live.ids[bad].tolist()) & set(o.right.track_ids.tolist())   # their tracks ended
     assert rep.pairs == len(o.right.flow_prev) == n - rep.counts.epipolar
+
+
+# ---------------------------------------------------------------------------------------------- fixation shift
+@pytest.mark.parametrize('same_fixation', [True, False])
+def test_a_window_jump_the_readings_miss_is_followed_by_the_fixation_points_shift(rig, same_fixation):
+    """The heads jump 70 px while the joint readings stay (a servo jerk the readings lag): neither the
+    rotation prediction nor zero motion follows, the fixation point's own image motion does (LK_FIXATION). With
+    a new fixation point (another id) there is no shift to use and most tracks are lost."""
+    from fixego_ros.pipeline.frontend import LK_FIXATION
+    f = rig.camera('right').fx
+    dpan = np.arctan(70.0 / f)
+    fe = StereoFrontEnd(rig, WINDOW, KeyframePolicy(max_frames=1))
+    fe.process(0.0, samples(rig, 0.0))
+    n0 = {s: len(fe._tracks[s]) for s in SIDES}
+    jumped = samples(rig, dpan)
+    now = {}
+    for side, s in jumped.items():
+        ray = rig.pixels_to_rig_rays(side, np.array([[160.0, 120.0]]), 0.0, 0.0)
+        fix = rig.camera(side).rays_to_pixels(ray @ rig.cam_to_rig(side, dpan, 0.0))[0]
+        now[side] = CameraSample(s.gray, 0.0, 0.0, (float(fix[0]), float(fix[1])), 1 if same_fixation else 2)
+    fe.process(0.2, now)
+    check_counts(fe)
+    kept = {s: fe.last[s].counts.kept for s in SIDES}
+    if same_fixation:
+        # the right camera goes first and follows by its fixation shift; the rotation it then measures (the
+        # readings are stale, so the jump looks like a rig turn) predicts the left camera's points
+        assert fe.last['right'].lk == LK_FIXATION and fe.last['right'].lk_retry
+        assert fe.last['left'].lk in (LK_PREDICTED, LK_FIXATION)
+        assert all(kept[s] >= 0.8 * n0[s] for s in SIDES)
+    else:
+        assert all(fe.last[s].lk != LK_FIXATION and kept[s] < 0.2 * n0[s] for s in SIDES)

@@ -76,7 +76,7 @@ from fixego_ros.nodes.common import (
     vergence_to_msg,
 )
 from fixego_ros.pipeline.messages import pan_tilt
-from fixego_ros.pipeline.params import CAMERA_NODE_PARAMS, Getter, ParamsError, fixation_params
+from fixego_ros.pipeline.params import CAMERA_NODE_PARAMS, FIXATION_PARAMS, Getter, ParamsError, fixation_params
 from fixego_ros.tracking.fixation import FixationTracker, LimitCheck
 from fixego_ros.tracking.joint_prediction import JointSource
 from fixego_ros.tracking.servo import FixationServo, JointHistory, ServoLoop, ServoParams, Target
@@ -92,7 +92,7 @@ from fixego_ros.visca.profiles import get_profile
 
 PARAMS = CAMERA_NODE_PARAMS
 # applied at run time: the tracker, the servo (and its loop thread) and the limit check read them per frame
-LIVE_TRACKER = ('search_radius_px', 'min_corner_score', 'ncc_min', 'fb_max_px', 'border_margin_px')
+LIVE_TRACKER = tuple(name for name, spec in FIXATION_PARAMS.items() if not spec.read_only)
 LIVE_SERVO = ('servo_gain', 'servo_deadband_px', 'servo_move_time_s', 'servo_max_command_rate_hz',
               'servo_feedforward')
 LIVE_NODE = ('limit_margin_deg', 'limit_reselect_offset_px', 'joint_max_wait_s', 'joint_mode', 'joint_predict_max_s',

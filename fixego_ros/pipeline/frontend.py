@@ -86,6 +86,7 @@ BAD_JOINTS = 'bad_joints'        # non-finite pan/tilt readings
 LK_PREDICTED = 'predicted'       # from the predicted positions
 LK_ZERO = 'zero'                 # the prediction failed for most points; zero motion did better
 LK_STEREO = 'stereo'             # ... and the rotation the other camera measured over this step did better
+LK_FIXATION = 'fixation'         # ... and shifting every point by the fixation point's own image motion did better
 
 
 @dataclass
@@ -189,7 +190,7 @@ class SideReport:
     has_fixation: bool = False
     window: tuple[int, int, int, int] | None = None   # detection region at t
     tracks: int = 0                           # live tracks at t (new ones included)
-    lk: str = ''                              # LK_PREDICTED | LK_ZERO | LK_STEREO | '' (nothing tracked)
+    lk: str = ''                              # LK_PREDICTED | LK_ZERO | LK_FIXATION | LK_STEREO | '' (none)
     lk_retry: bool = False                    # another LK attempt was made after the prediction failed
     ransac: bool = False                      # the epipolar RANSAC ran
 
@@ -362,8 +363,10 @@ class StereoFrontEnd:
     def _follow(self, side: str, now: CameraSample, R_pred: np.ndarray,
                 before: _Follow | None = None) -> _Follow | None:
         """Track the live tracks of the previous frame into ``now``, LK from the predicted positions. First call
-        (``before`` None): when most points fail, once more from zero motion; the better attempt wins.
-        Second call: from the other camera's measured rotation, kept only if better than ``before``."""
+        (``before`` None): when most points fail, once more from zero motion and once more shifted by the fixation
+        point's image motion (a servo that lags a turn that starts or ends moves the whole window by tens of pixels,
+        which neither the rig's last rate nor zero motion predicts); the best attempt wins. Second call: from the
+        other camera's measured rotation, kept only if better than ``before``."""
         tracks, last = self._tracks[side], self._last[side]
         if last is None or not len(tracks):
             return None
@@ -374,13 +377,24 @@ class StereoFrontEnd:
             if flow.counts.kept <= before.flow.counts.kept:
                 return replace(before, retry=True)
             return self._followed(side, now, tracks, flow, LK_STEREO, True)
-        moved = np.linalg.norm(np.where(np.isfinite(guess), guess, tracks.px) - tracks.px, axis=1)
-        if 2 * flow.counts.kept >= len(tracks) or not np.any(moved > 1.0):
+        if 2 * flow.counts.kept >= len(tracks):
             return self._followed(side, now, tracks, flow, LK_PREDICTED, False)
-        zero = track_points(last.gray, now.gray, tracks.px, p)
-        if zero.counts.kept > flow.counts.kept:
-            return self._followed(side, now, tracks, zero, LK_ZERO, True)
-        return self._followed(side, now, tracks, flow, LK_PREDICTED, True)
+        best, lk, retried = flow, LK_PREDICTED, False
+        moved = np.linalg.norm(np.where(np.isfinite(guess), guess, tracks.px) - tracks.px, axis=1)
+        if np.any(moved > 1.0):                         # (else zero motion is what was just tried)
+            retried = True
+            zero = track_points(last.gray, now.gray, tracks.px, p)
+            if zero.counts.kept > best.counts.kept:
+                best, lk = zero, LK_ZERO
+        if 2 * best.counts.kept < len(tracks) and last.fixation_px is not None and now.fixation_px is not None \
+                and last.fixation_id == now.fixation_id:
+            shift = np.subtract(now.fixation_px, last.fixation_px)
+            if float(np.hypot(*shift)) > 1.0:
+                retried = True
+                shifted = track_points(last.gray, now.gray, tracks.px, p, tracks.px + shift)
+                if shifted.counts.kept > best.counts.kept:
+                    best, lk = shifted, LK_FIXATION
+        return self._followed(side, now, tracks, best, lk, retried)
 
     def _followed(self, side: str, now: CameraSample, tracks: Tracks, flow: PointFlow, lk: str, retry: bool) -> _Follow:
         ok = flow.ok

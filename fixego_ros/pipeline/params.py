@@ -209,6 +209,8 @@ FIXATION_PARAMS: Table = _table(
     _num('fb_max_px', 1.0, 'forward-backward LK error above which the track counts as lost', gt=0.0, live=True),
     _num('border_margin_px', 40.0, 're-select when the fixation comes this close to the image border', ge=0.0,
          live=True),
+    _num('relocate_radius_px', 400.0, 'when LK loses the fixation point, search its template this far around the '
+         'last pixel (an unambiguous match keeps the point and its id); 0 = off', ge=0.0, live=True),
 )
 
 # flow_node: synchronisation, flow tracking and keyframes (thresholds read per frame change at run time)
@@ -523,7 +525,8 @@ def _config_error(what: str, e: ValueError) -> ParamsError:
 def fixation_params(g: Getter) -> FixationParams:
     return FixationParams(search_radius_px=float(g('search_radius_px')), min_corner_score=float(g('min_corner_score')),
                           template_half=int(g('template_half_px')), ncc_min=float(g('ncc_min')),
-                          fb_max_px=float(g('fb_max_px')), border_margin_px=float(g('border_margin_px')))
+                          fb_max_px=float(g('fb_max_px')), border_margin_px=float(g('border_margin_px')),
+                          relocate_radius_px=float(g('relocate_radius_px')))
 
 
 def flow_params(g: Getter) -> FlowParams:

@@ -4,8 +4,12 @@ A fixation point is a well-textured static scene point that the servo keeps at t
 Selection picks the strongest corner (minimum eigenvalue of the structure tensor) near a preferred
 pixel, weighted towards it. Tracking is pyramidal Lucas-Kanade with two validity checks: the
 forward-backward error and the normalised cross-correlation against the template taken at selection
-(so slow drift onto another structure is caught). A new point, with a new id, is selected when the
-track fails, the point nears the image border, or the caller asks (manual, pan/tilt near a limit).
+(so slow drift onto another structure is caught). When Lucas-Kanade loses the point (a jump larger
+than its pyramid follows: a head that lags the rig at a low frame rate moves the point tens of pixels
+between frames), the template is searched for around the last pixel and, when found unambiguously,
+Lucas-Kanade refines it from there: the same point keeps its id. A new point, with a new id, is selected
+only when that fails too, the point nears the image border, or the caller asks (manual, pan/tilt near a
+limit).
 """
 
 from __future__ import annotations
@@ -31,6 +35,8 @@ class FixationParams:
     ncc_min: float = 0.7               # template correlation bound
     border_margin_px: float = 40.0     # re-select when the point comes this close to the border
     max_age_s: float = 0.0             # > 0: re-select points older than this
+    relocate_radius_px: float = 400.0  # template search radius around the last pixel when LK loses it; 0 = off
+    relocate_margin: float = 0.1       # the best match must beat any other place by this much NCC (no twins)
 
 
 @dataclass(frozen=True)
@@ -159,16 +165,36 @@ class FixationTracker:
         den = math.sqrt(float((a * a).sum()) * float((b * b).sum()))
         return float((a * b).sum() / den) if den > 1e-9 else 0.0
 
+    def _lk(self) -> dict:
+        p = self.params
+        return {'winSize': (p.lk_win, p.lk_win), 'maxLevel': p.lk_levels,
+                'criteria': (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)}
+
     def _follow(self, gray: np.ndarray) -> tuple[bool, np.ndarray, float, str]:
+        """LK from the last pixel; when that fails, LK from where the template is found nearby."""
+        tr = self._track
+        assert tr is not None and self._prev is not None
+        found = self._lk_check(gray, None)
+        if found[0] or self.params.relocate_radius_px <= 0:
+            return found
+        guess = self._relocate(gray)
+        return found if guess is None else self._lk_check(gray, guess)
+
+    def _lk_check(self, gray: np.ndarray, guess: np.ndarray | None) -> tuple[bool, np.ndarray, float, str]:
+        """LK of the fixation point (from ``guess`` when given) with the forward-backward and template checks."""
         p, tr = self.params, self._track
         assert tr is not None and self._prev is not None
-        lk = {'winSize': (p.lk_win, p.lk_win), 'maxLevel': p.lk_levels,
-              'criteria': (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)}
+        lk = self._lk()
         p0 = tr.pixel.reshape(1, 1, 2).astype(np.float32)
-        p1, st1, _ = cv2.calcOpticalFlowPyrLK(self._prev, gray, p0, None, **lk)
+        if guess is None:
+            p1, st1, _ = cv2.calcOpticalFlowPyrLK(self._prev, gray, p0, None, **lk)
+        else:
+            p1, st1, _ = cv2.calcOpticalFlowPyrLK(self._prev, gray, p0, guess.reshape(1, 1, 2).astype(np.float32),
+                                                  flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
         if p1 is None or not st1[0, 0]:
             return False, tr.pixel, 0.0, 'lost'
-        back, st2, _ = cv2.calcOpticalFlowPyrLK(gray, self._prev, p1, None, **lk)
+        back, st2, _ = cv2.calcOpticalFlowPyrLK(gray, self._prev, p1, p0.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+                                                **lk)
         if back is None or not st2[0, 0] or float(np.linalg.norm(back - p0)) > p.fb_max_px:
             return False, tr.pixel, 0.0, 'lost'
         px = p1.reshape(2).astype(np.float64)
@@ -179,6 +205,30 @@ class FixationTracker:
         if q < p.ncc_min:
             return False, px, q, 'lost'
         return True, px, q, ''
+
+    def _relocate(self, gray: np.ndarray) -> np.ndarray | None:
+        """Where the template matches best within ``relocate_radius_px`` of the last pixel, or None when the
+        best match is below ``ncc_min`` or another place (beyond the template's size) matches nearly as well."""
+        p, tr = self.params, self._track
+        assert tr is not None
+        h = p.template_half
+        r = p.relocate_radius_px
+        x0, y0 = int(max(0, math.floor(tr.pixel[0] - r - h))), int(max(0, math.floor(tr.pixel[1] - r - h)))
+        x1 = int(min(gray.shape[1], math.ceil(tr.pixel[0] + r + h + 1)))
+        y1 = int(min(gray.shape[0], math.ceil(tr.pixel[1] + r + h + 1)))
+        if x1 - x0 <= 2 * h + 1 or y1 - y0 <= 2 * h + 1:
+            return None
+        score = cv2.matchTemplate(gray[y0:y1, x0:x1].astype(np.float32), tr.template, cv2.TM_CCOEFF_NORMED)
+        score = np.nan_to_num(score, nan=-1.0)
+        iy, ix = np.unravel_index(int(np.argmax(score)), score.shape)
+        best = float(score[iy, ix])
+        if best < p.ncc_min:
+            return None
+        others = score.copy()
+        others[max(0, iy - 2 * h):iy + 2 * h + 1, max(0, ix - 2 * h):ix + 2 * h + 1] = -1.0
+        if float(others.max()) > best - p.relocate_margin:
+            return None
+        return np.array([x0 + ix + h, y0 + iy + h], dtype=np.float64)
 
     def _select(self, gray: np.ndarray, stamp: float, reason: str,
                 offset: tuple[float, float] = (0.0, 0.0)) -> FixationState:
