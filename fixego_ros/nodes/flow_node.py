@@ -197,7 +197,8 @@ class FlowNode(Node):
         values.update(self.frontend.stats)     # each camera's last status, reason and point counts
         totals = self.frontend.totals           # which LK attempt the tracks came from, RANSAC runs
         values.update({f'{side}.{k}_total': totals[f'{side}.{k}'] for side in SIDES
-                       for k in ('lk_predicted', 'lk_zero', 'lk_stereo', 'lk_retry', 'ransac', 'epipolar')})
+                       for k in ('lk_predicted', 'lk_zero', 'lk_fixation', 'lk_stereo', 'lk_retry', 'ransac',
+                                 'epipolar')})
         for name, q in (('process_ms', self.process_ms), ('image_in_ms', self.image_in_ms),
                         ('ready_ms', self.ready_ms)):
             values.update(percentile_values(name, q or (0.0,)))
