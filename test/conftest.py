@@ -81,10 +81,13 @@ class DriftingView:
         self.node, self.emu = node, emu
         self.kinematic = kinematic or (lambda pan, tilt: (pan, tilt))
         self.peer = rclpy.create_node('peer', context=context)
-        self.fixes: list = []
+        self.fixes: list = []           # valid fixations (id >= 0)
+        self.no_fixes: list = []        # the node's "no valid fixation at this stamp" messages (id -1)
         self.joints: list = []
         self.truth: dict[tuple[int, int], tuple[float, float, float, float]] = {}
-        self.peer.create_subscription(PointStamped, '/fixego/right/fixation', self.fixes.append, RELIABLE_QOS)
+        self.peer.create_subscription(PointStamped, '/fixego/right/fixation',
+                                      lambda m: (self.fixes if m.point.z >= 0 else self.no_fixes).append(m),
+                                      RELIABLE_QOS)
         self.peer.create_subscription(JointState, '/fixego/right/joint_states', self.joints.append, RELIABLE_QOS)
         self.pub = self.peer.create_publisher(Image, '/fixego/right/image_raw', SENSOR_QOS)
         self.view = SyntheticView(node.rig.camera('right'), seed=seed)

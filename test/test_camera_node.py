@@ -128,12 +128,19 @@ def test_passive_node_tracks_without_serial(ros_context, rig_file):
             img = flat if k < 3 else view.render(0.0, 0.0, ox=2.0 * k, oy=0.0)
             img_pub.publish(array_to_image(img, sec_to_stamp(t), 'left_optical_frame'))
             spin_until(ex, lambda: False, timeout_s=0.03, step_s=0.005)
-        assert spin_until(ex, lambda: len(fixes) >= 10, timeout_s=3.0)
-        # flat frames have no fixation: nothing published for them (never NaN)
-        assert all(f.header.stamp.sec + 1e-9 * f.header.stamp.nanosec > 100.09 for f in fixes)
-        assert all(math.isfinite(f.point.x) and math.isfinite(f.point.y) for f in fixes)
+        # exactly one fixation message per image, at the image's stamp, so flow_node never waits for one
+        assert spin_until(ex, lambda: len(fixes) >= 15, timeout_s=3.0)
+        spin_until(ex, lambda: False, timeout_s=0.1)
+        sent = [sec_to_stamp(100.0 + k / 30) for k in range(15)]
+        assert [(f.header.stamp.sec, f.header.stamp.nanosec) for f in fixes] == [(t.sec, t.nanosec) for t in sent]
+        assert all(f.header.frame_id == 'left_optical_frame' for f in fixes)
+        # flat frames have no valid fixation: the explicit "none" (id -1, x = y = 0, never NaN) at their stamps
+        none, valid = fixes[:3], fixes[3:]
+        assert all((f.point.x, f.point.y, f.point.z) == (0.0, 0.0, -1.0) for f in none)
+        assert all(f.point.z >= 0 and math.isfinite(f.point.x) and math.isfinite(f.point.y) for f in valid)
+        assert node.stats['frames_without_fixation'] == 3
         # the scene drifts +2 px/frame (ox) in the image: the tracked pixel follows it exactly
-        xs = [f.point.x for f in fixes]
+        xs = [f.point.x for f in valid]
         assert np.allclose(np.diff(xs), 2.0, atol=0.05)
         assert len(node.history) >= 10 and all(len(j.name) == 2 for j in joints_seen)
         assert len(joints_seen) == 15     # only ours: a passive node publishes no joint states

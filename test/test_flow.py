@@ -19,10 +19,13 @@ from fixego_ros.pipeline.frontend import (
     KeyframePolicy,
     StereoFrontEnd,
 )
+from fixego_ros.pipeline.observation import observation_to_rows, rows_to_observation
+from fixego_ros.pipeline.sync import StereoSync, SyncParams
 from fixego_ros.sim.render import Renderer, project_points
 from fixego_ros.sim.run import resize_rig
 from fixego_ros.sim.trajectories import AREA_CENTRE, TRIPOD_HEIGHT, attitude
 from fixego_ros.sim.world import make_room
+from fixego_ros.tracking.fixation import NO_FIXATION_ID
 from fixego_ros.tracking.flow import FlowParams, track_flow
 
 # what these tests were written against (the dataclass defaults before they became the node's): the flow window
@@ -316,3 +319,32 @@ def test_wrong_image_size_bad_joints_and_no_fixation(small_rig):
                 assert np.all(np.isfinite(cam.cam_to_rig))
     assert set(fe.stats) >= {'right.status', 'right.kept', 'left.fb', 'left.ncc'}
     assert fe.last_counts['right'].kept == len(o5.right.flow_prev)
+
+
+def test_a_camera_without_fixation_reaches_the_estimator_input_without_one(small_rig):
+    """flow_node's path: the synchroniser completes the frame at once on the left camera's id -1 message, and the
+    estimator's input (the observation, and its rows on flow/observation) has the left camera without a fixation
+    ray and with fixation id -1, its flow still there; the right camera keeps its fixation."""
+    sync = StereoSync(SyncParams(max_wait_s=0.25))
+    fe = StereoFrontEnd(small_rig, WINDOW, CONSECUTIVE)
+    obs = []
+    for k in range(2):
+        t = 1.0 + k / 30
+        for side, sample in synthetic_samples(k).items():
+            sync.add_image(side, t, sample.gray, now=t)
+            sync.add_joints(side, t - 0.01, sample.pan, sample.tilt)
+            sync.add_joints(side, t + 0.01, sample.pan, sample.tilt)
+            if side == 'left' and k == 1:
+                sync.add_fixation(side, t, (0.0, 0.0), NO_FIXATION_ID)
+            else:
+                sync.add_fixation(side, t, sample.fixation_px, sample.fixation_id)
+        (frame,) = sync.pop_ready(now=t)                       # no wait: complete at arrival
+        obs.append(fe.process(frame.stamp, {s: CameraSample(c.image, c.pan, c.tilt, c.fixation_px, c.fixation_id)
+                                            for s, c in frame.cameras.items()}))
+    o = obs[1]
+    assert o.left.fixation_ray is None and o.left.fixation_id == NO_FIXATION_ID and len(o.left.flow_prev) > 50
+    assert o.right.fixation_ray is not None and o.right.fixation_id == 1
+    back = rows_to_observation(o.stamp, observation_to_rows(o))
+    assert back.left.fixation_ray is None and back.left.fixation_id == NO_FIXATION_ID
+    assert back.right.fixation_id == 1 and len(back.left.flow_prev) == len(o.left.flow_prev)
+    assert sync.stats.no_fixation == 1 and sync.stats.fixation_timeouts == 0 and sync.stats.stereo_frames == 2

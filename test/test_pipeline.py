@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -10,6 +11,7 @@ import pytest
 from fixego_ros.estimation.estimator import Estimator, FrameObservation, papers_config
 from fixego_ros.estimation.status import StepStatus
 from fixego_ros.experiments.point_scene import PRESETS, PointScene, random_motion_sequence
+from fixego_ros.pipeline.messages import fixation_from_msg
 from fixego_ros.pipeline.observation import (
     KIND_FLOW,
     KIND_TRACK,
@@ -19,6 +21,7 @@ from fixego_ros.pipeline.observation import (
     rows_to_observation,
 )
 from fixego_ros.pipeline.sync import StereoSync, SyncParams
+from fixego_ros.tracking.fixation import NO_FIXATION_ID
 
 
 def _feed(sync: StereoSync, side: str, t: float, now: float, joints=True, fix=True, fid=0) -> None:
@@ -72,6 +75,61 @@ def test_sync_bounded_waits_give_single_camera_and_no_fixation_frames():
     sync.add_image('left', 2.0, 'l', now=1.0)
     assert sync.pop_ready(now=1.5) == []
     assert sync.stats.no_joints == 1
+
+
+def test_sync_completes_at_once_on_an_explicit_no_fixation_and_still_waits_without_any_message():
+    """camera_node's id -1 message completes the camera's part of the frame at once (no wait, no fixation); a
+    stream without it (an older bag) still waits max_wait_s, then the camera enters without a fixation."""
+    sync = StereoSync(SyncParams(max_wait_s=0.25))
+    _feed(sync, 'right', 1.0, now=0.0, fid=4)
+    _feed(sync, 'left', 1.0, now=0.0, fix=False)
+    assert sync.add_fixation('left', 1.0, (0.0, 0.0), NO_FIXATION_ID)
+    (frame,) = sync.pop_ready(now=0.0)                 # no time has passed: nothing waited
+    r, left = frame.cameras['right'], frame.cameras['left']
+    assert r.fixation_px == (320.0, 240.0) and r.fixation_id == 4
+    assert left is not None and left.fixation_px is None and left.fixation_id == NO_FIXATION_ID
+    assert left.pan == pytest.approx(0.1)
+    assert sync.stats.stereo_frames == 1 and sync.stats.no_fixation == 1 and sync.stats.fixation_timeouts == 0
+    # the same frame without the message: held back for max_wait_s
+    _feed(sync, 'right', 2.0, now=1.0)
+    _feed(sync, 'left', 2.0, now=1.0, fix=False)
+    assert sync.pop_ready(now=1.2) == []
+    (frame,) = sync.pop_ready(now=1.3)
+    assert frame.cameras['left'].fixation_px is None and frame.cameras['left'].fixation_id == NO_FIXATION_ID
+    assert sync.stats.no_fixation == 2 and sync.stats.fixation_timeouts == 1
+    # an explicit none with a non-finite pixel is still none (the pixel is not used); a NaN stamp is rejected
+    _feed(sync, 'right', 3.0, now=2.0, fix=False)
+    _feed(sync, 'left', 3.0, now=2.0)
+    assert sync.add_fixation('right', 3.0, (float('nan'), 0.0), NO_FIXATION_ID)
+    assert not sync.add_fixation('right', float('nan'), None, NO_FIXATION_ID)
+    (frame,) = sync.pop_ready(now=2.0)
+    assert frame.cameras['right'].fixation_px is None and sync.stats.rejected == 1
+
+
+def test_sync_does_not_wait_for_a_fixation_once_the_cameras_next_one_is_in():
+    """A camera's fixation messages come in stamp order: one for a later stamp means its node never processed this
+    image (a dropped sensor-data sample), so no fixation will come for it."""
+    sync = StereoSync(SyncParams(max_wait_s=0.25))
+    _feed(sync, 'right', 1.0, now=0.0)
+    _feed(sync, 'left', 1.0, now=0.0, fix=False)                # left's node never saw this image
+    assert sync.pop_ready(now=0.05) == []
+    _feed(sync, 'right', 1.1, now=0.06)
+    _feed(sync, 'left', 1.1, now=0.06)                          # its next fixation arrives
+    frames = sync.pop_ready(now=0.06)
+    assert [f.stamp for f in frames] == [1.0, 1.1]
+    assert frames[0].cameras['left'].fixation_px is None and frames[1].cameras['left'].fixation_id == 0
+    assert sync.stats.fixation_skipped == 1 and sync.stats.fixation_timeouts == 0 and sync.stats.no_fixation == 1
+
+
+def test_fixation_message_parsing():
+    def msg(x, y, z):
+        return SimpleNamespace(point=SimpleNamespace(x=x, y=y, z=z))
+
+    assert fixation_from_msg(msg(10.5, 20.25, 3.0)) == ((10.5, 20.25), 3)
+    assert fixation_from_msg(msg(0.0, 0.0, -1.0)) == (None, NO_FIXATION_ID)
+    for bad in (msg(1.0, 2.0, float('nan')), msg(float('nan'), 2.0, 0.0), msg(1.0, float('inf'), 5.0)):
+        with pytest.raises(ValueError):
+            fixation_from_msg(bad)
 
 
 def test_sync_partner_past_means_no_wait_and_late_images_dropped():

@@ -14,7 +14,7 @@ from fixego_ros.geometry.rotation import Pose
 from fixego_ros.sim.render import Renderer, project_points
 from fixego_ros.sim.trajectories import attitude, make_trajectory
 from fixego_ros.sim.world import World, make_plane, make_room
-from fixego_ros.tracking.fixation import FixationTracker
+from fixego_ros.tracking.fixation import NO_FIXATION_ID, FixationTracker
 from fixego_ros.tracking.servo import JointHistory, centring_angles
 from fixego_ros.tracking.vergence import (
     VergenceParams,
@@ -405,6 +405,25 @@ def test_scheduler_start_up_right_fixation_request_and_period_triggers():
     assert s.due(143.9) is None and s.due(144.0) == 'period'          # 30 s after the last start
     assert s.attempts == 3 and s.successes == 3 and s.failures == 0
     assert s.triggers['start'] == 1 and s.triggers['right_fixation'] == 1 and s.triggers['request'] == 1
+
+
+def test_scheduler_and_step_ignore_the_right_cameras_no_fixation_messages():
+    """The right node's id -1 ("no valid fixation at this stamp", e.g. it lost its point for a frame) is not a new
+    right fixation point: 7, -1, 7 triggers nothing; 7, -1, 8 triggers once (8 is new against 7, not against -1).
+    A running step does not take it for a right pixel either (it would read as the right re-selecting)."""
+    s = VergenceScheduler(VergenceSchedule(min_interval_s=0.0), now=0.0)
+    s.started(s.due(0.0), 0.0)
+    s.finished(True, 1.0)
+    assert not s.on_right_fixation(7, 2.0)
+    assert not s.on_right_fixation(NO_FIXATION_ID, 2.1) and s.right_id == 7
+    assert not s.on_right_fixation(7, 2.2)
+    assert s.due(2.3) is None and s.triggers['right_fixation'] == 0
+    assert not s.on_right_fixation(NO_FIXATION_ID, 2.4)
+    assert s.on_right_fixation(8, 2.5) and s.due(2.5) == 'right_fixation' and s.triggers['right_fixation'] == 1
+    step = VergenceStep(make_rig(320, 240), JointHistory())
+    step.add_right_fixation(1.0, (160.0, 120.0), 8)
+    step.add_right_fixation(1.1, (0.0, 0.0), NO_FIXATION_ID)
+    assert [f[2] for f in step.right_fix] == [8]
 
 
 def test_scheduler_ignores_and_counts_triggers_while_a_step_runs_and_coalesces_waiting_ones():

@@ -4,9 +4,10 @@
 ``camera_node``s run as separate processes on the emulated VISCA heads' pseudo-terminals, as in ``fixego
 demo``. Every ``/fixego/vergence`` message is compared with the simulator: the true distance is the ray cast
 from the right camera centre along the published direction at the message's stamp. The left fixation's
-interruption per step is measured from ``/fixego/left/fixation``: the time without any left fixation message,
-and the time between the last frame of the left's own point before the step and the first frame of its own new
-point after it (the partner point the step fixated is the id the left camera had at the measurement's stamp).
+interruption per step is measured from ``/fixego/left/fixation``: the time without a valid left fixation (its id
+-1 "no valid fixation" messages do not count), and the time between the last frame of the left's own point before
+the step and the first frame of its own new point after it (the partner point the step fixated is the id the left
+camera had at the measurement's stamp).
 Prints one line per step and a summary; ``--json`` writes them with the raw fixations, joint states, true poses
 and true head angles per frame. The figures in the README's vergence section come from this.
 """
@@ -46,7 +47,7 @@ class _RecordingTrajectory:
 
 
 def _interruptions(fixes: list[tuple[float, int]], partner_id: int, frame_s: float) -> tuple[float, float] | None:
-    """For the step that fixated ``partner_id``: (time without any left fixation message, time from the last frame
+    """For the step that fixated ``partner_id``: (time without a valid left fixation, time from the last frame
     of the left's own point before it to the first frame of its own new point after it); None when the run
     ended before the left camera had its own point again. A gap counts from one frame period after a frame."""
     before = [t for t, i in fixes if i < partner_id]
@@ -177,7 +178,7 @@ def run(args: argparse.Namespace) -> dict:
         probe.destroy_node()
         sim.destroy_node()
         rclpy.try_shutdown()
-    fixes = [(t, i) for t, i, _, _ in left_px]
+    fixes = [(t, i) for t, i, _, _ in left_px if i >= 0]      # id -1: the left's "no valid fixation" message
     fix_at = {round(t, 6): i for t, i in fixes}
     steps = []
     for m in got:
@@ -223,8 +224,8 @@ def summary(res: dict) -> str:
     gaps = [s['no_fixation_s'] for s in steps if s.get('no_fixation_s') is not None]
     away = [s['away_s'] for s in steps if s.get('away_s') is not None]
     if gaps:
-        lines.append(f'  no left fixation published: mean {np.mean(gaps):.2f} s, max {np.max(gaps):.2f} s; own point '
-                     f'left: mean {np.mean(away):.2f} s, max {np.max(away):.2f} s')
+        lines.append(f'  no valid left fixation published: mean {np.mean(gaps):.2f} s, max {np.max(gaps):.2f} s; '
+                     f'own point left: mean {np.mean(away):.2f} s, max {np.max(away):.2f} s')
     lines += [f'  failure: {f}' for f in res.get('failures', [])]
     d = res['diagnostics']
     if d:

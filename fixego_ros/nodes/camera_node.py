@@ -3,8 +3,10 @@ pan/tilt head to keep it at the image centre; publishes joint states at image st
 
 Topics (namespace /fixego, see README): subscribes ``<side>/image_raw`` (unless ``video_device``),
 in passive mode also ``<side>/joint_states``; publishes ``<side>/joint_states`` (active mode),
-``<side>/fixation`` (geometry_msgs/PointStamped: x, y = pixel, z = fixation id; nothing is published
-for a frame without a valid fixation) and ``/diagnostics``. Services ``~/reselect``, ``~/home``.
+``<side>/fixation`` (geometry_msgs/PointStamped, exactly one per processed image, stamp = the image's: x, y = pixel,
+z = fixation id >= 0; for a frame without a valid fixation - the tracker lost it, or a vergence step drives the
+left head - x = y = 0 and z = -1, so flow_node completes the frame at once instead of waiting for a fixation that
+will not come) and ``/diagnostics``. Services ``~/reselect``, ``~/home``.
 
 Joint states (active mode): one per image, stamped with the image stamp. ``joint_mode`` ``predict`` (default)
 publishes at once: interpolated between the PosInq readings around the stamp when the one after it is in, else
@@ -75,9 +77,9 @@ from fixego_ros.nodes.common import (
     transform_msg,
     vergence_to_msg,
 )
-from fixego_ros.pipeline.messages import pan_tilt
+from fixego_ros.pipeline.messages import fixation_from_msg, pan_tilt
 from fixego_ros.pipeline.params import CAMERA_NODE_PARAMS, FIXATION_PARAMS, Getter, ParamsError, fixation_params
-from fixego_ros.tracking.fixation import FixationTracker, LimitCheck
+from fixego_ros.tracking.fixation import NO_FIXATION_ID, FixationTracker, LimitCheck
 from fixego_ros.tracking.joint_prediction import JointSource
 from fixego_ros.tracking.servo import FixationServo, JointHistory, ServoLoop, ServoParams, Target
 from fixego_ros.tracking.vergence import (
@@ -304,7 +306,8 @@ class CameraNode(Node):
             self._vergence_stamps[t] = msg.header.stamp
             act = step.on_left_image(t, gray, self._now())
             self._vergence_tick()
-            if act.kind == 'hold':     # the step drives the head: no tracking, no fixation published
+            if act.kind == 'hold':     # the step drives the head: no tracking, "no valid fixation" published
+                self._publish_fixation(msg.header.stamp, None, NO_FIXATION_ID)
                 if self.loop is not None and act.aim is not None:
                     self.loop.set_target(self._aim_target(act.aim))
                 return
@@ -328,21 +331,30 @@ class CameraNode(Node):
         if not st.valid:
             self.stats['frames_without_fixation'] += 1
             self.once.warn('fixation', f'no valid fixation point ({st.reason})')
+            self._publish_fixation(msg.header.stamp, None, NO_FIXATION_ID)
             if self.loop is not None:
                 self.loop.set_target(None)
             return
         self.once.clear('fixation', 'fixation point valid again')
-        out = PointStamped()
-        out.header.stamp = msg.header.stamp
-        out.header.frame_id = self.frame_id
-        out.point.x, out.point.y, out.point.z = float(st.pixel[0]), float(st.pixel[1]), float(st.fixation_id)
-        self.pub_fix.publish(out)
+        self._publish_fixation(msg.header.stamp, st.pixel, st.fixation_id)
         if self.loop is not None:
             if joints is None:
                 self.once.warn('joints', 'no recent pan/tilt reading: not servoing')
                 return
             self.once.clear('joints')
             self.loop.set_target(self.servo.target(st.pixel, joints, t, self._now()))
+
+    def _publish_fixation(self, stamp, pixel: tuple[float, float] | None, fixation_id: int) -> None:
+        """One message per processed image, so flow_node never waits for one that will not come: the pixel and
+        id, or for no valid fixation x = y = 0, z = NO_FIXATION_ID (-1; never NaN)."""
+        out = PointStamped()
+        out.header.stamp = stamp
+        out.header.frame_id = self.frame_id
+        if pixel is None:
+            out.point.x, out.point.y, out.point.z = 0.0, 0.0, float(NO_FIXATION_ID)
+        else:
+            out.point.x, out.point.y, out.point.z = float(pixel[0]), float(pixel[1]), float(fixation_id)
+        self.pub_fix.publish(out)
 
     def _set_horizon(self, seconds: float) -> None:
         pred = self.loop.predictor
@@ -491,13 +503,18 @@ class CameraNode(Node):
             self.vergence.add_right_image(stamp_to_sec(msg.header.stamp), gray)
 
     def _on_right_fixation(self, msg: PointStamped) -> None:
-        if not (math.isfinite(msg.point.x) and math.isfinite(msg.point.y) and math.isfinite(msg.point.z)):
+        """A right fixation pixel: a new id may trigger a step, a running step uses it. The right node's "no valid
+        fixation" (id -1) is neither a new fixation point nor a pixel: ignored."""
+        try:
+            pixel, fid = fixation_from_msg(msg)
+        except ValueError:
+            return
+        if pixel is None:
             return
         if self.scheduler is not None:
-            self.scheduler.on_right_fixation(int(msg.point.z), self._now())
+            self.scheduler.on_right_fixation(fid, self._now())
         if self.vergence is not None:
-            self.vergence.add_right_fixation(stamp_to_sec(msg.header.stamp), (msg.point.x, msg.point.y),
-                                             int(msg.point.z))
+            self.vergence.add_right_fixation(stamp_to_sec(msg.header.stamp), pixel, fid)
 
     def _on_right_joints(self, msg: JointState) -> None:
         try:

@@ -72,7 +72,10 @@ class Recorder(Node):
         self.stage_s[stage].append(self._now() - stamp_to_sec(stamp))
 
     def _on_fixation(self, side: str, msg: PointStamped) -> None:
-        self.fixations.update([side])
+        """Counts valid fixations only (the demo waits for both); the arrival time of every message, the "no valid
+        fixation" ones (z < 0) too: each is what lets flow_node complete a frame."""
+        if msg.point.z >= 0:
+            self.fixations.update([side])
         self._arrived(f'fixation_{side}', msg.header.stamp)
 
     def _on_observation(self, data: bytes) -> None:

@@ -2,7 +2,9 @@
 
 Topics are relative names in the node namespace (default ``/fixego``). Subscribes each camera's
 ``<side>/image_raw`` (sensor-data QoS), ``joint_states`` and ``fixation`` (from
-``camera_node``), matches them by stamp (:class:`~fixego_ros.pipeline.sync.StereoSync`, bounded waits),
+``camera_node``: a pixel, or id -1 for "no valid fixation at this stamp"), matches them by stamp
+(:class:`~fixego_ros.pipeline.sync.StereoSync`, bounded waits; an image whose fixation message never comes, as in
+bags recorded before camera_node sent the id -1 message, waits ``max_wait_s``),
 keeps persistent point tracks in a window around each fixation point (pyramidal Lucas-Kanade frame to
 frame from positions predicted by the pan/tilt readings and the rig's angular velocity, epipolar RANSAC)
 and turns every point into rig-frame rays with the pan/tilt of its frame
@@ -24,7 +26,6 @@ import sys
 import time
 from collections import deque
 
-import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PointStamped
 from rclpy.node import Node
@@ -50,7 +51,7 @@ from fixego_ros.nodes.common import (
     table_to_cloud,
 )
 from fixego_ros.pipeline.frontend import CameraSample, StereoFrontEnd
-from fixego_ros.pipeline.messages import gray_for_camera, pan_tilt
+from fixego_ros.pipeline.messages import fixation_from_msg, gray_for_camera, pan_tilt
 from fixego_ros.pipeline.observation import observation_to_rows
 from fixego_ros.pipeline.params import FLOW_NODE_PARAMS, Getter, flow_params, keyframe_policy, sync_params
 from fixego_ros.pipeline.sync import StereoSync
@@ -137,9 +138,15 @@ class FlowNode(Node):
         self._drain()
 
     def _on_fixation(self, side: str, msg: PointStamped) -> None:
-        p = msg.point
-        fid = round(p.z) if np.isfinite(p.z) else -1
-        if not self.sync.add_fixation(side, stamp_to_sec(msg.header.stamp), (p.x, p.y), fid):
+        """A fixation pixel, or the camera's "no valid fixation at this stamp" (id -1): either completes the
+        camera's part of the frame, so the synchroniser does not wait for a fixation that will not come."""
+        try:
+            pixel, fid = fixation_from_msg(msg)
+        except ValueError as e:
+            self.sync.stats.rejected += 1
+            self.once.warn(f'fixation_bad_{side}', f'{side} fixation ignored: {e}')
+            return
+        if not self.sync.add_fixation(side, stamp_to_sec(msg.header.stamp), pixel, fid):
             self.once.warn(f'fixation_bad_{side}', f'{side} fixation non-finite or late: ignored')
         self._drain()
 
@@ -192,6 +199,8 @@ class FlowNode(Node):
         values.update({'frames': s.frames, 'stereo_frames': s.stereo_frames,
                        'single_camera_frames': s.single_camera_frames, 'late_images': s.late_images,
                        'overflow_images': s.overflow_images, 'no_joints': s.no_joints, 'no_fixation': s.no_fixation,
+                       'fixation_skipped': s.fixation_skipped, 'fixation_timeouts': s.fixation_timeouts,
+                       'partner_timeouts': s.partner_timeouts,
                        'rejected_inputs': s.rejected, 'preset': self.flow_params.preset,
                        'slop_s_used': f'{self.sync.slop_s:.4f}'})
         values.update(self.frontend.stats)     # each camera's last status, reason and point counts

@@ -5,12 +5,14 @@ The nodes and the offline replay both convert with these, so a bag and a live to
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
 
 from fixego_ros.geometry.rig import CameraModel
 from fixego_ros.geometry.rotation import Pose, from_quat_xyzw
+from fixego_ros.tracking.fixation import NO_FIXATION_ID
 
 # encoding -> (bytes per pixel, how it becomes grey). ROS's ``yuv422`` is UYVY (U Y V Y per two pixels) and
 # ``yuv422_yuy2`` is YUYV; grey is their Y. ``mono16`` keeps its high byte (>> 8): the tracker works on 8 bits,
@@ -104,3 +106,19 @@ def pan_tilt(msg: Any, side: str) -> tuple[float, float]:
         return float(msg.position[i]), float(msg.position[j])
     except (ValueError, IndexError):
         raise ValueError(f'{side} joint_states without {side}_pan and {side}_tilt positions') from None
+
+
+def fixation_from_msg(msg: Any) -> tuple[tuple[float, float] | None, int]:
+    """(pixel, fixation id) of a ``<side>/fixation`` geometry_msgs/PointStamped: x, y = pixel, z = id. A negative
+    z is camera_node's explicit "no valid fixation at this stamp" (z = -1, x = y = 0): (None, NO_FIXATION_ID).
+    ValueError for a non-finite id, or a non-finite pixel with a valid id."""
+    p = msg.point
+    z = float(p.z)
+    if not math.isfinite(z):
+        raise ValueError(f'non-finite fixation id {z}')
+    if z < 0:
+        return None, NO_FIXATION_ID
+    x, y = float(p.x), float(p.y)
+    if not (math.isfinite(x) and math.isfinite(y)):
+        raise ValueError(f'non-finite fixation pixel ({x}, {y})')
+    return (x, y), round(z)

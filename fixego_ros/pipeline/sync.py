@@ -2,8 +2,14 @@
 
 ``message_filters`` is not available as a wheel, and the flow node needs more than a pair matcher: a
 frame is ready only when each camera's pan/tilt at its image stamp is known (the joint state may
-arrive after the image) and its fixation pixel has arrived or will not come (camera nodes publish no
-fixation for a frame without one). Every wait is bounded by ``max_wait_s`` of the caller's clock, so
+arrive after the image) and its fixation message has arrived: a pixel, or camera_node's explicit "no valid
+fixation at this stamp" (id :data:`~fixego_ros.tracking.fixation.NO_FIXATION_ID`), which completes the camera at
+once, without one. A camera's fixation messages come in stamp order (its node processes its images in order), so
+one for a later stamp also says this one will not come (its node never got the image: a dropped sensor-data
+sample): the camera enters without a fixation at once (``fixation_skipped``). A stream that sends nothing for
+frames without a fixation (bags recorded before camera_node published the explicit message) still works: the
+camera waits until a later fixation arrives or ``max_wait_s`` has passed (``fixation_timeouts``), and enters the
+frame without one. Every wait is bounded by ``max_wait_s`` of the caller's clock, so
 a silent stream degrades to single-camera frames or frames without a fixation, never to a stall.
 Frames come out in stamp order; anything older than the last emitted frame is dropped and counted.
 
@@ -23,6 +29,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from fixego_ros.geometry.rig import SIDES
+from fixego_ros.tracking.fixation import NO_FIXATION_ID
 from fixego_ros.tracking.servo import JointHistory
 
 AUTO_SLOP_MIN_S, AUTO_SLOP_MAX_S = 0.001, 0.05   # bounds of the automatic slop (half the frame period)
@@ -78,6 +85,9 @@ class SyncStats:
     overflow_images: int = 0                   # queue full: oldest dropped
     no_joints: int = 0                         # camera dropped from a frame: no pan/tilt at its stamp
     no_fixation: int = 0                       # camera in a frame without a fixation pixel
+    fixation_skipped: int = 0                  # ... of which its camera's next message came first (image not seen)
+    fixation_timeouts: int = 0                 # ... of which after waiting max_wait_s for a message that never came
+    partner_timeouts: int = 0                  # single-camera frames after waiting max_wait_s for the other image
     rejected: int = 0                          # non-finite stamps/values
 
 
@@ -97,7 +107,9 @@ class StereoSync:
         self._last_stamp: dict[str, float] = {}
         self._images: dict[str, deque[_Pending]] = {s: deque() for s in SIDES}
         self._joints: dict[str, JointHistory] = {s: JointHistory(maxlen=2048) for s in SIDES}
-        self._fix: dict[str, dict[float, tuple[tuple[float, float], int]]] = {s: {} for s in SIDES}
+        # stamp -> (pixel, id); (None, NO_FIXATION_ID) = the camera said it has no fixation at that stamp
+        self._fix: dict[str, dict[float, tuple[tuple[float, float] | None, int]]] = {s: {} for s in SIDES}
+        self._fix_newest: dict[str, float] = dict.fromkeys(SIDES, -math.inf)    # newest fixation stamp per camera
         self._last_emitted = -math.inf
 
     @property
@@ -150,14 +162,18 @@ class StereoSync:
         self._joints[side].add(stamp, pan, tilt)
         return True
 
-    def add_fixation(self, side: str, stamp: float, pixel: tuple[float, float], fixation_id: int) -> bool:
-        if not all(math.isfinite(v) for v in (stamp, *pixel)):
+    def add_fixation(self, side: str, stamp: float, pixel: tuple[float, float] | None, fixation_id: int) -> bool:
+        """The fixation at an image stamp; ``pixel`` None or a negative id: no valid fixation there (the camera
+        completes without waiting). False (non-finite values counted) when rejected or late."""
+        none = pixel is None or fixation_id < 0
+        if not (math.isfinite(stamp) and (none or all(math.isfinite(v) for v in pixel))):
             self.stats.rejected += 1
             return False
+        self._fix_newest[side] = max(self._fix_newest[side], stamp)
         if stamp <= self._last_emitted:
             return False
         fix = self._fix[side]
-        fix[stamp] = ((float(pixel[0]), float(pixel[1])), int(fixation_id))
+        fix[stamp] = (None, NO_FIXATION_ID) if none else ((float(pixel[0]), float(pixel[1])), int(fixation_id))
         if len(fix) > 4 * self.params.max_queue:
             for k in sorted(fix)[: len(fix) - 4 * self.params.max_queue]:
                 del fix[k]
@@ -184,12 +200,14 @@ class StereoSync:
         for s, h in heads.items():
             if abs(h.stamp - first.stamp) <= slop:
                 members[s] = h
+        partner_timeout = False
         if len(members) < len(SIDES):
             # a partner may still come: wait unless the other camera is already past this stamp
             missing = [s for s in SIDES if s not in members]
             partner_past = all(self._images[s] and self._images[s][0].stamp > first.stamp + slop
                                for s in missing)
-            if not (flush or partner_past or now - first.arrived > p.max_wait_s):
+            partner_timeout = not (flush or partner_past)
+            if partner_timeout and now - first.arrived <= p.max_wait_s:
                 return None
         cameras: dict[str, SyncedCamera | None] = {s: None for s in SIDES}
         for s, m in members.items():
@@ -206,6 +224,7 @@ class StereoSync:
         if not present:
             return self._next(now, flush)        # nothing usable in this frame: move on
         self.stats.frames += 1
+        self.stats.partner_timeouts += partner_timeout
         if len(present) == 2:
             self.stats.stereo_frames += 1
         else:
@@ -222,18 +241,24 @@ class StereoSync:
             joints = hist.at(m.stamp, max_extrapolation_s=0.0)
         elif latest is not None and m.stamp - latest[0] <= p.joint_extrapolation_s:
             joints = hist.at(m.stamp, max_extrapolation_s=p.joint_extrapolation_s)
-        fix = self._fixation_at(side, m.stamp)
-        if (joints is None or fix is None) and not expired:
-            return _WAIT    # a fixation pixel never comes for a frame without one: wait only while bounded
+        fix = self._fixation_at(side, m.stamp)      # None: no message yet (an explicit "none" is not None)
+        superseded = fix is None and self._fix_newest[side] > m.stamp + p.fixation_tolerance_s
+        if (joints is None or (fix is None and not superseded)) and not expired:
+            return _WAIT    # an older stream sends no fixation message for a frame without one: wait, bounded
         if joints is None:
             self.stats.no_joints += 1
             return None
         if fix is None:
+            if superseded:
+                self.stats.fixation_skipped += 1
+            else:
+                self.stats.fixation_timeouts += 1
+        px, fid = fix if fix is not None else (None, NO_FIXATION_ID)
+        if px is None:
             self.stats.no_fixation += 1
-        px, fid = fix if fix is not None else (None, -1)
         return SyncedCamera(m.stamp, m.image, float(joints[0]), float(joints[1]), px, fid)
 
-    def _fixation_at(self, side: str, stamp: float) -> tuple[tuple[float, float], int] | None:
+    def _fixation_at(self, side: str, stamp: float) -> tuple[tuple[float, float] | None, int] | None:
         fix = self._fix[side]
         if stamp in fix:
             return fix[stamp]

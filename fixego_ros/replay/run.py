@@ -73,7 +73,7 @@ from fixego_ros.pipeline.params import (
     sync_params,
 )
 from fixego_ros.pipeline.sync import StereoSync, SyncedFrame, SyncParams
-from fixego_ros.tracking.fixation import FixationParams, FixationTracker
+from fixego_ros.tracking.fixation import NO_FIXATION_ID, FixationParams, FixationTracker
 from fixego_ros.tracking.flow import FlowParams
 
 IMAGE_TYPES = ('sensor_msgs/msg/Image', 'sensor_msgs/msg/CompressedImage')
@@ -509,9 +509,9 @@ def replay(bag: Bag, rig: Rig, settings: ReplaySettings, topics: ReplayTopics = 
                 fix = trackers[side].update(gray, stamp)
                 clock('fixation', t0)
                 sync.add_image(side, stamp, gray, max(now, stamp))
-                if fix.valid:
-                    sync.add_fixation(side, stamp, fix.pixel, fix.fixation_id)
-                else:
+                # as camera_node: a fixation or an explicit "none" for every image (the frame need not wait)
+                sync.add_fixation(side, stamp, fix.pixel, fix.fixation_id if fix.valid else NO_FIXATION_ID)
+                if not fix.valid:
                     res.counts[f'no_fixation:{side}'] += 1
                 if progress is not None:
                     progress(res.counts['images'])

@@ -22,6 +22,10 @@ import numpy as np
 
 from fixego_ros.geometry.rig import CameraModel
 
+# the fixation id of "no valid fixation": before the first selection, and on the fixation topic for a frame without
+# one (camera_node publishes one message per image; a valid id is >= 0)
+NO_FIXATION_ID = -1
+
 
 @dataclass
 class FixationParams:

@@ -469,7 +469,7 @@ class VergenceStep:
     The caller feeds the right camera's messages and each left frame, and calls :meth:`poll` (also from a timer,
     so timeouts fire without images). Bounds: ``wait_timeout_s`` on waiting, ``timeout_s`` from leaving the own
     point to the measurement, ``aim_timeout_s`` on each head move (the return included), ``hold_timeout_s`` on
-    gathering frames. :attr:`interrupted_s` is the time the left published no fixation (head driven by the
+    gathering frames. :attr:`interrupted_s` is the time the left published no valid fixation (head driven by the
     step), :attr:`away_s` the time from leaving its own point to selecting a new one."""
 
     def __init__(self, rig: Rig, left_history: JointHistory, params: VergenceParams | None = None,
@@ -501,7 +501,7 @@ class VergenceStep:
         self._note = ''             # what the converging phase is waiting for (for the timeout message)
         self._t_settled: float | None = None
         self.t_left: float | None = None      # left its own point (first head move)
-        self.t_fixating: float | None = None  # fixates the partner point (fixation published again)
+        self.t_fixating: float | None = None  # fixates the partner point (valid fixation published again)
         self.t_return: float | None = None    # head driven back
         self.t_back: float | None = None      # own point selected again
         self.finished = False       # head back, independent fixation resumed
@@ -518,6 +518,10 @@ class VergenceStep:
             self.right_images.append((t, gray))
 
     def add_right_fixation(self, t: float, pixel: tuple[float, float], fixation_id: int) -> None:
+        """A right fixation pixel; a negative id (the right camera's "no valid fixation") is no pixel: ignored,
+        else it would read as the right camera re-selecting its point."""
+        if fixation_id < 0:
+            return
         self.right_fix.append((t, (float(pixel[0]), float(pixel[1])), int(fixation_id)))
 
     def add_right_joints(self, t: float, pan: float, tilt: float) -> None:
@@ -540,7 +544,7 @@ class VergenceStep:
 
     @property
     def interrupted_s(self) -> float:
-        """Time the left camera published no fixation because the step drove its head (so far)."""
+        """Time the left camera published no valid fixation because the step drove its head (so far)."""
         if self.t_left is None:
             return 0.0
         end = self.t_back if self.t_back is not None else self.t_phase
@@ -947,7 +951,10 @@ class VergenceScheduler:
         return True
 
     def on_right_fixation(self, fixation_id: int, now: float) -> bool:
-        """The right camera's fixation id from its fixation topic: a new id (not the first seen) triggers."""
+        """The right camera's fixation id from its fixation topic: a new id (not the first seen) triggers. A negative
+        id ("no valid fixation at this stamp") is no fixation point: ignored, the id before it is kept."""
+        if fixation_id < 0:
+            return False
         prev, self.right_id = self.right_id, int(fixation_id)
         if prev is None or prev == self.right_id:
             return False
