@@ -23,22 +23,28 @@ class Interrupted(KeyboardInterrupt):
 @contextlib.contextmanager
 def signals_interrupt() -> Iterator[None]:
     """SIGINT and SIGTERM raise :class:`Interrupted` in the main thread, once: a second signal during the
-    (bounded) cleanup is ignored, so it cannot turn a clean stop into a traceback. The previous handlers come
-    back afterwards. Outside the main thread (where handlers cannot be set) it does nothing."""
+    (bounded) cleanup is ignored, so it cannot turn a clean stop into a traceback. A signal that lands inside C
+    code (e.g. pybind11 converting a return value) comes out wrapped in another exception (a TypeError): once the
+    signal has fired, whatever escapes the block is re-raised as the :class:`Interrupted` it is. The previous
+    handlers come back afterwards. Outside the main thread (where handlers cannot be set) it does nothing."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    fired = False
+    fired: int | None = None
 
     def handler(signum: int, _frame) -> None:
         nonlocal fired
-        if not fired:
-            fired = True
+        if fired is None:
+            fired = signum
             raise Interrupted(signum)
 
     previous = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
         yield
+    except BaseException as e:
+        if fired is not None and not isinstance(e, KeyboardInterrupt):
+            raise Interrupted(fired) from e
+        raise
     finally:
         for s, h in previous.items():
             signal.signal(s, signal.SIG_DFL if h is None else h)

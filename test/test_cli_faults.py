@@ -354,3 +354,16 @@ def test_replay_and_eval_outputs_and_numbers_checked_first(tmp_path, args, expec
                        cwd=tmp_path)
     assert p.returncode == 2 and expect in p.stderr and 'Traceback' not in p.stderr, p.stderr
     assert len(p.stderr.strip().splitlines()) == 1 and 'replayed' not in p.stdout
+
+
+def test_a_signal_that_c_code_wraps_still_comes_out_as_the_interrupt():
+    """SIGTERM landing inside pybind11 comes back as a TypeError caused by the Interrupted (seen once in
+    ``fixego sim``): signals_interrupt re-raises it as the interrupt, so the command exits 128 + 15, not 1."""
+    from fixego_ros.interrupt import Interrupted, signals_interrupt
+    with pytest.raises(Interrupted) as info, signals_interrupt():
+        try:
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(5.0)          # the handler raises at the next bytecode; bounded if it never comes
+        except Interrupted as e:
+            raise TypeError('Unable to convert function return value to a Python type!') from e
+    assert info.value.signum == signal.SIGTERM
