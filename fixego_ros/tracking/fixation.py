@@ -169,15 +169,8 @@ class FixationTracker:
         den = math.sqrt(float((a * a).sum()) * float((b * b).sum()))
         return float((a * b).sum() / den) if den > 1e-9 else 0.0
 
-    def _lk(self) -> dict:
-        p = self.params
-        return {'winSize': (p.lk_win, p.lk_win), 'maxLevel': p.lk_levels,
-                'criteria': (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)}
-
     def _follow(self, gray: np.ndarray) -> tuple[bool, np.ndarray, float, str]:
         """LK from the last pixel; when that fails, LK from where the template is found nearby."""
-        tr = self._track
-        assert tr is not None and self._prev is not None
         found = self._lk_check(gray, None)
         if found[0] or self.params.relocate_radius_px <= 0:
             return found
@@ -188,7 +181,8 @@ class FixationTracker:
         """LK of the fixation point (from ``guess`` when given) with the forward-backward and template checks."""
         p, tr = self.params, self._track
         assert tr is not None and self._prev is not None
-        lk = self._lk()
+        lk = {'winSize': (p.lk_win, p.lk_win), 'maxLevel': p.lk_levels,
+              'criteria': (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)}
         p0 = tr.pixel.reshape(1, 1, 2).astype(np.float32)
         if guess is None:
             p1, st1, _ = cv2.calcOpticalFlowPyrLK(self._prev, gray, p0, None, **lk)
@@ -197,8 +191,12 @@ class FixationTracker:
                                                   flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
         if p1 is None or not st1[0, 0]:
             return False, tr.pixel, 0.0, 'lost'
-        back, st2, _ = cv2.calcOpticalFlowPyrLK(gray, self._prev, p1, p0.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
-                                                **lk)
+        if guess is None:       # backward from where forward ended, as LK alone would
+            back, st2, _ = cv2.calcOpticalFlowPyrLK(gray, self._prev, p1, None, **lk)
+        else:                   # backward: the template's jump undone, LK's own refinement left to check
+            start = (p1 - (guess.reshape(1, 1, 2) - p0)).astype(np.float32)
+            back, st2, _ = cv2.calcOpticalFlowPyrLK(gray, self._prev, p1, start, flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+                                                    **lk)
         if back is None or not st2[0, 0] or float(np.linalg.norm(back - p0)) > p.fb_max_px:
             return False, tr.pixel, 0.0, 'lost'
         px = p1.reshape(2).astype(np.float64)
