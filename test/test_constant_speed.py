@@ -5,8 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from fixego_ros.estimation.config import EstimatorConfig
 from fixego_ros.estimation.constant_speed import PRIOR_REL_STD, ConstantSpeed
-from fixego_ros.estimation.estimator import Estimator, EstimatorConfig, fixations_of
+from fixego_ros.estimation.estimator import Estimator
+from fixego_ros.estimation.frames import fixations_of
 from fixego_ros.estimation.scale_anchor import ScaleAnchor
 from fixego_ros.experiments.landmark_scene import LandmarkScene, LandmarkSceneConfig
 from fixego_ros.geometry.rig import make_rig
