@@ -17,7 +17,7 @@ import numpy as np
 from fixego_ros.estimation.config import EstimatorConfig
 from fixego_ros.estimation.constant_speed import ConstantSpeed
 from fixego_ros.estimation.coplanarity import RayPairs
-from fixego_ros.estimation.covariance import VAR_MAX
+from fixego_ros.estimation.covariance import VAR_MAX, checked_measurement
 from fixego_ros.estimation.frames import Fixation, FrameObservation, FrameResult, fixations_of, step_pairs
 from fixego_ros.estimation.local_ba import BAProblem, BAResult, BATerm, refine_latest
 from fixego_ros.estimation.scale_anchor import ScaleAnchor
@@ -131,12 +131,7 @@ class Estimator:
     def add_velocity(self, stamp: float, v_rig: np.ndarray, cov_rig: np.ndarray) -> None:
         """External speed source: velocity of the rig origin (m/s) in the rig frame at ``stamp`` with its
         3x3 covariance. Raises ValueError on non-finite values or a stamp not after the previous one."""
-        v = np.asarray(v_rig, float).reshape(3)
-        cov = np.asarray(cov_rig, float).reshape(3, 3)
-        if not (math.isfinite(stamp) and np.all(np.isfinite(v)) and np.all(np.isfinite(cov))):
-            raise ValueError('velocity sample with non-finite stamp, velocity or covariance')
-        if np.any(np.linalg.eigvalsh(0.5 * (cov + cov.T)) <= 0):
-            raise ValueError('velocity covariance must be positive definite')
+        v, cov = checked_measurement(stamp, v_rig, cov_rig, 'velocity sample')
         self._speed.add(float(stamp), v, cov)
 
     def add_fixation_point(self, stamp: float, side: str, point_rig: np.ndarray, cov_rig: np.ndarray) -> None:
@@ -146,10 +141,7 @@ class Estimator:
         makes the path so far metric). Without the prior it is not used (noted in :meth:`scale_note`)."""
         if side not in SIDES:
             raise ValueError(f'side must be one of {SIDES}, got {side!r}')
-        point = np.asarray(point_rig, float).reshape(3)
-        cov = np.asarray(cov_rig, float).reshape(3, 3)
-        if not (math.isfinite(stamp) and np.all(np.isfinite(point)) and np.all(np.isfinite(cov))):
-            raise ValueError('fixation point with non-finite stamp, position or covariance')
+        point, cov = checked_measurement(stamp, point_rig, cov_rig, 'fixation point')
         if self._speed_prior is not None:
             self._start_anchor(float(stamp), side, point, cov)
         else:

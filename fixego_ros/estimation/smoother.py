@@ -26,7 +26,7 @@ import gtsam
 import numpy as np
 
 from fixego_ros.estimation.config import EstimatorConfig, SmootherConfig
-from fixego_ros.estimation.covariance import VAR_MAX
+from fixego_ros.estimation.covariance import VAR_MAX, checked_measurement
 from fixego_ros.estimation.factors import (
     CameraMount,
     ConstantTwist,
@@ -158,12 +158,7 @@ class Smoother:
     def add_velocity(self, stamp: float, v_rig: np.ndarray, cov_rig: np.ndarray) -> None:
         """External speed source: rig-origin velocity (m/s, rig frame at ``stamp``) with its 3x3 covariance.
         Raises ValueError on non-finite values, a covariance that is not positive definite or an old stamp."""
-        v = np.asarray(v_rig, float).reshape(3)
-        cov = np.asarray(cov_rig, float).reshape(3, 3)
-        if not (math.isfinite(stamp) and np.all(np.isfinite(v)) and np.all(np.isfinite(cov))):
-            raise ValueError('velocity sample with non-finite stamp, velocity or covariance')
-        if np.any(np.linalg.eigvalsh(0.5 * (cov + cov.T)) <= 0):
-            raise ValueError('velocity covariance must be positive definite')
+        v, cov = checked_measurement(stamp, v_rig, cov_rig, 'velocity sample')
         self._speed.add(float(stamp), v, cov)
 
     def add_fixation_point(self, stamp: float, side: str, point_rig: np.ndarray, cov_rig: np.ndarray) -> None:
@@ -171,12 +166,7 @@ class Smoother:
         Used once the frame at ``stamp`` is in the graph (at once if it already is and not yet marginalised)."""
         if side not in SIDES:
             raise ValueError(f'side must be one of {SIDES}, got {side!r}')
-        point = np.asarray(point_rig, float).reshape(3)
-        cov = np.asarray(cov_rig, float).reshape(3, 3)
-        if not (math.isfinite(stamp) and np.all(np.isfinite(point)) and np.all(np.isfinite(cov))):
-            raise ValueError('fixation point with non-finite stamp, position or covariance')
-        if np.any(np.linalg.eigvalsh(0.5 * (cov + cov.T)) <= 0):
-            raise ValueError('fixation point covariance must be positive definite')
+        point, cov = checked_measurement(stamp, point_rig, cov_rig, 'fixation point')
         self._points.append(_PendingPoint(float(stamp), side, point, cov))
         if self._frames:
             up = _Update()

@@ -216,9 +216,11 @@ class _Failed:
     message: str
 
 
-def _estimator_worker(rig: Rig, config: EstimatorConfig, inbox, outbox) -> None:
+def _estimator_worker(factory: Callable[[Rig, EstimatorConfig], Backend], rig: Rig, config: EstimatorConfig,
+                      inbox, outbox) -> None:
     """Second process: estimate observations (and take velocity samples and fixation points) from ``inbox`` in
-    order until None, results (and refused points) to ``outbox``.
+    order until None, results (and refused points) to ``outbox``. ``factory`` is the parent's
+    :func:`make_backend` (a test may put a spy there), so both processes run the same back end.
 
     The parent owns this process: Ctrl-C is ignored here (the terminal sends it to the whole process group; the
     parent ends us), and we exit on our own when the parent is gone (killed without cleaning up), so no
@@ -229,7 +231,7 @@ def _estimator_worker(rig: Rig, config: EstimatorConfig, inbox, outbox) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     parent = mp.parent_process()
     try:
-        estimator = make_backend(rig, config)
+        estimator = factory(rig, config)
         batch: list[_Estimate | _Refused] = []
         while True:
             try:
@@ -290,7 +292,7 @@ class _Subprocess:
         import multiprocessing as mp
         ctx = mp.get_context('spawn')      # no fork: the parent holds OpenCV's thread pool
         self.inbox, self.outbox = ctx.Queue(), ctx.Queue()
-        self.proc = ctx.Process(target=_estimator_worker, args=(rig, config, self.inbox, self.outbox),
+        self.proc = ctx.Process(target=_estimator_worker, args=(make_backend, rig, config, self.inbox, self.outbox),
                                 daemon=True, name='fixego-replay-estimator')
         with _sigint_ignored():            # inherited through exec: a Ctrl-C while the child boots is the parent's
             self.proc.start()
