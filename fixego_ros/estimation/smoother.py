@@ -84,7 +84,6 @@ class _Update:
     values: gtsam.Values = field(default_factory=gtsam.Values)
     stamps: dict[int, float] = field(default_factory=dict)
     observations: int = 0
-    gated: int = 0
 
     def add_value(self, key: int, value: gtsam.Pose3 | np.ndarray, stamp: float) -> None:
         self.values.insert(key, value)
@@ -273,7 +272,7 @@ class Smoother:
             oldest = obs.stamp - self.settings.lag_s
             self._views = {k: v for k, v in self._views.items() if v and v[-1].stamp >= oldest}
         self._speed.forget_before(ref.stamp if ref is not None else obs.stamp)
-        status, why = self._status(tf, up, ref is not None or i == 0)
+        status, why = self._status(tf, up)
         if why:
             messages.append(why)
         pose_cov = self._covariance(frame)
@@ -363,7 +362,6 @@ class Smoother:
             index = self._landmarks.get(lid)
             if index is not None:
                 if self._reprojection_px(side, pose, cam.cam_to_rig, ray, index) > cfg.gate_px:
-                    up.gated += 1
                     continue
                 factor = self.projections[side].factor(i, side, ray, cam.cam_to_rig, index)
                 if factor is not None:
@@ -505,7 +503,7 @@ class Smoother:
                     f.pose = pose
         return True
 
-    def _status(self, tf: TwoFrameResult | None, up: _Update, referenced: bool) -> tuple[StepStatus, str]:
+    def _status(self, tf: TwoFrameResult | None, up: _Update) -> tuple[StepStatus, str]:
         if self._index == 0:
             return StepStatus.INIT, 'first frame'
         if self._good(tf):
