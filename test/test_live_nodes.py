@@ -355,13 +355,16 @@ def test_demo_runs_every_node_as_a_process_and_writes_a_report(tmp_path):
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=240)
     assert proc.returncode == 0, proc.stderr[-3000:]
     report = json.loads((out / 'report.json').read_text())
-    assert report['frames']['poses'] >= 30, report['frames']
+    # how many of the 90 frames get a pose depends on the machine's speed (the estimator skips frames it is too
+    # far behind for, and the report counts them); enough are estimated for the checks below
+    frames = report['frames']
+    assert frames['poses'] + frames['dropped'] <= frames['rendered'] and frames['poses'] >= 10, frames
     from fixego_ros.evaluation.tum import read_tum
     stamps, est = read_tum(out / 'estimate.tum')
     _, truth = read_tum(out / 'ground_truth.tum')
     assert len(est) == report['frames']['poses'] and np.all(np.diff(stamps) > 0)
     raw_stamps, raw = read_tum(out / 'estimate.raw.tum')     # the last raw path (published at most once a
-    assert len(raw) >= 30 and raw_stamps[-1] == pytest.approx(stamps[-1])   # second) holds the last pose
+    assert len(raw) >= 10 and raw_stamps[-1] == pytest.approx(stamps[-1])   # second) holds the last pose
     assert all(p.is_finite() for p in est)
     # The rig drives ~0.5 m straight ahead. On a straight run the translation's length is not observable
     # (DESIGN.md §5; issue 7): measured over runs it came out anywhere from 0.02 to 1.3 m, so a distance
