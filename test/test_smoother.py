@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 import pytest
@@ -151,3 +152,20 @@ def test_bad_frames_and_measurements_are_refused_without_harm(loop):
 def test_the_factory_gives_the_papers_method_on_request():
     assert isinstance(make_backend(RIG, EstimatorConfig()), Smoother)
     assert type(make_backend(RIG, EstimatorConfig(refinement='local'))).__name__ == 'Estimator'
+
+
+def test_a_vergence_point_off_the_fixation_ray_is_not_used(loop):
+    """A measurement of another point than the one the camera fixates (here 3 deg off its ray, ~45 px) would pull
+    the fixation landmark, and the trajectory with it; it is refused with a note, the same point on the ray is
+    used."""
+    sm = Smoother(RIG, _config())
+    for obs in loop.observations[:8]:
+        sm.update(obs)
+    point, cov = _vergence(loop, 7, 0.0, np.random.default_rng(0))
+    center = RIG.center('right')
+    a = math.radians(3.0)
+    turn = np.array([[math.cos(a), 0.0, math.sin(a)], [0.0, 1.0, 0.0], [-math.sin(a), 0.0, math.cos(a)]])
+    sm.add_fixation_point(loop.stamps[7], 'right', center + turn @ (point - center), cov)
+    assert not sm.scale_observed and 'px off the right fixation ray' in sm.scale_note()
+    sm.add_fixation_point(loop.stamps[7], 'right', point, cov)
+    assert sm.scale_observed
