@@ -473,7 +473,7 @@ import os
 import time
 from pathlib import Path
 
-from fixego_ros.estimation.estimator import Estimator
+from fixego_ros.estimation.smoother import Smoother
 from fixego_ros.pipeline.frontend import StereoFrontEnd
 
 
@@ -483,12 +483,12 @@ def stall(stage):
         time.sleep(0.05)
 
 
-class EstimatorStuckInUpdate(Estimator):
+class EstimatorStuckInUpdate(Smoother):
     def update(self, obs):
         stall('estimator')
 
 
-class EstimatorStuckStarting(Estimator):
+class EstimatorStuckStarting(Smoother):
     def __init__(self, *args, **kwargs):
         stall('worker start')
 
@@ -498,15 +498,15 @@ class FrontEndStuck(StereoFrontEnd):
         stall('frontend')
 
 
-class EstimatorFailing(Estimator):
+class EstimatorFailing(Smoother):
     def update(self, obs):
         raise RuntimeError('boom')
 '''
 
-PATCHES = {'estimator': 'run.Estimator = fixego_stubs.EstimatorStuckInUpdate',
-           'worker start': 'run.Estimator = fixego_stubs.EstimatorStuckStarting',
+PATCHES = {'estimator': 'run.make_backend = fixego_stubs.EstimatorStuckInUpdate',
+           'worker start': 'run.make_backend = fixego_stubs.EstimatorStuckStarting',
            'frontend': 'run.StereoFrontEnd = fixego_stubs.FrontEndStuck',
-           'failing': 'run.Estimator = fixego_stubs.EstimatorFailing'}
+           'failing': 'run.make_backend = fixego_stubs.EstimatorFailing'}
 
 
 def start_replay(tmp_path: Path, stage: str, workers: str) -> tuple[subprocess.Popen, Path, Path]:

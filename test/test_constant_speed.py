@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from fixego_ros.estimation.constant_speed import PRIOR_REL_STD, ConstantSpeed
-from fixego_ros.estimation.estimator import Estimator, EstimatorConfig, fixations_of
+from fixego_ros.estimation.estimator import Estimator
+from fixego_ros.estimation.frames import fixations_of
 from fixego_ros.estimation.scale_anchor import ScaleAnchor
 from fixego_ros.experiments.landmark_scene import LandmarkScene, LandmarkSceneConfig
 from fixego_ros.geometry.rig import make_rig
@@ -39,11 +40,6 @@ def test_prior_is_the_nominal_speed_until_calibrated():
             c.calibrate(*bad)
     with pytest.raises(ValueError):
         ConstantSpeed(0.0)
-
-
-def test_constant_speed_needs_the_local_refinement():
-    with pytest.raises(ValueError, match='local'):
-        EstimatorConfig(constant_speed=True, refinement='sliding')
 
 
 def _anchor_on(run, scale: float, frames: int) -> ScaleAnchor:

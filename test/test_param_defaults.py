@@ -13,8 +13,7 @@ import math
 
 import pytest
 
-from fixego_ros.estimation.estimator import EstimatorConfig, papers_config
-from fixego_ros.estimation.sliding_window import WindowConfig
+from fixego_ros.estimation.config import EstimatorConfig, papers_config
 from fixego_ros.estimation.twoframe import SolverConfig
 from fixego_ros.geometry.rig import default_rig_path, load_rig
 from fixego_ros.pipeline.frontend import KeyframePolicy
@@ -79,15 +78,15 @@ def test_camera_node_dataclass_defaults_are_the_node_defaults():
 
 
 def test_the_comparison_sees_nested_and_rig_derived_fields():
-    """The walk reaches the solver and the sliding window, and the rig-derived angles differ on another rig (so
+    """The walk reaches the solver and the smoother, and the rig-derived angles differ on another rig (so
     the equality above is about the default rig, as documented, not a coincidence of the walk)."""
-    built = estimator_config(params_getter(ESTIMATOR_PARAMS, {'loss': 'cauchy', 'sliding_frames': 5}), RIG)
-    assert {d.split(':')[0] for d in _differences(built, EstimatorConfig())} == {'solver.loss', 'sliding.frames'}
+    built = estimator_config(params_getter(ESTIMATOR_PARAMS, {'loss': 'cauchy', 'smoother_lag_s': 5.0}), RIG)
+    assert {d.split(':')[0] for d in _differences(built, EstimatorConfig())} == {'solver.loss', 'smoother.lag_s'}
     rig = load_rig(default_rig_path())
     other = dataclasses.replace(rig, right=dataclasses.replace(rig.right, fx=500.0))
     diff = _differences(estimator_config(params_getter(ESTIMATOR_PARAMS), other), EstimatorConfig())
-    assert {d.split(':')[0] for d in diff} == {'solver.sigma', 'solver.min_parallax', 'sliding.sigma'}
-    assert SolverConfig().sigma == WindowConfig().sigma == 1.0 / RIG.right.fx
+    assert {d.split(':')[0] for d in diff} == {'solver.sigma', 'solver.min_parallax'}
+    assert SolverConfig().sigma == 1.0 / RIG.right.fx
     assert math.isclose(SolverConfig().min_parallax, 0.3 / RIG.right.fx)
 
 

@@ -8,7 +8,9 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from fixego_ros.estimation.estimator import Estimator, FrameObservation, papers_config
+from fixego_ros.estimation.config import papers_config
+from fixego_ros.estimation.estimator import Estimator
+from fixego_ros.estimation.frames import FrameObservation
 from fixego_ros.estimation.status import StepStatus
 from fixego_ros.experiments.point_scene import PRESETS, PointScene, random_motion_sequence
 from fixego_ros.pipeline.messages import fixation_from_msg

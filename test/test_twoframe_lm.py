@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from fixego_ros.estimation.coplanarity import RayPairs, sampson_residuals_jacobian
-from fixego_ros.estimation.estimator import fixations_of, step_pairs
+from fixego_ros.estimation.frames import fixations_of, step_pairs
 from fixego_ros.estimation.status import StepStatus
 from fixego_ros.estimation.twoframe import (
     BACKENDS,

@@ -11,7 +11,9 @@ import time
 
 import numpy as np
 
-from fixego_ros.estimation.estimator import Estimator, papers_config, papers_solver, step_pairs
+from fixego_ros.estimation.config import papers_config, papers_solver
+from fixego_ros.estimation.estimator import Estimator
+from fixego_ros.estimation.frames import step_pairs
 from fixego_ros.estimation.local_ba import refine_latest
 from fixego_ros.experiments.point_scene import PRESETS, PointScene, random_motion_sequence
 

@@ -30,3 +30,15 @@ def residual_variance(r: np.ndarray, n_params: int, prior_sigma: float) -> float
     if dof <= 0:
         return prior
     return max(float(np.sum(np.square(r)) / dof), prior)
+
+
+def checked_measurement(stamp: float, value: np.ndarray, cov: np.ndarray, what: str) -> tuple[np.ndarray, np.ndarray]:
+    """A 3-vector aid measurement (velocity, fixation point) and its 3x3 covariance, checked as the back ends take
+    them: ValueError on a non-finite stamp, value or covariance, or a covariance that is not positive definite."""
+    v = np.asarray(value, float).reshape(3)
+    c = np.asarray(cov, float).reshape(3, 3)
+    if not (np.isfinite(stamp) and np.all(np.isfinite(v)) and np.all(np.isfinite(c))):
+        raise ValueError(f'{what} with non-finite stamp, value or covariance')
+    if np.any(np.linalg.eigvalsh(0.5 * (c + c.T)) <= 0):
+        raise ValueError(f'{what} covariance must be positive definite')
+    return v, c

@@ -11,211 +11,21 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 
+from fixego_ros.estimation.config import EstimatorConfig
 from fixego_ros.estimation.constant_speed import ConstantSpeed
 from fixego_ros.estimation.coplanarity import RayPairs
-from fixego_ros.estimation.covariance import VAR_MAX
-from fixego_ros.estimation.local_ba import MODES, BAProblem, BAResult, BATerm, refine_latest
+from fixego_ros.estimation.covariance import VAR_MAX, checked_measurement
+from fixego_ros.estimation.frames import Fixation, FrameObservation, FrameResult, fixations_of, step_pairs
+from fixego_ros.estimation.local_ba import BAProblem, BAResult, BATerm, refine_latest
 from fixego_ros.estimation.scale_anchor import ScaleAnchor
-from fixego_ros.estimation.sliding_window import (
-    FIXATION,
-    TRACK,
-    SlidingWindow,
-    SpeedSamples,
-    StepFactor,
-    WindowConfig,
-    landmark_key,
-    landmark_kind_side,
-)
+from fixego_ros.estimation.speed_samples import SpeedSamples
 from fixego_ros.estimation.status import StepStatus
-from fixego_ros.estimation.twoframe import (
-    MIN_ROTATION_PAIRS,
-    SolverConfig,
-    TwoFrameResult,
-    TwoFrameSolver,
-    kabsch_rotation,
-)
+from fixego_ros.estimation.twoframe import MIN_ROTATION_PAIRS, TwoFrameResult, TwoFrameSolver, kabsch_rotation
 from fixego_ros.geometry.rig import SIDES, Rig
 from fixego_ros.geometry.rotation import Pose, compose_all, rotation_angle
-
-
-@dataclass
-class CameraFrame:
-    """One camera at one frame: its fixation ray and the flow pairs from the previous frame."""
-
-    fixation_ray: np.ndarray | None   # rig-frame unit ray to the fixation point at this frame
-    fixation_id: int                  # changes when the fixation point is re-selected
-    cam_to_rig: np.ndarray            # optical frame -> rig frame at this frame (pan/tilt applied)
-    flow_prev: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # rays at t-1, rig frame
-    flow_curr: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # same points at t
-    # persistent point tracks seen at this frame (landmarks of the sliding window): ids never reused
-    # within a camera, and the rig-frame unit ray of each at this frame
-    track_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
-    track_rays: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
-
-
-@dataclass
-class FrameObservation:
-    """One synchronised frame. ``prev_stamp`` is the stamp of the frame the flow starts from (None when
-    unknown, e.g. synthetic data: then the previous frame); the estimator uses it to place the frame and
-    to notice frames it never received. ``keyframe`` says whether later flow will start from this frame."""
-
-    stamp: float
-    right: CameraFrame | None
-    left: CameraFrame | None
-    prev_stamp: float | None = None
-    keyframe: bool | None = None     # the front end will track later flow from this frame (None: unknown)
-
-    def camera(self, side: str) -> CameraFrame | None:
-        return self.right if side == 'right' else self.left
-
-
-Fixation = tuple[np.ndarray, int, np.ndarray]   # (rig-frame ray, fixation id, cam_to_rig)
-
-
-def fixations_of(obs: FrameObservation) -> dict[str, Fixation | None]:
-    """Each camera's valid fixation (finite ray) at this frame, or None."""
-    out: dict[str, Fixation | None] = {}
-    for side in SIDES:
-        cam = obs.camera(side)
-        ok = (cam is not None and cam.fixation_ray is not None
-              and bool(np.all(np.isfinite(cam.fixation_ray))) and bool(np.all(np.isfinite(cam.cam_to_rig))))
-        out[side] = (np.asarray(cam.fixation_ray, float), int(cam.fixation_id), cam.cam_to_rig) if ok else None
-    return out
-
-
-def step_pairs(rig: Rig, prev: dict[str, Fixation | None], obs: FrameObservation,
-               fixation_weight: float = 1.0) -> RayPairs:
-    """All ray pairs of one step: each camera's flow pairs, and its fixation pair when the fixation
-    point was not re-selected between the two frames (same id)."""
-    groups = []
-    for side in SIDES:
-        cam = obs.camera(side)
-        if cam is None:
-            continue
-        c = rig.center(side)
-        groups.append((cam.flow_prev, cam.flow_curr, c, 1.0))
-        p = prev.get(side)
-        if p is not None and cam.fixation_ray is not None and p[1] == cam.fixation_id:
-            groups.append((p[0], cam.fixation_ray, c, fixation_weight))
-    return RayPairs.build(groups)
-
-
-def landmark_observations(rig: Rig, obs: FrameObservation) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Landmark keys, rig-frame rays and camera centres of everything a frame saw: each camera's
-    persistent tracks and its fixation point (the sliding window's observations)."""
-    keys, rays, centers = [], [], []
-    for i, side in enumerate(SIDES):
-        cam = obs.camera(side)
-        if cam is None:
-            continue
-        c = rig.center(side)
-        ids = np.asarray(cam.track_ids, np.int64).reshape(-1)
-        tr = np.asarray(cam.track_rays, float).reshape(-1, 3)
-        if len(ids) == len(tr) and len(ids):
-            keys.append(landmark_key(TRACK, i, ids))
-            rays.append(tr)
-            centers.append(np.broadcast_to(c, tr.shape))
-        if cam.fixation_ray is not None and cam.fixation_id >= 0 and np.all(np.isfinite(cam.fixation_ray)):
-            keys.append(landmark_key(FIXATION, i, np.array([cam.fixation_id])))
-            rays.append(np.asarray(cam.fixation_ray, float).reshape(1, 3))
-            centers.append(c.reshape(1, 3))
-    if not keys:
-        return np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3))
-    return np.concatenate(keys), np.concatenate(rays), np.concatenate(centers)
-
-
-REFINEMENTS = ('sliding', 'local')
-
-
-@dataclass(frozen=True)
-class EstimatorConfig:
-    """Options of the estimator. The defaults are estimator_node's (``pipeline.params``, a test keeps them equal);
-    the papers' method as ``fixego paper-sim`` runs it is :func:`papers_config`."""
-
-    window: int = 3                  # n: frames in the local BA (3..10); 0 or 1 disables it
-    mode: str = 'joint'              # 'paper' (BA cost alone, Powell) or 'joint'
-    fixation_weight: float = 1.0     # weight of the fixation constraints relative to flow points
-    max_step_translation: float = 0.5  # m; larger steps are rejected as jumps
-    max_step_rotation: float = math.radians(20.0)  # rad
-    max_speed: float = 1.5             # m/s; a step implying a faster rig is rejected as a jump
-    reject_translation_std: float = VAR_MAX  # m; steps less certain than this are rejected
-    # weak constant-velocity prior on each step's T (off = the papers' method): sigma = max(min, rel * |T_pred|)
-    velocity_prior: bool = False
-    prior_sigma_rel: float = 0.5
-    prior_sigma_min: float = 0.01     # m
-    solver: SolverConfig = field(default_factory=SolverConfig)
-    # 'sliding': keyframe poses refined with persistent landmarks over a sliding window (scale carried
-    # from turns through straights); 'local': the papers' local BA of the latest step over ``window`` frames
-    refinement: str = 'local'
-    sliding: WindowConfig = field(default_factory=WindowConfig)
-    # the sliding window stays open (grows) until the rig has turned this much; with ``scale_from_rotation`` the
-    # metric scale also counts as observed then (the papers' assumption; see :mod:`.observability` for when the
-    # lever arm carries no scale at all: straight and constant-curvature motion)
-    scale_min_rotation_deg: float = 15.0
-    scale_from_rotation: bool = False
-    # constant-speed prior (:mod:`.constant_speed`): every step at one speed, nominal until the vergence step
-    # (:meth:`Estimator.add_fixation_point`) measures it; off = the papers' free two-frame lengths
-    constant_speed: bool = True
-    speed_nominal: float = 0.5        # m/s
-
-    def __post_init__(self) -> None:
-        if self.refinement not in REFINEMENTS:
-            raise ValueError(f'refinement must be one of {REFINEMENTS}, got {self.refinement!r}')
-        if not (math.isfinite(self.scale_min_rotation_deg) and self.scale_min_rotation_deg >= 0):
-            raise ValueError(f'scale_min_rotation_deg must be finite and >= 0, got {self.scale_min_rotation_deg}')
-        if self.mode not in MODES:
-            raise ValueError(f'mode must be one of {MODES}, got {self.mode!r}')
-        if self.constant_speed and self.refinement != 'local':
-            raise ValueError("constant_speed works with refinement 'local' (the sliding window carries the scale "
-                             'with its landmarks instead)')
-        if self.window not in (0, 1) and not 3 <= self.window <= 10:
-            raise ValueError(f'window must be 3..10 (or 0 to disable the local BA), got {self.window}')
-
-
-def papers_solver(**overrides: Any) -> SolverConfig:
-    """The two-frame solve of the papers' experiments: plain least squares (no robust loss), up to 60
-    evaluations, no stationary detection (the simulated rig always moves)."""
-    return SolverConfig(**{'loss': 'linear', 'max_nfev': 60, 'min_parallax': 1e-7, **overrides})
-
-
-def papers_config(**overrides: Any) -> EstimatorConfig:
-    """The papers' method as ``fixego paper-sim`` and the core benchmark run it: the local BA in 'paper' mode
-    (Powell on the BA cost alone), free two-frame lengths (no constant-speed prior), no speed limit and loose
-    jump bounds (1 m, 0.35 rad), and :func:`papers_solver`. ``overrides`` replace any field."""
-    values: dict[str, Any] = {'mode': 'paper', 'max_step_translation': 1.0, 'max_step_rotation': 0.35,
-                              'max_speed': math.inf, 'constant_speed': False, 'solver': papers_solver()}
-    return EstimatorConfig(**{**values, **overrides})
-
-
-@dataclass
-class FrameResult:
-    index: int
-    stamp: float
-    status: StepStatus
-    pose: Pose                     # refined: rig at this frame in the rig frame at frame 0
-    pose_raw: Pose                 # two-frame only
-    step: Pose                     # refined motion from the reference keyframe (the previous frame unless
-    step_raw: Pose                 # the front end keeps a keyframe over several frames)
-    step_covariance: np.ndarray    # 6x6 over [rotation vector, T] of the step
-    pose_covariance: np.ndarray    # 6x6 over [rotation vector, position] of ``pose`` (first order)
-    message: str = ''
-    twoframe: TwoFrameResult | None = None
-    ba: BAResult | None = None
-    ref_stamp: float | None = None  # stamp of the keyframe ``step`` starts from
-    placed: bool = True             # False: the frame was ignored (out of order, unknown reference)
-    scale_observed: bool = False    # False until enough rotation (or a scale aid) has fixed the metric scale
-    scale_note: str = ''            # why / how (one line, for diagnostics)
-    # the scale was just measured: every earlier pose's position should be multiplied by this to be metric
-    # (the path so far was built at a nominal speed; a trajectory kept by the caller can be rewritten)
-    prefix_scale: float = 1.0
-    # a blind step (predicted: no flow, e.g. both cameras re-selected at once) into the reference keyframe was
-    # re-estimated from the rates on both sides of it: (stamp, pose, pose_raw) of that keyframe, to replace the
-    # pose reported for it then (a kept trajectory is corrected; later poses already build on it)
-    corrected: tuple[float, Pose, Pose] | None = None
 
 
 @dataclass
@@ -238,8 +48,6 @@ class _Latest:
     pose_raw: Pose
     pose_cov: np.ndarray
     step_cov: np.ndarray = field(default_factory=lambda: np.diag([1e-2] * 3 + [VAR_MAX] * 3))  # of ``motion``
-    speed: tuple[np.ndarray, np.ndarray] | None = None       # external-speed translation over the step
-    landmarks: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
     blind: _Blind | None = None     # the motion was predicted: re-estimated once the next step is solved
 
 
@@ -273,9 +81,9 @@ class Estimator:
     frames that become keyframes, since only their motion carries on into the trajectory. With
     ``prev_stamp`` always the previous frame, every frame is a keyframe (the papers' scheme).
 
-    Refinement (``config.refinement``): ``'local'`` is the papers' local BA of the latest step over the
-    last n keyframes (the default); ``'sliding'`` refines the recent keyframe poses together with the
-    persistent landmarks (:mod:`.sliding_window`). Either way the metric scale is reported unobserved
+    This is the papers' method (``refinement: local``, ``fixego paper-sim``, and the raw comparison): the local BA
+    of the latest step over the last n keyframes. The metric back end is :class:`~.smoother.Smoother`. The metric
+    scale is reported unobserved
     (``FrameResult.scale_observed``, large position covariance) until a scale aid (:meth:`add_velocity`,
     :meth:`add_fixation_point`) was used: the rays alone carry no scale on straight and constant-curvature
     motion (:mod:`.observability`), and too little on our other sequences to be trusted (README, "Scale").
@@ -302,12 +110,9 @@ class Estimator:
         self._latest: _Latest | None = None
         self._velocity: tuple[np.ndarray, np.ndarray] | None = None  # [rvec, t] per second: refined, raw
         self._key_blind: _Blind | None = None   # the keyframe was reached by a blind (predicted) step
-        self._sliding = SlidingWindow(self.config.sliding) if self.config.refinement == 'sliding' else None
         self._speed = SpeedSamples()
-        self._pending_points: list[tuple[float, int, np.ndarray, np.ndarray]] = []
         self._rotation_seen = 0.0          # rad of rig rotation between keyframes so far
         self._aids: set[str] = set()       # scale aids that have been used
-        self._prior_scale_pending = False   # a vergence distance arrived: rescale once the window has placed it
         cfg = self.config
         self._speed_prior = ConstantSpeed(cfg.speed_nominal) if cfg.constant_speed else None
         # the speed was just measured: (factor that makes the path so far metric, key positions refined and raw
@@ -326,31 +131,21 @@ class Estimator:
     def add_velocity(self, stamp: float, v_rig: np.ndarray, cov_rig: np.ndarray) -> None:
         """External speed source: velocity of the rig origin (m/s) in the rig frame at ``stamp`` with its
         3x3 covariance. Raises ValueError on non-finite values or a stamp not after the previous one."""
-        v = np.asarray(v_rig, float).reshape(3)
-        cov = np.asarray(cov_rig, float).reshape(3, 3)
-        if not (math.isfinite(stamp) and np.all(np.isfinite(v)) and np.all(np.isfinite(cov))):
-            raise ValueError('velocity sample with non-finite stamp, velocity or covariance')
-        if np.any(np.linalg.eigvalsh(0.5 * (cov + cov.T)) <= 0):
-            raise ValueError('velocity covariance must be positive definite')
+        v, cov = checked_measurement(stamp, v_rig, cov_rig, 'velocity sample')
         self._speed.add(float(stamp), v, cov)
 
     def add_fixation_point(self, stamp: float, side: str, point_rig: np.ndarray, cov_rig: np.ndarray) -> None:
         """Vergence aid: camera ``side``'s fixation point was at ``point_rig`` (rig frame at ``stamp``, m)
         with covariance ``cov_rig``. With the constant-speed prior every measurement is used, one at a time: it is
         followed while its camera keeps fixating the point and then re-measures the speed (the first one also
-        makes the path so far metric). The sliding window uses it when the frame at ``stamp`` becomes a keyframe
-        (it is kept until then)."""
+        makes the path so far metric). Without the prior it is not used (noted in :meth:`scale_note`)."""
         if side not in SIDES:
             raise ValueError(f'side must be one of {SIDES}, got {side!r}')
-        point = np.asarray(point_rig, float).reshape(3)
-        cov = np.asarray(cov_rig, float).reshape(3, 3)
-        if not (math.isfinite(stamp) and np.all(np.isfinite(point)) and np.all(np.isfinite(cov))):
-            raise ValueError('fixation point with non-finite stamp, position or covariance')
+        point, cov = checked_measurement(stamp, point_rig, cov_rig, 'fixation point')
         if self._speed_prior is not None:
             self._start_anchor(float(stamp), side, point, cov)
-            return
-        self._pending_points.append((float(stamp), SIDES.index(side), point, cov))
-        self._attach_points()
+        else:
+            self._anchor_note = 'vergence measurement ignored: the papers\' method has no use for it'
 
     def _start_anchor(self, stamp: float, side: str, point: np.ndarray, cov: np.ndarray) -> None:
         """Constant-speed prior: the vergence point becomes a scale anchor, fed with the frames since its stamp."""
@@ -546,8 +341,6 @@ class Estimator:
         if self._key_stamp is None:
             self._key_stamp = obs.stamp
             self._window.append(_Slot(fix, Pose.identity()))
-            if self._sliding is not None:
-                self._sliding.add(obs.stamp, Pose.identity(), *landmark_observations(self.rig, obs), None)
             self._remember(obs.stamp, self._key_pose, fix)
             return FrameResult(self._index, obs.stamp, StepStatus.INIT, self._key_pose, self._key_pose_raw,
                                Pose.identity(), Pose.identity(), np.zeros((6, 6)), self._key_cov.copy(),
@@ -580,7 +373,7 @@ class Estimator:
             message = tf.message
             # the local BA has no term for a speed source's translation, so with one it would let the length
             # float again (42 cm mean against 1.2 cm without it on the simulated loop): the two-frame solve stands
-            if self._sliding is None and self.config.window >= 3 and obs.keyframe is not False and speed is None:
+            if self.config.window >= 3 and obs.keyframe is not False and speed is None:
                 problem, full = self._ba_problem(obs)
                 if full and len(problem):
                     ba = refine_latest(problem, tf.pose, self.config.mode, pairs, self.config.solver.sigma,
@@ -606,12 +399,9 @@ class Estimator:
         pose_cov = self._propagate(self._key_pose, self._key_cov, motion, cov)
         pose = (self._key_pose @ motion).normalized()
         pose_raw = (self._key_pose_raw @ motion_raw).normalized()
-        # (the sliding window places such a keyframe with its own factors, so only the local refinement bridges)
         blind = (_Blind(self._key_pose, self._key_pose_raw, dt, self._velocity)
-                 if status == StepStatus.PREDICTED and self._velocity is not None and self._sliding is None else None)
-        self._latest = _Latest(obs.stamp, fix, motion, motion_raw, pose, pose_raw, pose_cov, cov, speed,
-                               landmarks=landmark_observations(self.rig, obs) if self._sliding is not None else None,
-                               blind=blind)
+                 if status == StepStatus.PREDICTED and self._velocity is not None else None)
+        self._latest = _Latest(obs.stamp, fix, motion, motion_raw, pose, pose_raw, pose_cov, cov, blind=blind)
         if speed is not None:
             self._aids.add('the speed source')
         key_stamp = self._key_stamp
@@ -646,22 +436,11 @@ class Estimator:
         return self._key_stamp, self._key_pose, self._key_pose_raw
 
     def _promote(self) -> None:
-        """The newest frame becomes the keyframe later flow starts from (refined by the sliding window)."""
+        """The newest frame becomes the keyframe later flow starts from."""
         f = self._latest
         assert f is not None
         prev_pose = self._key_pose
         pose = f.pose
-        if self._sliding is not None and f.landmarks is not None:
-            factor = StepFactor(f.motion, f.step_cov, *(f.speed if f.speed is not None else (None, None)))
-            self._sliding.hold_open = not (self._aids or self._turned)
-            pose = self._sliding.add(f.stamp, f.pose, *f.landmarks, factor).normalized()
-            if self._prior_scale_pending:
-                s = self._sliding.prior_scale()
-                if s is not None and math.isfinite(s) and s > 0:
-                    self._rescale(s)
-                    pose = Pose(pose.R, pose.t * s)
-                    self._prior_scale_pending = False
-            prev_pose = dict(self._sliding.poses()).get(self._key_stamp, prev_pose)   # as refined now
         self._rotation_seen += rotation_angle(prev_pose.R.T @ pose.R)
         self._window.append(_Slot(f.fixation, prev_pose.inverse() @ pose))
         self._speed.forget_before(self._key_stamp)     # later steps start at this keyframe or after
@@ -672,7 +451,6 @@ class Estimator:
         self._key_stamp, self._key_pose, self._key_pose_raw, self._key_cov = f.stamp, pose, pose_raw, f.pose_cov
         self._key_blind = None if rescaled else f.blind
         self._latest = None
-        self._attach_points()
 
     def _rescale_prefix(self, pose: Pose, pose_raw: Pose) -> tuple[Pose, Pose]:
         """The speed was measured: the path up to the measurement was built at the nominal speed, so stretch it
@@ -682,38 +460,6 @@ class Estimator:
         self._pending_prefix = None
         self._prefix_scale_out = k
         return Pose(pose.R, pose.t + (k - 1.0) * anchor), Pose(pose_raw.R, pose_raw.t + (k - 1.0) * anchor_raw)
-
-    def _rescale(self, s: float) -> None:
-        """Apply a scale found late (a vergence distance) to everything built with the unobserved one."""
-        assert self._sliding is not None
-        self._sliding.rescale(s)
-        self._key_blind = None
-        self._key_pose = Pose(self._key_pose.R, self._key_pose.t * s)
-        self._key_cov = self._key_cov.copy()
-        self._key_cov[3:, 3:] *= s * s
-        if self._velocity is not None:
-            v, v_raw = self._velocity
-            self._velocity = (np.concatenate([v[:3], v[3:] * s]), v_raw)
-
-    def _attach_points(self) -> None:
-        """Give pending vergence points to the sliding window once their frame is a keyframe in it."""
-        if self._sliding is None or not self._pending_points:
-            return
-        kept = []
-        frames = {f.stamp: f for f in self._sliding.frames}
-        for stamp, side_index, point, cov in self._pending_points:
-            f = frames.get(stamp)
-            if f is None:
-                if self._key_stamp is None or stamp > self._key_stamp:
-                    kept.append((stamp, side_index, point, cov))      # its keyframe is still to come
-                continue                                             # not a keyframe, or gone: dropped
-            kind, side_of = landmark_kind_side(f.keys)
-            fix = f.keys[(kind == FIXATION) & (side_of == side_index)]
-            was_observed = self.scale_observed
-            if len(fix) and self._sliding.add_prior(stamp, int(fix[0]), point, cov):
-                self._prior_scale_pending = self._prior_scale_pending or not was_observed
-                self._aids.add('the vergence step')
-        self._pending_points = kept
 
     @staticmethod
     def _step_rotation(pairs: RayPairs, prediction: tuple[Pose, Pose] | None) -> np.ndarray | None:
@@ -745,10 +491,6 @@ class Estimator:
         self._key_cov = self._propagate(self._key_pose, self._key_cov, step, cov)
         self._key_pose = (self._key_pose @ step).normalized()
         self._key_pose_raw = (self._key_pose_raw @ step_raw).normalized()
-        if self._sliding is not None:
-            empty = (np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)))
-            self._sliding.hold_open = not (self._aids or self._turned)
-            self._key_pose = self._sliding.add(ref, self._key_pose, *empty, StepFactor(step, cov)).normalized()
         self._key_stamp, self._key_blind = ref, None
         # the missed frames' fixations are unknown: no fixation pair or BA term may span the gap
         self._window.append(_Slot({side: None for side in SIDES}, step))

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fixego_ros.estimation.estimator import CameraFrame, FrameObservation
+from fixego_ros.estimation.frames import CameraFrame, FrameObservation
 from fixego_ros.geometry.rig import SIDES, Rig
 from fixego_ros.geometry.rotation import Pose
 from fixego_ros.sim.trajectories import AREA_CENTRE, Trajectory, relative_poses

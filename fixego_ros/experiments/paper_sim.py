@@ -23,15 +23,10 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
+from fixego_ros.estimation.config import papers_config, papers_solver
 from fixego_ros.estimation.crb import relative_bounds, two_frame_crb
-from fixego_ros.estimation.estimator import (
-    Estimator,
-    FrameResult,
-    fixations_of,
-    papers_config,
-    papers_solver,
-    step_pairs,
-)
+from fixego_ros.estimation.estimator import Estimator
+from fixego_ros.estimation.frames import FrameResult, fixations_of, step_pairs
 from fixego_ros.experiments.point_scene import PRESETS, PointScene, SceneConfig, random_motion_sequence
 from fixego_ros.geometry.rotation import rotation_error_paper, translation_error_paper
 

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fixego_ros.estimation.estimator import CameraFrame, FrameObservation
+from fixego_ros.estimation.frames import CameraFrame, FrameObservation
 from fixego_ros.geometry.rig import SIDES, Rig, make_rig
 from fixego_ros.geometry.rotation import Pose, rot_y, rot_z
 

@@ -1,10 +1,12 @@
 """estimator_node: flow observations in, trajectory out (DESIGN.md §3).
 
 Topics are relative names in the node namespace (default ``/fixego``). Subscribes ``flow/observation``
-(sensor_msgs/PointCloud2, the row table of :mod:`fixego_ros.pipeline.observation`) and feeds the core
-:class:`~fixego_ros.estimation.estimator.Estimator`: a two-frame solve per step, then the local bundle
-adjustment over the last n frames. Publishes ``pose`` (refined) and ``odom`` (with covariance; weakly observed
-axes get large variances) every frame, ``path`` and ``path_raw`` (two-frame only) at most once per
+(sensor_msgs/PointCloud2, the row table of :mod:`fixego_ros.pipeline.observation`) and feeds the back end
+(:func:`~fixego_ros.estimation.backend.make_backend`): by default the metric fixed-lag smoother
+(:mod:`fixego_ros.estimation.smoother`), or with ``refinement: local`` the papers' two-frame solve plus local BA.
+Publishes ``pose`` and ``odom`` (covariance from the smoother's marginals; a large position term while the scale
+is unobserved) every frame, ``path`` (the smoother's revisions of recent frames applied) and ``path_raw``
+(two-frame only) at most once per
 ``path_publish_period_s`` of observation time plus once when the poses stop coming (so the last Path holds the
 whole run, up to ``path_max_length`` poses), and ``/diagnostics``, all in ``odom_frame`` / ``base_frame``. When
 tf2_ros is importable: TF ``odom -> base_link`` (``publish_tf``: auto = only without a speed source, whose robot
@@ -13,7 +15,7 @@ usually broadcasts it) and, once, the static ``base_link -> rig -> right_zero / 
 
 Scale aid (off by default): with ``speed_topic`` set it subscribes that nav_msgs/Odometry (e.g. wheel
 odometry; twist in ``base_frame``, REP-105) and forwards each valid sample, in stamp order, to
-``Estimator.add_velocity`` as the rig-frame velocity and covariance (:mod:`fixego_ros.pipeline.odometry`;
+the back end's ``add_velocity`` as the rig-frame velocity and covariance (:mod:`fixego_ros.pipeline.odometry`;
 an all-zero covariance means unknown and becomes ``speed_default_std``). A sample older than
 ``speed_max_age_s`` relative to the newest frame is not used (dropped as stale when it arrives, and the
 aid reports stale on /diagnostics when frames run that far ahead of the newest sample). /diagnostics
@@ -52,7 +54,8 @@ from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Empty
 from std_srvs.srv import Trigger
 
-from fixego_ros.estimation.estimator import Estimator, FrameResult
+from fixego_ros.estimation.backend import make_backend
+from fixego_ros.estimation.frames import FrameResult
 from fixego_ros.estimation.scale_requests import ScaleRequests
 from fixego_ros.estimation.status import StepStatus
 from fixego_ros.geometry.frames import static_transforms
@@ -90,7 +93,7 @@ from fixego_ros.pipeline.odometry import (
 from fixego_ros.pipeline.params import ESTIMATOR_NODE_PARAMS, Getter, estimator_config
 
 PARAMS = ESTIMATOR_NODE_PARAMS
-# the parameters applied at run time: Estimator reads these config fields at every step ...
+# the parameters applied at run time: the back end reads these config fields at every step ...
 LIVE_CONFIG = ('fixation_weight', 'velocity_prior', 'prior_sigma_rel', 'prior_sigma_min', 'max_step_translation',
                'max_speed', 'max_step_rotation_deg', 'reject_translation_std')
 # ... and the node reads these per message (or sets the timer's period)
@@ -116,7 +119,7 @@ class EstimatorNode(Node):
         self.intrinsics.wait(float(g('camera_info_wait_s')))
         self.rig = self.intrinsics.rig
         self.config = estimator_config(g, self.rig)
-        self.estimator = Estimator(self.rig, self.config)
+        self.estimator = make_backend(self.rig, self.config)
         self.odom_frame, self.base_frame = str(g('odom_frame')), str(g('base_frame'))
         self._set_stamp_bounds(g)
         self.once = OnceLogger(self)
@@ -302,8 +305,8 @@ class EstimatorNode(Node):
             self.once.warn('vergence', f'vergence measurement on {self.vergence_topic} dropped: {e}')
             return
         self.stats['vergence'] = self.stats.get('vergence', 0) + 1
-        self.get_logger().info(f'vergence: right fixation point at {float(np.linalg.norm(point)):.3f} m '
-                               'used as a scale anchor')
+        self.get_logger().info(f'vergence: right fixation point at {float(np.linalg.norm(point)):.3f} m given to '
+                               'the estimator')
 
     def _rescale_paths(self, k: float) -> None:
         """The scale was just measured (constant-speed prior + vergence step): the published paths so far were
@@ -326,6 +329,27 @@ class EstimatorNode(Node):
         self.path_raw[-1] = self._stamped(self.path_raw[-1].header.stamp, pose_raw)
         self.stats['blind_steps_bridged'] = self.stats.get('blind_steps_bridged', 0) + 1
 
+    def _revise(self, revised: tuple[tuple[float, Pose], ...]) -> None:
+        """The smoother's newer estimates of recent frames replace their poses in the path (pose, odometry and TF
+        published then stay as they were: the live pose is continuous, the path is the best estimate)."""
+        newer = {round(s, 6): p for s, p in revised}
+        if not newer:
+            return
+        changed, oldest = 0, min(s for s, _ in revised) - 1e-6
+        for k in range(len(self.path) - 1, -1, -1):
+            ps = self.path[k]
+            t = stamp_to_sec(ps.header.stamp)
+            if t < oldest:
+                break
+            p = newer.get(round(t, 6))
+            if p is None:
+                continue
+            p = rig_pose_to_base_link(p, self.rig.mount)
+            if p.is_finite():
+                self.path[k] = self._stamped(ps.header.stamp, p)
+                changed += 1
+        self.stats['path_poses_revised'] = self.stats.get('path_poses_revised', 0) + changed
+
     def _publish(self, stamp, res: FrameResult) -> None:
         pose = rig_pose_to_base_link(res.pose, self.rig.mount)
         pose_raw = rig_pose_to_base_link(res.pose_raw, self.rig.mount)
@@ -336,6 +360,7 @@ class EstimatorNode(Node):
             self._rescale_paths(res.prefix_scale)
         if res.corrected is not None:
             self._correct_last(*res.corrected)
+        self._revise(res.revised)
         ps = self._stamped(stamp, pose)
         self.pub_pose.publish(ps)
         self.path.append(ps)

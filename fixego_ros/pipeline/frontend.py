@@ -59,7 +59,7 @@ from dataclasses import dataclass, field, replace
 import cv2
 import numpy as np
 
-from fixego_ros.estimation.estimator import CameraFrame, FrameObservation
+from fixego_ros.estimation.frames import CameraFrame, FrameObservation
 from fixego_ros.estimation.twoframe import MIN_ROTATION_PAIRS, kabsch_rotation
 from fixego_ros.geometry.rig import SIDES, Rig
 from fixego_ros.geometry.rotation import exp_so3, log_so3, rotation_angle

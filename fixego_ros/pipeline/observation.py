@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from fixego_ros.estimation.estimator import CameraFrame, FrameObservation
+from fixego_ros.estimation.frames import CameraFrame, FrameObservation
 from fixego_ros.geometry.rig import SIDES
 from fixego_ros.geometry.rotation import exp_so3, log_so3
 

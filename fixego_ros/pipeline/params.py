@@ -23,9 +23,8 @@ from pathlib import Path
 
 import yaml
 
-from fixego_ros.estimation.estimator import REFINEMENTS, EstimatorConfig
+from fixego_ros.estimation.config import REFINEMENTS, EstimatorConfig, SmootherConfig
 from fixego_ros.estimation.local_ba import MODES
-from fixego_ros.estimation.sliding_window import WindowConfig
 from fixego_ros.estimation.twoframe import BACKENDS, LOSSES, SolverConfig
 from fixego_ros.geometry.rig import SIDES, Rig
 from fixego_ros.pipeline.frontend import KeyframePolicy
@@ -249,9 +248,10 @@ FLOW_PARAMS: Table = _table(
 
 # estimator_node: two-frame solve and local bundle adjustment (the step acceptance thresholds change at run time)
 ESTIMATOR_PARAMS: Table = _table(
-    _str('refinement', 'local', "'local': the papers' local BA of the latest step over `window` frames; 'sliding': "
-                                'the last `sliding_frames` keyframe poses refined with persistent landmarks',
-         choices=REFINEMENTS),
+    _str('refinement', 'smoother', "'smoother': the metric back end, a fixed-lag factor graph over rig poses, camera "
+                                   'poses and landmarks that uses the vergence measurements and a speed source '
+                                   "(README \"Back end\"); 'local': the papers' method, the local BA of the latest "
+                                   'step over `window` frames', choices=REFINEMENTS),
     _num('window', 3, 'n: frames in the local bundle adjustment (3..10; 0 disables it)', ge=3, le=10, also=(0, 1)),
     _str('mode', 'joint', "local BA: 'joint' (BA cost + the two-frame terms: well posed, the same answer on any "
                           "CPU) or 'paper' (BA cost alone, Powell, as in the papers: few terms against 6 unknowns, "
@@ -280,25 +280,31 @@ ESTIMATOR_PARAMS: Table = _table(
          live=True),
     _num('reject_translation_std', 1e6, 'm; a step whose translation std exceeds this is rejected (1e6: never)',
          gt=0.0, live=True),
-    _num('sliding_frames', 4, 'sliding refinement: keyframe poses refined together (older ones stay fixed)', ge=2,
-         le=1000),
-    _num('sliding_max_unobserved_frames', 40, 'sliding refinement: while the scale is unobserved the window grows '
-                                              'up to this, so the first turn can fix the scale of the start', ge=2,
-         le=10000),
-    _num('sliding_iterations', 4, 'sliding refinement: Levenberg-Marquardt iterations per keyframe', ge=1, le=1000),
-    _num('sliding_step_weight', 0.5, 'sliding refinement: weight of the two-frame step factors (0 = landmarks only)',
-         ge=0.0),
-    _num('sliding_min_parallax_deg', 1.0, 'sliding refinement: a landmark is placed once its rays span this angle',
-         gt=0.0, lt=180.0),
+    _num('smoother_lag_s', 3.0, 'smoother: poses and landmarks older than this are marginalised (s); a vergence '
+                                'measurement older than this when it arrives is not used', gt=0.0, le=60.0),
+    _num('smoother_iterations', 2, 'smoother: extra relinearisations per frame', ge=0, le=20),
+    _num('smoother_gate_px', 8.0, 'smoother: an observation farther than this from its landmark (after the pose-only '
+                                  'placement of the frame) is left out (px)', gt=0.0),
+    _num('smoother_min_parallax_deg', 0.5, 'smoother: a track enters the graph once its rays span this angle', gt=0.0,
+         lt=180.0),
+    _num('smoother_twist_rotation_sigma', 0.1, 'smoother: constant-twist prior, change of the angular rate per frame '
+                                               '(rad/s)', gt=0.0),
+    _num('smoother_twist_translation_sigma', 0.05, 'smoother: constant-twist prior, change of the velocity per frame '
+                                                   '(m/s)', gt=0.0),
+    _num('smoother_step_floor_px', 3.0, 'smoother: the two-frame step factors claim no better rotation than this '
+                                        '(px)', gt=0.0),
+    _num('smoother_step_cauchy', 1.0, 'smoother: Cauchy threshold of the two-frame step factors (sigmas)', gt=0.0),
+    _num('smoother_mount_rotation_sigma', 4e-4, 'smoother: how far a camera may sit from its pan/tilt readings (rad)',
+         gt=0.0),
     _bool('constant_speed', True, "every step at one speed (refinement 'local'): the trajectory's shape without "
                                   "the lever arm's unreliable lengths, and a deterministic gauge for the scale the "
                                   'rays leave free; the scale stays unobserved (nominal speed) until a vergence '
                                   'measurement (vergence_topic) or a speed source calibrates it. false = the '
                                   "papers' free two-frame lengths (decided by rounding on straights and arcs)"),
-    _num('speed_nominal', 0.5, 'constant-speed prior: m/s assumed until the vergence step measures the speed',
-         gt=0.0),
-    _num('scale_min_rotation_deg', 15.0, 'sliding refinement: the window grows until the rig has turned this much '
-                                         '(with scale_from_rotation the scale then also counts as observed)',
+    _num('speed_nominal', 0.5, 'm/s assumed until a vergence measurement or a speed source fixes the scale (the '
+                               "smoother's step-length gauge; the constant-speed prior's speed)", gt=0.0),
+    _num('scale_min_rotation_deg', 15.0, "refinement 'local' with scale_from_rotation: the scale counts as observed "
+                                         'once the rig has turned this much',
          ge=0.0, le=3600.0),
     _bool('scale_from_rotation', False, 'count the metric scale as observed after scale_min_rotation_deg of '
                                         "rotation without a scale aid (the papers' assumption; the lever arm "
@@ -574,11 +580,15 @@ def estimator_config(g: Getter, rig: Rig) -> EstimatorConfig:
             refinement=str(g('refinement')), scale_min_rotation_deg=float(g('scale_min_rotation_deg')),
             scale_from_rotation=bool(g('scale_from_rotation')),
             constant_speed=bool(g('constant_speed')), speed_nominal=float(g('speed_nominal')),
-            sliding=WindowConfig(frames=int(g('sliding_frames')),
-                                 max_unobserved_frames=int(g('sliding_max_unobserved_frames')),
-                                 iterations=int(g('sliding_iterations')), sigma=float(g('pixel_sigma')) / f,
-                                 step_weight=float(g('sliding_step_weight')),
-                                 min_parallax_deg=float(g('sliding_min_parallax_deg'))))
+            smoother=SmootherConfig(lag_s=float(g('smoother_lag_s')), pixel_sigma_px=float(g('pixel_sigma')),
+                                    iterations=int(g('smoother_iterations')), gate_px=float(g('smoother_gate_px')),
+                                    min_parallax_deg=float(g('smoother_min_parallax_deg')),
+                                    twist_rotation_sigma=float(g('smoother_twist_rotation_sigma')),
+                                    twist_translation_sigma=float(g('smoother_twist_translation_sigma')),
+                                    step_floor_px=float(g('smoother_step_floor_px')),
+                                    step_cauchy_k=float(g('smoother_step_cauchy')),
+                                    mount_rotation_sigma=float(g('smoother_mount_rotation_sigma')),
+                                    nominal_speed=float(g('speed_nominal'))))
     except ValueError as e:
         raise _config_error('estimator', e) from None
 

@@ -21,14 +21,14 @@ before the damage come from records that passed their checks, so they are kept (
 result is flagged, and ``fixego replay`` exits with 2 after writing it.
 
 Scale aid (off by default, :attr:`ReplaySettings.speed`): nav_msgs/Odometry messages on the speed topic
-are converted (:mod:`fixego_ros.pipeline.odometry`) and fed to ``Estimator.add_velocity`` in bag order,
+are converted (:mod:`fixego_ros.pipeline.odometry`) and fed to the back end's ``add_velocity`` in bag order,
 through the same queue as the frames (so ``workers=2`` sees the same interleaving); they do not drive the
 synchroniser's clock. Unusable ones are skipped and noted once per cause.
 
 Vergence measurements (:attr:`ReplaySettings.vergence_topic`; ``fixego replay`` uses the bag's ``vergence`` topic when
 it has one): geometry_msgs/PoseWithCovarianceStamped messages, any number (the left camera_node's repeated
 vergence step, or ``fixego sim``), are converted with
-:func:`~fixego_ros.pipeline.odometry.vergence_from_msg` and given to ``Estimator.add_fixation_point`` as the
+:func:`~fixego_ros.pipeline.odometry.vergence_from_msg` and given to the back end's ``add_fixation_point`` as the
 right camera's fixation point, through the same queue and without driving the clock, like speed samples.
 A message that cannot be converted or that the estimator refuses is skipped and noted.
 """
@@ -45,7 +45,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fixego_ros.bags.reader import Bag, DecodeError
-from fixego_ros.estimation.estimator import Estimator, EstimatorConfig
+from fixego_ros.estimation.backend import Backend, make_backend
+from fixego_ros.estimation.config import EstimatorConfig
 from fixego_ros.geometry.rig import SIDES, Rig
 from fixego_ros.geometry.rotation import Pose, rig_pose_to_base_link
 from fixego_ros.pipeline.camera_info import CAMERA_INFO_TYPE, IntrinsicsFromInfo
@@ -165,11 +166,12 @@ class _Estimate:
     ms: float
     prefix_scale: float = 1.0       # the scale was measured here: earlier positions are multiplied by it
     corrected: tuple[float, Pose, Pose] | None = None   # a blind step re-estimated: (stamp, pose, pose_raw)
+    revised: tuple[tuple[float, Pose], ...] = ()        # the smoother's newer poses of earlier frames
 
 
 @dataclass
 class _FixationPoint:
-    """A vergence measurement on its way to ``Estimator.add_fixation_point`` (crosses the process boundary)."""
+    """A vergence measurement on its way to the back end's ``add_fixation_point`` (crosses the process boundary)."""
 
     stamp: float
     side: str
@@ -185,7 +187,7 @@ class _Refused:
     message: str
 
 
-def _add_point(estimator: Estimator, p: _FixationPoint) -> _Refused | None:
+def _add_point(estimator: Backend, p: _FixationPoint) -> _Refused | None:
     try:
         estimator.add_fixation_point(p.stamp, p.side, p.point, p.cov)
     except ValueError as e:
@@ -193,7 +195,7 @@ def _add_point(estimator: Estimator, p: _FixationPoint) -> _Refused | None:
     return None
 
 
-def _update(estimator: Estimator, stamp: float, obs) -> _Estimate:
+def _update(estimator: Backend, stamp: float, obs) -> _Estimate:
     t0 = time.perf_counter()
     r = estimator.update(obs)
     mount = estimator.rig.mount
@@ -201,9 +203,10 @@ def _update(estimator: Estimator, stamp: float, obs) -> _Estimate:
     if r.corrected is not None:
         c_stamp, c_pose, c_raw = r.corrected
         corrected = (c_stamp, rig_pose_to_base_link(c_pose, mount), rig_pose_to_base_link(c_raw, mount))
+    revised = tuple((s, rig_pose_to_base_link(p, mount)) for s, p in r.revised)
     return _Estimate(stamp, r.placed, r.status.value, r.message, rig_pose_to_base_link(r.pose, mount),
                      rig_pose_to_base_link(r.pose_raw, mount), (time.perf_counter() - t0) * 1e3, r.prefix_scale,
-                     corrected)
+                     corrected, revised)
 
 
 @dataclass
@@ -213,10 +216,11 @@ class _Failed:
     message: str
 
 
-def _estimator_worker(factory: type[Estimator], rig: Rig, config: EstimatorConfig, inbox, outbox) -> None:
+def _estimator_worker(factory: Callable[[Rig, EstimatorConfig], Backend], rig: Rig, config: EstimatorConfig,
+                      inbox, outbox) -> None:
     """Second process: estimate observations (and take velocity samples and fixation points) from ``inbox`` in
-    order until None, results (and refused points) to ``outbox``. ``factory`` is the parent's estimator class,
-    so both processes run the same one.
+    order until None, results (and refused points) to ``outbox``. ``factory`` is the parent's
+    :func:`make_backend` (a test may put a spy there), so both processes run the same back end.
 
     The parent owns this process: Ctrl-C is ignored here (the terminal sends it to the whole process group; the
     parent ends us), and we exit on our own when the parent is gone (killed without cleaning up), so no
@@ -257,7 +261,7 @@ def _estimator_worker(factory: type[Estimator], rig: Rig, config: EstimatorConfi
 
 class _InProcess:
     def __init__(self, rig: Rig, config: EstimatorConfig) -> None:
-        self.estimator = Estimator(rig, config)
+        self.estimator = make_backend(rig, config)
         self.done: list[_Estimate] = []
         self.refused: list[_Refused] = []     # fixation points the estimator did not take
 
@@ -288,7 +292,7 @@ class _Subprocess:
         import multiprocessing as mp
         ctx = mp.get_context('spawn')      # no fork: the parent holds OpenCV's thread pool
         self.inbox, self.outbox = ctx.Queue(), ctx.Queue()
-        self.proc = ctx.Process(target=_estimator_worker, args=(Estimator, rig, config, self.inbox, self.outbox),
+        self.proc = ctx.Process(target=_estimator_worker, args=(make_backend, rig, config, self.inbox, self.outbox),
                                 daemon=True, name='fixego-replay-estimator')
         with _sigint_ignored():            # inherited through exec: a Ctrl-C while the child boots is the parent's
             self.proc.start()
@@ -545,6 +549,7 @@ def replay(bag: Bag, rig: Rig, settings: ReplaySettings, topics: ReplayTopics = 
         res.counts['vergence'] -= 1
         res.note('bad_vergence', f'vergence measurement at {r.stamp:.3f} s refused by the estimator ({r.message}): '
                                  'skipped')
+    index_of: dict[float, int] = {}
     for e in estimates:
         res.stage_ms.setdefault('estimate', []).append(e.ms)
         if not e.placed:
@@ -565,6 +570,11 @@ def replay(bag: Bag, rig: Rig, settings: ReplaySettings, topics: ReplayTopics = 
         if not (e.pose.is_finite() and e.pose_raw.is_finite()):
             res.note('non_finite_pose', f'frame at {e.stamp:.3f} s: non-finite pose left out')
             continue
+        for s_, p_ in e.revised:          # the smoother revised earlier frames: the path takes its newer estimate
+            k = index_of.get(s_)
+            if k is not None and p_.is_finite():
+                res.poses[k] = p_
+        index_of[e.stamp] = len(res.stamps)
         res.stamps.append(e.stamp)
         res.poses.append(e.pose)
         res.poses_raw.append(e.pose_raw)

@@ -1,0 +1,106 @@
+"""What the back ends take and give: one synchronised frame's observations, and one frame's result."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from fixego_ros.estimation.coplanarity import RayPairs
+from fixego_ros.estimation.local_ba import BAResult
+from fixego_ros.estimation.status import StepStatus
+from fixego_ros.estimation.twoframe import TwoFrameResult
+from fixego_ros.geometry.rig import SIDES, Rig
+from fixego_ros.geometry.rotation import Pose
+
+
+@dataclass
+class CameraFrame:
+    """One camera at one frame: its fixation ray and the flow pairs from the previous frame."""
+
+    fixation_ray: np.ndarray | None   # rig-frame unit ray to the fixation point at this frame
+    fixation_id: int                  # changes when the fixation point is re-selected
+    cam_to_rig: np.ndarray            # optical frame -> rig frame at this frame (pan/tilt applied)
+    flow_prev: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # rays at t-1, rig frame
+    flow_curr: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # same points at t
+    # persistent point tracks seen at this frame (landmarks of the sliding window): ids never reused
+    # within a camera, and the rig-frame unit ray of each at this frame
+    track_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    track_rays: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+
+
+@dataclass
+class FrameObservation:
+    """One synchronised frame. ``prev_stamp`` is the stamp of the frame the flow starts from (None when
+    unknown, e.g. synthetic data: then the previous frame); the estimator uses it to place the frame and
+    to notice frames it never received. ``keyframe`` says whether later flow will start from this frame."""
+
+    stamp: float
+    right: CameraFrame | None
+    left: CameraFrame | None
+    prev_stamp: float | None = None
+    keyframe: bool | None = None     # the front end will track later flow from this frame (None: unknown)
+
+    def camera(self, side: str) -> CameraFrame | None:
+        return self.right if side == 'right' else self.left
+
+
+Fixation = tuple[np.ndarray, int, np.ndarray]   # (rig-frame ray, fixation id, cam_to_rig)
+
+
+def fixations_of(obs: FrameObservation) -> dict[str, Fixation | None]:
+    """Each camera's valid fixation (finite ray) at this frame, or None."""
+    out: dict[str, Fixation | None] = {}
+    for side in SIDES:
+        cam = obs.camera(side)
+        ok = (cam is not None and cam.fixation_ray is not None
+              and bool(np.all(np.isfinite(cam.fixation_ray))) and bool(np.all(np.isfinite(cam.cam_to_rig))))
+        out[side] = (np.asarray(cam.fixation_ray, float), int(cam.fixation_id), cam.cam_to_rig) if ok else None
+    return out
+
+
+def step_pairs(rig: Rig, prev: dict[str, Fixation | None], obs: FrameObservation,
+               fixation_weight: float = 1.0) -> RayPairs:
+    """All ray pairs of one step: each camera's flow pairs, and its fixation pair when the fixation
+    point was not re-selected between the two frames (same id)."""
+    groups = []
+    for side in SIDES:
+        cam = obs.camera(side)
+        if cam is None:
+            continue
+        c = rig.center(side)
+        groups.append((cam.flow_prev, cam.flow_curr, c, 1.0))
+        p = prev.get(side)
+        if p is not None and cam.fixation_ray is not None and p[1] == cam.fixation_id:
+            groups.append((p[0], cam.fixation_ray, c, fixation_weight))
+    return RayPairs.build(groups)
+
+
+@dataclass
+class FrameResult:
+    index: int
+    stamp: float
+    status: StepStatus
+    pose: Pose                     # refined: rig at this frame in the rig frame at frame 0
+    pose_raw: Pose                 # two-frame only
+    step: Pose                     # refined motion from the reference keyframe (the previous frame unless
+    step_raw: Pose                 # the front end keeps a keyframe over several frames)
+    step_covariance: np.ndarray    # 6x6 over [rotation vector, T] of the step
+    pose_covariance: np.ndarray    # 6x6 over [rotation vector, position] of ``pose`` (first order)
+    message: str = ''
+    twoframe: TwoFrameResult | None = None
+    ba: BAResult | None = None
+    ref_stamp: float | None = None  # stamp of the keyframe ``step`` starts from
+    placed: bool = True             # False: the frame was ignored (out of order, unknown reference)
+    scale_observed: bool = False    # False until enough rotation (or a scale aid) has fixed the metric scale
+    scale_note: str = ''            # why / how (one line, for diagnostics)
+    # the scale was just measured: every earlier pose's position should be multiplied by this to be metric
+    # (the path so far was built at a nominal speed; a trajectory kept by the caller can be rewritten)
+    prefix_scale: float = 1.0
+    # a blind step (predicted: no flow, e.g. both cameras re-selected at once) into the reference keyframe was
+    # re-estimated from the rates on both sides of it: (stamp, pose, pose_raw) of that keyframe, to replace the
+    # pose reported for it then (a kept trajectory is corrected; later poses already build on it)
+    corrected: tuple[float, Pose, Pose] | None = None
+    # the smoother's newer estimates of earlier frames still in its lag: (stamp, pose) each, to replace the poses
+    # reported for them then (the live pose stays continuous; the path takes these)
+    revised: tuple[tuple[float, Pose], ...] = ()

@@ -1,0 +1,547 @@
+"""The metric back end: a fixed-lag smoother (GTSAM ISAM2) over rig poses, camera poses and landmarks.
+
+Every frame becomes a rig pose ``x<i>`` with one camera pose per camera tied to it by its pan/tilt readings
+(:class:`.factors.CameraMount`). The landmarks are both cameras' persistent flow tracks and fixation points,
+observed through those camera poses (:class:`.factors.Projection`). Each frame also gets the two-frame
+coplanarity solve from its keyframe as a between factor (:class:`.factors.TwoFrameStep`: rotation as solved,
+length at a nominal speed with a 100 % sigma), a constant-twist prior over three frames
+(:class:`.factors.ConstantTwist`), and whatever scale aid there is: a vergence measurement on the right fixation
+landmark (:class:`.factors.Vergence`) or a speed source's translation (:class:`.factors.SpeedStep`). Variables
+older than the lag are marginalised out.
+
+Why this shape (issue 16, README "Back end"): the rays alone leave the scale free on straights and arcs; the
+nominal-speed gauge keeps it deterministic until a vergence measurement fixes it, and the landmarks carry that
+scale on to later frames. A new frame is first placed by a pose-only resection on the landmarks already in the
+graph, so that far-off observations can be gated (``gate_px``) before they enter.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections import deque
+from dataclasses import dataclass, field
+
+import gtsam
+import numpy as np
+
+from fixego_ros.estimation.config import EstimatorConfig, SmootherConfig
+from fixego_ros.estimation.covariance import VAR_MAX, checked_measurement
+from fixego_ros.estimation.factors import (
+    CameraMount,
+    ConstantTwist,
+    Projection,
+    SpeedStep,
+    TwoFrameStep,
+    Vergence,
+    from_gtsam,
+    to_gtsam,
+)
+from fixego_ros.estimation.frames import Fixation, FrameObservation, FrameResult, fixations_of, step_pairs
+from fixego_ros.estimation.keys import LandmarkId, LandmarkKind, camera_key, landmark_key, pose_key
+from fixego_ros.estimation.speed_samples import SpeedSamples
+from fixego_ros.estimation.status import StepStatus
+from fixego_ros.estimation.twoframe import TwoFrameResult, TwoFrameSolver
+from fixego_ros.geometry.rig import SIDES, Rig
+from fixego_ros.geometry.rotation import Pose
+
+
+@dataclass
+class _Frame:
+    """What the smoother keeps of a frame while it may still be revised (and a little longer)."""
+
+    index: int
+    stamp: float
+    fixation: dict[str, Fixation | None]
+    pose: Pose
+    pose_raw: Pose
+
+
+@dataclass
+class _View:
+    """One observation of a landmark, kept until the landmark enters the graph."""
+
+    frame: int
+    stamp: float
+    side: str
+    ray: np.ndarray          # rig frame
+    cam_to_rig: np.ndarray
+
+
+@dataclass
+class _PendingPoint:
+    stamp: float
+    side: str
+    point: np.ndarray
+    cov: np.ndarray
+
+
+@dataclass
+class _Update:
+    """The graph additions of one frame."""
+
+    graph: gtsam.NonlinearFactorGraph = field(default_factory=gtsam.NonlinearFactorGraph)
+    values: gtsam.Values = field(default_factory=gtsam.Values)
+    stamps: dict[int, float] = field(default_factory=dict)
+    observations: int = 0
+
+    def add_value(self, key: int, value: gtsam.Pose3 | np.ndarray, stamp: float) -> None:
+        self.values.insert(key, value)
+        self.stamps[key] = stamp
+
+
+def triangulate(rays: list[np.ndarray], centers: list[np.ndarray]) -> np.ndarray | None:
+    """Least-squares intersection of world rays (None when they are nearly parallel)."""
+    A, b = np.zeros((3, 3)), np.zeros(3)
+    for d, c in zip(rays, centers, strict=True):
+        P = np.eye(3) - np.outer(d, d)
+        A += P
+        b += P @ c
+    if np.linalg.eigvalsh(A)[0] < 1e-4:
+        return None
+    return np.linalg.solve(A, b)
+
+
+class Smoother:
+    """Stateful metric back end (one instance per trajectory; :meth:`reset` restarts). Same interface as
+    :class:`~fixego_ros.estimation.estimator.Estimator`; its results also carry ``revised``: the smoothed poses of
+    earlier frames still in the lag (the caller's path should take them)."""
+
+    GAP_TOLERANCE_S = 1e-6
+    HISTORY_S = 10.0          # frames kept for late vergence measurements and references, beyond the lag
+
+    def __init__(self, rig: Rig, config: EstimatorConfig | None = None) -> None:
+        self.rig = rig
+        self.config = config or EstimatorConfig()     # read every frame (run-time parameters); smoother_* at start
+        self.solver = TwoFrameSolver(self.config.solver)
+        c = self.settings
+        self.projections = {s: Projection(rig.camera(s).fx, rig.camera(s).fy, c.pixel_sigma_px, c.huber_k)
+                            for s in SIDES}
+        self.mount = CameraMount(c.mount_rotation_sigma)
+        self.twist = ConstantTwist(c.twist_rotation_sigma, c.twist_translation_sigma)
+        f = rig.camera('right').fx
+        self.steps = TwoFrameStep(c.step_floor_px / f, c.nominal_speed, c.step_cauchy_k)
+        self.vergence = Vergence()
+        self.speed_step = SpeedStep()
+        self.reset()
+
+    @property
+    def settings(self) -> SmootherConfig:
+        return self.config.smoother
+
+    def reset(self) -> None:
+        self._frames: deque[_Frame] = deque()
+        self._index = -1
+        self._speed = SpeedSamples()
+        self._points: list[_PendingPoint] = []
+        self._aids: set[str] = set()
+        self._note = ''
+        self._scale_measured: tuple[float, float] | None = None
+        self._vergence_used = 0
+        self._restart()
+
+    def _restart(self) -> None:
+        """A new graph (start, or after a numerical failure): later frames start from the last estimate."""
+        params = gtsam.ISAM2Params()
+        params.setRelinearizeThreshold(0.0)    # every variable, every update: a threshold is a decision that
+        # rounding flips (measured: 13 cm RMS between CPU code paths on the paper bag with 0.01, 3e-10 m with 0)
+        params.relinearizeSkip = 1
+        self._sm = gtsam.IncrementalFixedLagSmoother(self.settings.lag_s, params)
+        self._estimate = gtsam.Values()
+        self._landmarks: dict[LandmarkId, int] = {}
+        self._views: dict[LandmarkId, list[_View]] = {}
+        self._next_landmark = itertools.count()
+        self._graph_start = self._index + 1       # first frame of this graph
+
+    # ------------------------------------------------------------------------------------------- aids
+    def add_velocity(self, stamp: float, v_rig: np.ndarray, cov_rig: np.ndarray) -> None:
+        """External speed source: rig-origin velocity (m/s, rig frame at ``stamp``) with its 3x3 covariance.
+        Raises ValueError on non-finite values, a covariance that is not positive definite or an old stamp."""
+        v, cov = checked_measurement(stamp, v_rig, cov_rig, 'velocity sample')
+        self._speed.add(float(stamp), v, cov)
+
+    def add_fixation_point(self, stamp: float, side: str, point_rig: np.ndarray, cov_rig: np.ndarray) -> None:
+        """Vergence measurement: camera ``side``'s fixation point at ``point_rig`` (rig frame at ``stamp``, m).
+        Used once the frame at ``stamp`` is in the graph (at once if it already is and not yet marginalised)."""
+        if side not in SIDES:
+            raise ValueError(f'side must be one of {SIDES}, got {side!r}')
+        point, cov = checked_measurement(stamp, point_rig, cov_rig, 'fixation point')
+        self._points.append(_PendingPoint(float(stamp), side, point, cov))
+        if self._frames:
+            up = _Update()
+            self._attach_points(up)
+            if up.graph.size():
+                self._solve(up)
+
+    @property
+    def scale_measurement(self) -> tuple[float, float] | None:
+        """(stamp, relative std) of the newest vergence measurement used; None before one."""
+        return self._scale_measured
+
+    @property
+    def speed_source_used(self) -> bool:
+        return 'the speed source' in self._aids
+
+    @property
+    def scale_observed(self) -> bool:
+        return bool(self._aids)
+
+    def scale_note(self) -> str:
+        if self._aids:
+            note = 'scale from ' + ' and '.join(sorted(self._aids))
+            if self._vergence_used:
+                note += f' ({self._vergence_used} vergence measurement(s))'
+        else:
+            note = (f'scale unobserved: steps at the nominal {self.settings.nominal_speed:g} m/s until a vergence '
+                    'measurement or a speed source fixes it')
+        return f'{note}; {self._note}' if self._note else note
+
+    @property
+    def last_stamp(self) -> float | None:
+        return self._frames[-1].stamp if self._frames else None
+
+    # ------------------------------------------------------------------------------------------- frames
+    def _frame_at(self, stamp: float) -> _Frame | None:
+        for f in reversed(self._frames):
+            if abs(f.stamp - stamp) <= self.GAP_TOLERANCE_S:
+                return f
+            if f.stamp < stamp:
+                return None
+        return None
+
+    def _in_graph(self, frame: _Frame) -> bool:
+        return frame.index >= self._graph_start and self._estimate.exists(pose_key(frame.index))
+
+    def _reject(self, obs: FrameObservation, why: str) -> FrameResult:
+        last = self._frames[-1] if self._frames else None
+        pose = last.pose if last is not None else Pose.identity()
+        raw = last.pose_raw if last is not None else Pose.identity()
+        return FrameResult(self._index, obs.stamp, StepStatus.REJECTED, pose, raw, Pose.identity(), Pose.identity(),
+                           np.zeros((6, 6)), np.zeros((6, 6)), why, placed=False,
+                           scale_observed=self.scale_observed, scale_note=self.scale_note())
+
+    def _predict(self, stamp: float) -> Pose:
+        """Constant twist from the last two frames of this graph (identity / hold before there are two)."""
+        recent = [f for f in self._frames if f.index >= self._graph_start][-2:]
+        if not recent:
+            return self._frames[-1].pose if self._frames else Pose.identity()
+        if len(recent) == 1:
+            return recent[0].pose
+        a, b = recent
+        step = gtsam.Pose3.Logmap(to_gtsam(a.pose).between(to_gtsam(b.pose)))
+        k = (stamp - b.stamp) / max(b.stamp - a.stamp, 1e-9)
+        return from_gtsam(to_gtsam(b.pose).compose(gtsam.Pose3.Expmap(step * k)))
+
+    def update(self, obs: FrameObservation) -> FrameResult:
+        """Place one frame and smooth the lag. Never raises on bad data: a frame that cannot be placed is rejected
+        (state unchanged); a frame nothing constrains is predicted by the constant-twist prior."""
+        last = self.last_stamp
+        if last is not None and not obs.stamp > last:
+            return self._reject(obs, f'stamp {obs.stamp:.6f} not after the last frame {last:.6f}: ignored')
+        self._index += 1
+        i = self._index
+        fix = fixations_of(obs)
+        ref_stamp = obs.prev_stamp if obs.prev_stamp is not None else last
+        ref = self._frame_at(ref_stamp) if ref_stamp is not None else None
+        ref = ref if ref is not None and self._in_graph(ref) else None
+        messages: list[str] = []
+        if last is not None and ref is None:
+            messages.append('flow reference not in the graph: placed by landmarks and the motion prior')
+        pose0 = self._resect(i, obs, self._predict(obs.stamp))
+        tf, step_raw = self._two_frame(obs, ref, pose0)
+        up = _Update()
+        up.add_value(pose_key(i), to_gtsam(pose0), obs.stamp)
+        if i == self._graph_start:
+            anchor = gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)      # the graph's origin: this frame's pose
+            up.graph.add(gtsam.PriorFactorPose3(pose_key(i), to_gtsam(pose0), anchor))
+        self._observe(i, obs, pose0, up)
+        if self._good(tf) and ref is not None:
+            up.graph.add(self.steps.factor(ref.index, i, tf.pose, tf.covariance, obs.stamp - ref.stamp))
+        self._add_speed(i, obs.stamp, ref, tf, up)
+        self._add_motion_prior(i, obs.stamp, up)
+        raw_base = ref.pose_raw if ref is not None else (self._frames[-1].pose_raw if self._frames else Pose.identity())
+        frame = _Frame(i, obs.stamp, fix, pose0, (raw_base @ step_raw).normalized())
+        self._frames.append(frame)
+        self._attach_points(up)
+        ok = self._solve(up)
+        if not ok:
+            messages.append('smoother failed numerically: restarted from the last estimate')
+        while self._frames and self._frames[0].stamp < obs.stamp - self.settings.lag_s - self.HISTORY_S:
+            self._frames.popleft()
+        if i % 16 == 0:        # views of points that never entered and are no longer seen
+            oldest = obs.stamp - self.settings.lag_s
+            self._views = {k: v for k, v in self._views.items() if v and v[-1].stamp >= oldest}
+        self._speed.forget_before(ref.stamp if ref is not None else obs.stamp)
+        status, why = self._status(tf, up)
+        if why:
+            messages.append(why)
+        pose_cov = self._covariance(frame)
+        ref_pose = ref.pose if ref is not None else frame.pose
+        revised = tuple((f.stamp, f.pose) for f in self._frames if f.index < i and self._in_graph(f))
+        return FrameResult(i, obs.stamp, status, frame.pose, frame.pose_raw, ref_pose.inverse() @ frame.pose, step_raw,
+                           tf.covariance if tf is not None else np.diag([1e-2] * 3 + [VAR_MAX] * 3), pose_cov,
+                           '; '.join(messages), tf, None, ref.stamp if ref is not None else None,
+                           scale_observed=self.scale_observed, scale_note=self.scale_note(), revised=revised)
+
+    # ------------------------------------------------------------------------------------------- pieces
+    def _two_frame(self, obs: FrameObservation, ref: _Frame | None, pose0: Pose
+                   ) -> tuple[TwoFrameResult | None, Pose]:
+        """The coplanarity solve keyframe -> frame, and the raw step (its rotation, nominal length)."""
+        if ref is None:
+            return None, Pose.identity()
+        dt = obs.stamp - ref.stamp
+        pairs = step_pairs(self.rig, ref.fixation, obs, self.config.fixation_weight)
+        tf = self.solver.solve(pairs, initial=ref.pose.inverse() @ pose0)
+        return tf, self.steps.scaled(tf.pose if self._good(tf) else ref.pose.inverse() @ pose0, dt)
+
+    @staticmethod
+    def _good(tf: TwoFrameResult | None) -> bool:
+        """A solve that may enter the graph: usable, finite, and most points in front of both cameras."""
+        return tf is not None and tf.status.usable and tf.pose.is_finite() and tf.cheirality >= 0.5
+
+    def _resect(self, i: int, obs: FrameObservation, start: Pose) -> Pose:
+        """Pose-only fit of the new frame to the landmarks already in the graph (held fixed); the start when
+        there are too few of them."""
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        values.insert(pose_key(i), to_gtsam(start))
+        fixed = gtsam.noiseModel.Isotropic.Sigma(3, 1e-6)
+        n = 0
+        for side, lid, ray, cam in self._sightings(obs):
+            index = self._landmarks.get(lid)
+            if index is None:
+                continue
+            factor = self.projections[side].mounted(i, ray, cam.cam_to_rig, self.rig.center(side), index)
+            if factor is None:
+                continue
+            graph.add(factor)
+            if not values.exists(landmark_key(index)):
+                point = self._estimate.atPoint3(landmark_key(index))
+                values.insert(landmark_key(index), point)
+                graph.add(gtsam.PriorFactorPoint3(landmark_key(index), point, fixed))
+            n += 1
+        if n < self.settings.min_resection:
+            return start
+        try:
+            result = gtsam.LevenbergMarquardtOptimizer(graph, values).optimize()
+        except RuntimeError:
+            return start
+        pose = from_gtsam(result.atPose3(pose_key(i)))
+        return pose if pose.is_finite() else start
+
+    @staticmethod
+    def _sightings(obs: FrameObservation):
+        """(side, landmark id, rig ray, camera) of everything the frame saw: tracks and valid fixation points."""
+        for side in SIDES:
+            cam = obs.camera(side)
+            if cam is None or not np.all(np.isfinite(cam.cam_to_rig)):
+                continue
+            ids = np.asarray(cam.track_ids, np.int64).reshape(-1)
+            rays = np.asarray(cam.track_rays, float).reshape(-1, 3)
+            if len(ids) == len(rays):
+                for t, ray in zip(ids, rays, strict=True):
+                    if np.all(np.isfinite(ray)):
+                        yield side, LandmarkId(LandmarkKind.TRACK, side, int(t)), ray, cam
+            ray = cam.fixation_ray
+            if ray is not None and cam.fixation_id >= 0 and np.all(np.isfinite(ray)):
+                yield side, LandmarkId(LandmarkKind.FIXATION, side, int(cam.fixation_id)), np.asarray(ray, float), cam
+
+    def _observe(self, i: int, obs: FrameObservation, pose: Pose, up: _Update) -> None:
+        """Camera poses, and projection factors for every sighting: of landmarks in the graph (gated against the
+        placed pose; measured: without the gate, observations of frames the landmarks could not place let outliers
+        in, 2.5 -> 9.7 cm on the paper bag), or kept as views until they can be triangulated."""
+        stamp = obs.stamp
+        for side in SIDES:
+            cam = obs.camera(side)
+            if cam is None or not np.all(np.isfinite(cam.cam_to_rig)):
+                continue
+            mount = CameraMount.mount(cam.cam_to_rig, self.rig.center(side))
+            up.add_value(camera_key(i, side), to_gtsam(pose).compose(mount), stamp)
+            up.graph.add(self.mount.factor(i, side, cam.cam_to_rig, self.rig.center(side)))
+        cfg = self.settings
+        for side, lid, ray, cam in self._sightings(obs):
+            index = self._landmarks.get(lid)
+            if index is not None:
+                if self._reprojection_px(side, pose, cam.cam_to_rig, ray, index) > cfg.gate_px:
+                    continue
+                factor = self.projections[side].factor(i, side, ray, cam.cam_to_rig, index)
+                if factor is not None:
+                    up.graph.add(factor)
+                    up.stamps[landmark_key(index)] = stamp
+                    up.observations += 1
+                continue
+            views = self._views.setdefault(lid, [])
+            views.append(_View(i, stamp, side, ray, cam.cam_to_rig))
+            oldest = stamp - 0.9 * cfg.lag_s
+            views[:] = [v for v in views if v.stamp >= oldest]
+            if len(views) >= cfg.min_views:
+                self._try_landmark(lid, views, up, stamp)
+
+    def _pose_of(self, index: int, up: _Update) -> Pose | None:
+        if up.values.exists(pose_key(index)):
+            return from_gtsam(up.values.atPose3(pose_key(index)))
+        for f in reversed(self._frames):
+            if f.index == index:
+                return f.pose
+        return None
+
+    def _reprojection_px(self, side: str, pose: Pose, cam_to_rig: np.ndarray, ray: np.ndarray, index: int) -> float:
+        point = np.asarray(self._estimate.atPoint3(landmark_key(index)), float)
+        center = pose.apply(self.rig.center(side))
+        pc = (pose.R @ cam_to_rig).T @ (point - center)
+        proj = self.projections[side]
+        a, b = proj.pixel(pc), proj.pixel(cam_to_rig.T @ ray)
+        return math.inf if a is None or b is None else float(np.linalg.norm(a - b))
+
+    def _try_landmark(self, lid: LandmarkId, views: list[_View], up: _Update, stamp: float) -> None:
+        """Triangulate a landmark from its views; fixation points without parallax enter at a far guess (their
+        rays hold the rotation even so)."""
+        cfg = self.settings
+        poses = [self._pose_of(v.frame, up) for v in views]
+        if any(p is None for p in poses):
+            return
+        rays = [p.R @ v.ray for p, v in zip(poses, views, strict=True)]
+        centers = [p.apply(self.rig.center(v.side)) for p, v in zip(poses, views, strict=True)]
+        parallax = math.degrees(math.acos(float(np.clip(rays[0] @ rays[-1], -1.0, 1.0))))
+        point = triangulate(rays, centers) if parallax >= cfg.min_parallax_deg else None
+        behind = point is None or (point - centers[0]) @ rays[0] < 0.3
+        if behind or np.linalg.norm(point - centers[0]) > cfg.max_range_m:
+            # a fixation point, or a track seen often without parallax, enters anyway (its rays hold the rotation)
+            if lid.kind is not LandmarkKind.FIXATION and len(views) < cfg.patient_views:
+                return
+            if behind:
+                point = centers[-1] + cfg.far_guess_m * rays[-1]
+        f = self.rig.camera('right').fx
+        for r, c in zip(rays, centers, strict=True):
+            d = point - c
+            if math.acos(float(np.clip(d @ r / np.linalg.norm(d), -1.0, 1.0))) * f > cfg.gate_px:
+                return
+        self._add_landmark(lid, point, up, stamp)
+
+    def _add_landmark(self, lid: LandmarkId, point: np.ndarray, up: _Update, stamp: float) -> int:
+        index = next(self._next_landmark)
+        self._landmarks[lid] = index
+        up.add_value(landmark_key(index), np.asarray(point, float), stamp)
+        up.graph.add(gtsam.PriorFactorPoint3(landmark_key(index), np.asarray(point, float),
+                                             gtsam.noiseModel.Isotropic.Sigma(3, self.settings.landmark_prior_m)))
+        for v in self._views.pop(lid, []):
+            if v.frame < self._graph_start:
+                continue
+            factor = self.projections[v.side].factor(v.frame, v.side, v.ray, v.cam_to_rig, index)
+            if factor is not None:
+                up.graph.add(factor)
+                up.observations += 1
+        return index
+
+    def _add_speed(self, i: int, stamp: float, ref: _Frame | None, tf: TwoFrameResult | None, up: _Update) -> None:
+        if ref is None or not self._speed.stamps:
+            return
+        rotation = tf.pose.rvec() if self._good(tf) else None
+        speed = self._speed.translation(ref.stamp, stamp, rotation)
+        if speed is None:
+            return
+        up.graph.add(self.speed_step.factor(ref.index, i, speed[0], speed[1] + np.eye(3) * 1e-8))
+        self._aids.add('the speed source')
+
+    def _add_motion_prior(self, i: int, stamp: float, up: _Update) -> None:
+        """Constant twist over the last three frames of this graph; a loose step prior for the second frame."""
+        recent = [f for f in self._frames if f.index >= self._graph_start][-2:]
+        if len(recent) == 2:
+            a, b = recent
+            up.graph.add(self.twist.factor((a.index, b.index, i), b.stamp - a.stamp, stamp - b.stamp))
+        elif len(recent) == 1:
+            dt = stamp - recent[0].stamp
+            sigmas = np.array([1.0] * 3 + [max(self.settings.nominal_speed * dt, 1e-3) * 2] * 3)
+            up.graph.add(gtsam.BetweenFactorPose3(pose_key(recent[0].index), pose_key(i), gtsam.Pose3(),
+                                                  gtsam.noiseModel.Diagonal.Sigmas(sigmas)))
+
+    def _attach_points(self, up: _Update) -> None:
+        """Vergence measurements whose frame is in the graph become factors; later ones wait; others are dropped
+        (with a note)."""
+        last = self.last_stamp
+        kept = []
+        for p in self._points:
+            frame = self._frame_at(p.stamp)
+            if frame is None or frame.fixation.get(p.side) is None:
+                if last is not None and p.stamp > last + self.GAP_TOLERANCE_S:
+                    kept.append(p)
+                else:
+                    self._note = (f'vergence measurement at {p.stamp:.3f} s matches no frame with a {p.side} fixation '
+                                  'still in the smoother: ignored')
+                continue
+            if not (up.values.exists(pose_key(frame.index)) or self._in_graph(frame)):
+                self._note = f'vergence measurement at {p.stamp:.3f} s arrived after its frame left the lag: ignored'
+                continue
+            off_px = self._off_fixation_px(p, frame.fixation[p.side][0])
+            if off_px > self.settings.gate_px:
+                self._note = (f'vergence measurement at {p.stamp:.3f} s lies {off_px:.0f} px off the {p.side} fixation '
+                              'ray of its frame (not the point that camera fixates): ignored')
+                continue
+            lid = LandmarkId(LandmarkKind.FIXATION, p.side, frame.fixation[p.side][1])
+            index = self._landmarks.get(lid)
+            if index is None:
+                index = self._add_landmark(lid, frame.pose.apply(p.point), up, frame.stamp)
+            up.stamps[landmark_key(index)] = self._frames[-1].stamp
+            up.graph.add(self.vergence.factor(frame.index, index, p.point, p.cov))
+            distance = float(np.linalg.norm(p.point))
+            u = p.point / max(distance, 1e-9)
+            self._scale_measured = (p.stamp, math.sqrt(float(u @ p.cov @ u)) / max(distance, 1e-9))
+            self._aids.add('the vergence step')
+            self._vergence_used += 1
+        self._points = kept
+
+    def _off_fixation_px(self, p: _PendingPoint, ray: np.ndarray) -> float:
+        """How far (image px) the measured point lies from the camera's fixation ray at that frame. The measurement
+        says "the point this camera fixates is here": a point off the ray is another point (measured on the paper
+        bag: one 4.5 deg (68 px) off pulled the last 3 s of the loop 80 cm off)."""
+        d = p.point - self.rig.center(p.side)
+        cos = float(np.clip(d @ ray / max(float(np.linalg.norm(d)), 1e-12), -1.0, 1.0))
+        return math.acos(cos) * self.rig.camera(p.side).fx
+
+    def _solve(self, up: _Update) -> bool:
+        """Add one frame's factors and relinearise; on a numerical failure start a new graph at the estimate."""
+        try:
+            self._sm.update(up.graph, up.values, up.stamps)
+            for _ in range(self.settings.iterations):
+                self._sm.update()
+            self._estimate = self._sm.calculateEstimate()
+        except RuntimeError:
+            self._restart()
+            return False
+        for lid in [lid for lid, k in self._landmarks.items() if not self._estimate.exists(landmark_key(k))]:
+            del self._landmarks[lid]
+        for f in self._frames:
+            if f.index >= self._graph_start and self._estimate.exists(pose_key(f.index)):
+                pose = from_gtsam(self._estimate.atPose3(pose_key(f.index)))
+                if pose.is_finite():
+                    f.pose = pose
+        return True
+
+    def _status(self, tf: TwoFrameResult | None, up: _Update) -> tuple[StepStatus, str]:
+        if self._index == 0:
+            return StepStatus.INIT, 'first frame'
+        if self._good(tf):
+            return tf.status, tf.message
+        if up.observations >= self.settings.min_resection:
+            why = f'two-frame {tf.status.value}: ' if tf is not None else ''
+            return StepStatus.OK, f'{why}placed by {up.observations} landmark observations'
+        why = f'two-frame {tf.status.value}: {tf.message}' if tf is not None else 'no two-frame step'
+        return StepStatus.PREDICTED, f'{why}; {up.observations} landmark observations; constant-twist prediction'
+
+    def _covariance(self, frame: _Frame) -> np.ndarray:
+        """Marginal covariance of the frame's pose over [rotation (world), position (world)]; with the scale
+        unobserved the position gets a large extra term (it is known only up to that scale)."""
+        cov = np.diag([1e-2] * 3 + [VAR_MAX] * 3)
+        if self._in_graph(frame):
+            try:
+                local = np.asarray(self._sm.marginalCovariance(pose_key(frame.index)), float)
+                J = np.zeros((6, 6))
+                J[:3, :3] = J[3:, 3:] = frame.pose.R
+                cov = J @ local @ J.T
+            except RuntimeError:
+                pass
+        cov = 0.5 * (cov + cov.T)
+        if not self.scale_observed:
+            cov[3:, 3:] += np.eye(3) * (1.0 + float(np.linalg.norm(frame.pose.t))) ** 2
+        if not np.all(np.isfinite(cov)):
+            cov = np.diag([1e-2] * 3 + [VAR_MAX] * 3)
+        return np.clip(cov, -VAR_MAX, VAR_MAX)
