@@ -102,6 +102,13 @@ def triangulate(rays: list[np.ndarray], centers: list[np.ndarray]) -> np.ndarray
     return np.linalg.solve(A, b)
 
 
+def off_ray_px(direction: np.ndarray, ray: np.ndarray, fx: float) -> float:
+    """Angle between a direction and a unit ray, as image pixels at focal length ``fx`` (90 deg for a zero
+    direction)."""
+    cos = float(np.clip(direction @ ray / max(float(np.linalg.norm(direction)), 1e-12), -1.0, 1.0))
+    return math.acos(cos) * fx
+
+
 class Smoother:
     """Stateful metric back end (one instance per trajectory; :meth:`reset` restarts). Same interface as
     :class:`~fixego_ros.estimation.estimator.Estimator`; its results also carry ``revised``: the smoothed poses of
@@ -220,9 +227,13 @@ class Smoother:
                            np.zeros((6, 6)), np.zeros((6, 6)), why, placed=False,
                            scale_observed=self.scale_observed, scale_note=self.scale_note())
 
+    def _recent_frames(self) -> list[_Frame]:
+        """The last two frames of this graph (fewer right after a start or restart)."""
+        return [f for f in self._frames if f.index >= self._graph_start][-2:]
+
     def _predict(self, stamp: float) -> Pose:
         """Constant twist from the last two frames of this graph (identity / hold before there are two)."""
-        recent = [f for f in self._frames if f.index >= self._graph_start][-2:]
+        recent = self._recent_frames()
         if not recent:
             return self._frames[-1].pose if self._frames else Pose.identity()
         if len(recent) == 1:
@@ -411,10 +422,8 @@ class Smoother:
             if behind:
                 point = centers[-1] + cfg.far_guess_m * rays[-1]
         f = self.rig.camera('right').fx
-        for r, c in zip(rays, centers, strict=True):
-            d = point - c
-            if math.acos(float(np.clip(d @ r / np.linalg.norm(d), -1.0, 1.0))) * f > cfg.gate_px:
-                return
+        if any(off_ray_px(point - c, r, f) > cfg.gate_px for r, c in zip(rays, centers, strict=True)):
+            return
         self._add_landmark(lid, point, up, stamp)
 
     def _add_landmark(self, lid: LandmarkId, point: np.ndarray, up: _Update, stamp: float) -> int:
@@ -444,7 +453,7 @@ class Smoother:
 
     def _add_motion_prior(self, i: int, stamp: float, up: _Update) -> None:
         """Constant twist over the last three frames of this graph; a loose step prior for the second frame."""
-        recent = [f for f in self._frames if f.index >= self._graph_start][-2:]
+        recent = self._recent_frames()
         if len(recent) == 2:
             a, b = recent
             up.graph.add(self.twist.factor((a.index, b.index, i), b.stamp - a.stamp, stamp - b.stamp))
@@ -471,7 +480,10 @@ class Smoother:
             if not (up.values.exists(pose_key(frame.index)) or self._in_graph(frame)):
                 self._note = f'vergence measurement at {p.stamp:.3f} s arrived after its frame left the lag: ignored'
                 continue
-            off_px = self._off_fixation_px(p, frame.fixation[p.side][0])
+            # the measurement says "the point this camera fixates is here": a point off the fixation ray is another
+            # point (on the paper bag one 4.5 deg, 68 px, off pulled the last 3 s of the loop 80 cm off)
+            off_px = off_ray_px(p.point - self.rig.center(p.side), frame.fixation[p.side][0],
+                                self.rig.camera(p.side).fx)
             if off_px > self.settings.gate_px:
                 self._note = (f'vergence measurement at {p.stamp:.3f} s lies {off_px:.0f} px off the {p.side} fixation '
                               'ray of its frame (not the point that camera fixates): ignored')
@@ -488,14 +500,6 @@ class Smoother:
             self._aids.add('the vergence step')
             self._vergence_used += 1
         self._points = kept
-
-    def _off_fixation_px(self, p: _PendingPoint, ray: np.ndarray) -> float:
-        """How far (image px) the measured point lies from the camera's fixation ray at that frame. The measurement
-        says "the point this camera fixates is here": a point off the ray is another point (measured on the paper
-        bag: one 4.5 deg (68 px) off pulled the last 3 s of the loop 80 cm off)."""
-        d = p.point - self.rig.center(p.side)
-        cos = float(np.clip(d @ ray / max(float(np.linalg.norm(d)), 1e-12), -1.0, 1.0))
-        return math.acos(cos) * self.rig.camera(p.side).fx
 
     def _solve(self, up: _Update) -> bool:
         """Add one frame's factors and relinearise; on a numerical failure start a new graph at the estimate."""
