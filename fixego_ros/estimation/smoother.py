@@ -37,6 +37,7 @@ from fixego_ros.estimation.factors import (
     from_gtsam,
     to_gtsam,
 )
+from fixego_ros.estimation.fixed_lag import FixedLagWindow
 from fixego_ros.estimation.frames import Fixation, FrameObservation, FrameResult, fixations_of, step_pairs
 from fixego_ros.estimation.keys import LandmarkId, LandmarkKind, camera_key, landmark_key, pose_key
 from fixego_ros.estimation.speed_samples import SpeedSamples
@@ -149,11 +150,7 @@ class Smoother:
 
     def _restart(self) -> None:
         """A new graph (start, or after a numerical failure): later frames start from the last estimate."""
-        params = gtsam.ISAM2Params()
-        params.setRelinearizeThreshold(0.0)    # every variable, every update: a threshold is a decision that
-        # rounding flips (measured: 13 cm RMS between CPU code paths on the paper bag with 0.01, 3e-10 m with 0)
-        params.relinearizeSkip = 1
-        self._sm = gtsam.IncrementalFixedLagSmoother(self.settings.lag_s, params)
+        self._window = FixedLagWindow(self.settings.lag_s)
         self._estimate = gtsam.Values()
         self._landmarks: dict[LandmarkId, int] = {}
         self._views: dict[LandmarkId, list[_View]] = {}
@@ -504,10 +501,10 @@ class Smoother:
     def _solve(self, up: _Update) -> bool:
         """Add one frame's factors and relinearise; on a numerical failure start a new graph at the estimate."""
         try:
-            self._sm.update(up.graph, up.values, up.stamps)
-            for _ in range(self.settings.iterations):
-                self._sm.update()
-            self._estimate = self._sm.calculateEstimate()
+            newest = tuple(k for k in (pose_key(self._index), *(camera_key(self._index, s) for s in SIDES))
+                           if up.values.exists(k))
+            self._window.update(up.graph, up.values, up.stamps, newest, self.settings.iterations)
+            self._estimate = self._window.estimate()
         except RuntimeError:
             self._restart()
             return False
@@ -537,7 +534,7 @@ class Smoother:
         cov = np.diag([1e-2] * 3 + [VAR_MAX] * 3)
         if self._in_graph(frame):
             try:
-                local = np.asarray(self._sm.marginalCovariance(pose_key(frame.index)), float)
+                local = self._window.marginal_covariance(pose_key(frame.index))
                 J = np.zeros((6, 6))
                 J[:3, :3] = J[3:, 3:] = frame.pose.R
                 cov = J @ local @ J.T
