@@ -20,7 +20,8 @@ class SmootherConfig:
     huber_k: float = 1.345              # projection residuals: Huber threshold in sigmas
     mount_rotation_sigma: float = 4e-4  # rad: how far a camera may sit from its pan/tilt readings
     twist_rotation_sigma: float = 0.1   # constant-twist prior, rad/s per step
-    twist_translation_sigma: float = 0.05   # m/s per step
+    twist_translation_sigma: float = 0.05   # m/s per step, until a scale aid is used
+    twist_speed_sigma: float = 0.3      # after: change of the velocity per step over the speed
     gate_px: float = 8.0                # an observation this far from its landmark (after resection) is left out
     min_views: int = 3                  # a landmark enters once seen this often ...
     min_parallax_deg: float = 0.5       # ... with rays this far apart (a fixation point enters at a far guess)
@@ -36,7 +37,8 @@ class SmootherConfig:
 
     def __post_init__(self) -> None:
         positive = ('lag_s', 'pixel_sigma_px', 'huber_k', 'mount_rotation_sigma', 'twist_rotation_sigma',
-                    'twist_translation_sigma', 'gate_px', 'min_parallax_deg', 'far_guess_m', 'max_range_m',
+                    'twist_translation_sigma', 'twist_speed_sigma', 'gate_px', 'min_parallax_deg', 'far_guess_m',
+                    'max_range_m',
                     'landmark_prior_m', 'step_floor_px', 'step_cauchy_k', 'nominal_speed')
         for name in positive:
             v = getattr(self, name)

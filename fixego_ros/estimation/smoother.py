@@ -4,9 +4,10 @@ Every frame becomes a rig pose ``x<i>`` with one camera pose per camera tied to 
 (:class:`.factors.CameraMount`). The landmarks are both cameras' persistent flow tracks and fixation points,
 observed through those camera poses (:class:`.factors.Projection`). Each frame also gets the two-frame
 coplanarity solve from its keyframe as a between factor (:class:`.factors.TwoFrameStep`: rotation as solved,
-length at a nominal speed with a 100 % sigma), a constant-twist prior over three frames
-(:class:`.factors.ConstantTwist`), and whatever scale aid there is: a vergence measurement on the right fixation
-landmark (:class:`.factors.Vergence`) or a speed source's translation (:class:`.factors.SpeedStep`). Variables
+length at a nominal speed with a 100 % sigma until a scale aid has been used, then 10x weaker), a constant-twist
+prior over three frames (:class:`.factors.ConstantTwist`; once the scale is measured its speed change is relative,
+so it does not pull the scale), and whatever scale aid there is: a vergence measurement on the right fixation landmark
+(:class:`.factors.Vergence`) or a speed source's translation (:class:`.factors.SpeedStep`). Variables
 older than the lag are marginalised out.
 
 Why this shape (issue 16, README "Back end"): the rays alone leave the scale free on straights and arcs; the
@@ -117,6 +118,7 @@ class Smoother:
 
     GAP_TOLERANCE_S = 1e-6
     HISTORY_S = 10.0          # frames kept for late vergence measurements and references, beyond the lag
+    TWIST_MIN_SPEED = 0.1     # x nominal speed: below it the constant-twist prior's speed change is absolute
 
     def __init__(self, rig: Rig, config: EstimatorConfig | None = None) -> None:
         self.rig = rig
@@ -126,7 +128,8 @@ class Smoother:
         self.projections = {s: Projection(rig.camera(s).fx, rig.camera(s).fy, c.pixel_sigma_px, c.huber_k)
                             for s in SIDES}
         self.mount = CameraMount(c.mount_rotation_sigma)
-        self.twist = ConstantTwist(c.twist_rotation_sigma, c.twist_translation_sigma)
+        self.twist = ConstantTwist(c.twist_rotation_sigma, c.twist_translation_sigma, c.twist_speed_sigma,
+                                   self.TWIST_MIN_SPEED * c.nominal_speed)
         f = rig.camera('right').fx
         self.steps = TwoFrameStep(c.step_floor_px / f, c.nominal_speed, c.step_cauchy_k)
         self.vergence = Vergence()
@@ -264,7 +267,8 @@ class Smoother:
             up.graph.add(gtsam.PriorFactorPose3(pose_key(i), to_gtsam(pose0), anchor))
         self._observe(i, obs, pose0, up)
         if self._good(tf) and ref is not None:
-            up.graph.add(self.steps.factor(ref.index, i, tf.pose, tf.covariance, obs.stamp - ref.stamp))
+            up.graph.add(self.steps.factor(ref.index, i, tf.pose, tf.covariance, obs.stamp - ref.stamp,
+                                            self.scale_observed))
         self._add_speed(i, obs.stamp, ref, tf, up)
         self._add_motion_prior(i, obs.stamp, up)
         raw_base = ref.pose_raw if ref is not None else (self._frames[-1].pose_raw if self._frames else Pose.identity())
@@ -453,7 +457,8 @@ class Smoother:
         recent = self._recent_frames()
         if len(recent) == 2:
             a, b = recent
-            up.graph.add(self.twist.factor((a.index, b.index, i), b.stamp - a.stamp, stamp - b.stamp))
+            up.graph.add(self.twist.factor((a.index, b.index, i), b.stamp - a.stamp, stamp - b.stamp,
+                                           self.scale_observed))
         elif len(recent) == 1:
             dt = stamp - recent[0].stamp
             sigmas = np.array([1.0] * 3 + [max(self.settings.nominal_speed * dt, 1e-3) * 2] * 3)

@@ -290,7 +290,10 @@ ESTIMATOR_PARAMS: Table = _table(
     _num('smoother_twist_rotation_sigma', 0.1, 'smoother: constant-twist prior, change of the angular rate per frame '
                                                '(rad/s)', gt=0.0),
     _num('smoother_twist_translation_sigma', 0.05, 'smoother: constant-twist prior, change of the velocity per frame '
-                                                   '(m/s)', gt=0.0),
+                                                   '(m/s) while the scale is unmeasured (holds the nominal speed)',
+         gt=0.0),
+    _num('smoother_twist_speed_sigma', 0.3, 'smoother: constant-twist prior once a scale aid is used, change of the '
+                                            'velocity per frame as a fraction of the speed (scale-free)', gt=0.0),
     _num('smoother_step_floor_px', 3.0, 'smoother: the two-frame step factors claim no better rotation than this '
                                         '(px)', gt=0.0),
     _num('smoother_step_cauchy', 1.0, 'smoother: Cauchy threshold of the two-frame step factors (sigmas)', gt=0.0),
@@ -585,6 +588,7 @@ def estimator_config(g: Getter, rig: Rig) -> EstimatorConfig:
                                     min_parallax_deg=float(g('smoother_min_parallax_deg')),
                                     twist_rotation_sigma=float(g('smoother_twist_rotation_sigma')),
                                     twist_translation_sigma=float(g('smoother_twist_translation_sigma')),
+                                    twist_speed_sigma=float(g('smoother_twist_speed_sigma')),
                                     step_floor_px=float(g('smoother_step_floor_px')),
                                     step_cauchy_k=float(g('smoother_step_cauchy')),
                                     mount_rotation_sigma=float(g('smoother_mount_rotation_sigma')),
