@@ -76,8 +76,8 @@ def test_the_step_length_gauge_relaxes_once_the_scale_is_measured():
     step = Pose(np.eye(3), np.array([1.0, 0.0, 0.0]))
     cov = np.eye(6) * 1e-6
 
-    def length_sigma(aided: bool) -> float:
-        sqrt_information = steps.factor(0, 1, step, cov, 0.5, aided).noiseModel().noise().R()   # Robust -> Gaussian
+    def length_sigma(measured: bool) -> float:
+        sqrt_information = steps.factor(0, 1, step, cov, 0.5, measured).noiseModel().noise().R()   # Robust -> Gaussian
         return 1.0 / abs(float(np.asarray(sqrt_information)[3, 3]))
 
     assert length_sigma(False) == pytest.approx(0.25)            # nominal 0.5 m/s over 0.5 s, 100 %

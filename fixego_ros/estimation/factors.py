@@ -129,7 +129,7 @@ class TwoFrameStep:
     """The two-frame coplanarity solve keyframe -> frame as a between factor. Its rotation sigmas come from the
     solve's covariance (floored: a solve over few rays claims too much); its translation carries no scale, so it
     is set to ``nominal_speed`` over the interval with a 100 % sigma: the gauge until a scale aid measures it.
-    Once one has (``aided``), the length sigma is ``AIDED_LENGTH_SIGMA`` nominal steps, so the gauge no longer
+    Once one has (``measured``), the length sigma is ``AIDED_LENGTH_SIGMA`` nominal steps, so the gauge no longer
     competes with the measured scale: at 100 % it pulled each step towards the nominal 0.5 m/s wherever no track
     spans three frames, and the paper bag's steps came out 18 % long after the heads' swing-backs (README "Back
     end"). Before any aid it is what sets the scale, so it stays at 100 % until then.
@@ -152,10 +152,10 @@ class TwoFrameStep:
         return np.diag(np.clip(np.diag(covariance)[:3], self.rotation_floor ** 2, None))
 
     def factor(self, ref: int, frame: int, step: Pose, covariance: np.ndarray, dt: float,
-               aided: bool = False) -> gtsam.NonlinearFactor:
+               measured: bool = False) -> gtsam.NonlinearFactor:
         cov = np.zeros((6, 6))
         cov[:3, :3] = self.rotation_covariance(covariance)
-        length_sigma = self.nominal_speed * dt * (self.AIDED_LENGTH_SIGMA if aided else 1.0)
+        length_sigma = self.nominal_speed * dt * (self.AIDED_LENGTH_SIGMA if measured else 1.0)
         cov[3:, 3:] = np.eye(3) * max(length_sigma, 1e-6) ** 2
         return gtsam.BetweenFactorPose3(pose_key(ref), pose_key(frame), to_gtsam(self.scaled(step, dt)),
                                         gtsam.noiseModel.Robust.Create(self.robust,

@@ -23,6 +23,13 @@ import numpy as np
 OLD, INSIDE, NEWEST = 0, 1, 2       # elimination groups: marginalised first, the window, the newest frame last
 
 
+def _key_list(keys) -> gtsam.KeyList:
+    out = gtsam.KeyList()
+    for k in keys:
+        out.push_back(k)
+    return out
+
+
 class FixedLagWindow:
     """Variables older than ``lag_s`` (by the stamp of their latest use) are marginalised out at each update."""
 
@@ -38,9 +45,7 @@ class FixedLagWindow:
                newest: tuple[int, ...] = (), iterations: int = 0) -> None:
         """Add factors and new variables (``stamps`` gives each new or re-used key its time), marginalise what has
         left the window, then relinearise ``iterations`` more times. Raises RuntimeError on a numerical failure."""
-        keys = gtsam.KeyList()          # re-eliminate everything already in the tree, so the groups hold
-        for k in self._stamps:
-            keys.push_back(k)
+        keys = _key_list(self._stamps)  # re-eliminate everything already in the tree, so the groups hold
         self._stamps.update(stamps)
         now = max(self._stamps.values(), default=0.0)
         old = [k for k, s in self._stamps.items() if s < now - self.lag_s]
@@ -57,14 +62,10 @@ class FixedLagWindow:
             else:
                 self._isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), [], groups, None, keys, True)
             if step == 0 and old:
-                leaves = gtsam.KeyList()
+                self._isam.marginalizeLeaves(_key_list(old))
                 for k in old:
-                    leaves.push_back(k)
                     del self._stamps[k]
-                self._isam.marginalizeLeaves(leaves)
-                keys = gtsam.KeyList()
-                for k in self._stamps:
-                    keys.push_back(k)
+                keys = _key_list(self._stamps)
 
     def estimate(self) -> gtsam.Values:
         return self._isam.calculateEstimate()
