@@ -205,10 +205,11 @@ def _run(args: argparse.Namespace, out: Path, rig_path: Path, launcher) -> int:
         wait_for(lambda: node.poses and node.truth and node.poses[-1][0] >= node.truth[-1][0], 5.0, spin=spin)
         spin(0.3)
         # the estimator publishes the paths at most once per period and once more when the poses stop: wait for
-        # the raw path that holds the last pose (bounded)
+        # the paths that hold the last pose (bounded)
         if node.poses:
             last = node.poses[-1][0]
-            wait_for(lambda: (node.raw_path_stamp() or -math.inf) >= last, 2 * _path_period() + 3.0, spin=spin)
+            wait_for(lambda: all((node.path_stamp(name) or -math.inf) >= last for name in ('path', 'path_raw')),
+                     2 * _path_period() + 3.0, spin=spin)
         launcher.stop_all()
         from fixego_ros.demo.report import write_report
         report = write_report(out, node, t_reset, vars(args), vergence_stamps)

@@ -101,25 +101,28 @@ def vergence_summary(statuses: dict[str, dict[str, str]], stamps: list[float], t
 
 def write_report(out: Path, rec, t_start: float, run_args: dict[str, Any],
                  vergence_stamps: list[float] | None = None) -> dict[str, Any]:
-    """Write ``estimate.tum``, ``estimate.raw.tum``, ``ground_truth.tum``, ``report.json``, ``trajectory.png``
-    under ``out`` from what the recorder saw at or after ``t_start``; returns the report (with a
+    """Write ``estimate.live.tum`` (each pose as published), ``estimate.tum`` (the last path: the smoother's
+    refined trajectory), ``estimate.raw.tum`` (the last path_raw), ``ground_truth.tum``, ``report.json``,
+    ``trajectory.png`` under ``out`` from what the recorder saw at or after ``t_start``; returns the report (with a
     ``console`` summary). ``vergence_stamps``: stamps of the /fixego/vergence measurements seen."""
     keep = [(i, t, p) for i, (t, p) in enumerate(rec.poses) if t >= t_start]
-    est = [(t, p) for _, t, p in keep]
+    live = [(t, p) for _, t, p in keep]
     latency = [rec.latency_s[i] for i, _, _ in keep if i < len(rec.latency_s)]
-    raw = [(t, p) for t, p in rec.raw_poses() if t >= t_start]
+    est = [(t, p) for t, p in rec.path_poses('path') if t >= t_start]
+    raw = [(t, p) for t, p in rec.path_poses('path_raw') if t >= t_start]
     truth = [(t, p) for t, p in rec.truth if t >= t_start]
     files = {}
-    for name, traj in (('estimate.tum', est), ('estimate.raw.tum', raw), ('ground_truth.tum', truth)):
+    for name, traj in (('estimate.live.tum', live), ('estimate.tum', est), ('estimate.raw.tum', raw),
+                       ('ground_truth.tum', truth)):
         if traj:
             write_tum(out / name, [t for t, _ in traj], [p for _, p in traj])
             files[name] = len(traj)
-    est_stamps = {t for t, _ in est}
-    dropped = sum(1 for t, _ in truth if t not in est_stamps and t <= (max(est_stamps) if est_stamps else 0.0))
+    live_stamps = {t for t, _ in live}
+    dropped = sum(1 for t, _ in truth if t not in live_stamps and t <= (max(live_stamps) if live_stamps else 0.0))
     report: dict[str, Any] = {
         'run': {k: str(v) if isinstance(v, Path) else v for k, v in run_args.items() if k != 'func'},
         'files': files,
-        'frames': {'rendered': len(truth), 'poses': len(est), 'dropped': dropped},
+        'frames': {'rendered': len(truth), 'poses': len(live), 'dropped': dropped},
         'latency_image_to_pose_ms': _ms(latency),
         'latency_stages_ms': latency_stages(rec),
         'paper_table1_cm': PAPER_TABLE1,
@@ -127,7 +130,7 @@ def write_report(out: Path, rec, t_start: float, run_args: dict[str, Any],
         'vergence': vergence_summary(rec.statuses, list(vergence_stamps or []), t_start),
     }
     evals = {}
-    for label, traj in (('refined', est), ('raw', raw)):
+    for label, traj in (('refined', est), ('live', live), ('raw', raw)):
         try:
             ev = evaluate([t for t, _ in traj], [p for _, p in traj], [t for t, _ in truth], [p for _, p in truth],
                           anchor_first=True, name=label)
@@ -146,7 +149,7 @@ def write_report(out: Path, rec, t_start: float, run_args: dict[str, Any],
                         gt_xyz=gt_xyz - gt_xyz[0], title=f'fixego demo: {run_args.get("trajectory", "")}')
         report['files']['trajectory.png'] = 1
     lines = [f'fixego demo report: {out}',
-             f'  frames rendered {len(truth)}, poses {len(est)}, dropped {dropped}']
+             f'  frames rendered {len(truth)}, poses {len(live)}, dropped {dropped}']
     lat = report['latency_image_to_pose_ms']
     if lat:
         lines.append(f'  latency image -> pose: p50 {lat["p50"]:.1f} ms, p95 {lat["p95"]:.1f} ms, '
@@ -155,7 +158,7 @@ def write_report(out: Path, rec, t_start: float, run_args: dict[str, Any],
               for k, v in report['latency_stages_ms'].items() if 'p50' in v]
     if stages:
         lines.append('  latency by stage, ms p50/p95 (see report.json): ' + ', '.join(stages))
-    for label in ('raw', 'refined'):
+    for label in ('raw', 'live', 'refined'):
         s = report.get(label, {})
         if 'error' in s:
             lines.append(f'  {label}: {s["error"]}')

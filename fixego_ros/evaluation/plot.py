@@ -17,9 +17,10 @@ from matplotlib.figure import Figure
 
 from fixego_ros.evaluation.metrics import Evaluation
 
-# fixed colours so refined/raw look the same in every report
-COLORS = {'ground truth': 'black', 'refined': 'tab:blue', 'estimate': 'tab:blue', 'raw': 'tab:orange'}
-_CYCLE = ('tab:green', 'tab:red', 'tab:purple', 'tab:brown', 'tab:pink', 'tab:olive', 'tab:cyan')
+# fixed colours so refined/live/raw look the same in every report
+COLORS = {'ground truth': 'black', 'refined': 'tab:blue', 'estimate': 'tab:blue', 'raw': 'tab:orange',
+          'live': 'tab:green'}
+_CYCLE = ('tab:red', 'tab:purple', 'tab:brown', 'tab:pink', 'tab:olive', 'tab:cyan')
 
 
 LIMIT = 1e300   # beyond (m, or cm on the error axis) matplotlib's axis limits overflow: drawn at +-LIMIT instead

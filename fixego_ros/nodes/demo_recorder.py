@@ -37,6 +37,7 @@ def cdr_stamp(data: bytes) -> float | None:
 
 
 # the stages the recorder sees arrive (s after the image stamp); see fixego_ros.demo.report.latency_stages
+PATHS = ('path', 'path_raw')
 STAGES = ('joint_state_right', 'joint_state_left', 'fixation_right', 'fixation_left', 'observation')
 
 
@@ -49,11 +50,14 @@ class Recorder(Node):
         self.truth: list[tuple[float, Pose]] = []
         self.fixations: Counter[str] = Counter()
         self.statuses: dict[str, dict[str, str]] = {}
-        self._path_raw: bytes | None = None
-        self._path_raw_parsed: tuple[bytes, Path] | None = None     # the last one deserialised, and its bytes
+        # the last path / path_raw received (bytes: deserialised only when asked for, then cached with its bytes)
+        self._paths: dict[str, bytes | None] = dict.fromkeys(PATHS)
+        self._parsed: dict[str, tuple[bytes, Path]] = {}
         self.create_subscription(PoseStamped, 'pose', self._on_pose, RELIABLE_QOS)
         self.create_subscription(PoseStamped, 'ground_truth/pose', self._on_truth, RELIABLE_QOS)
-        self.create_subscription(Path, 'path_raw', self._on_path_raw, RELIABLE_QOS, raw=True)
+        for name in PATHS:
+            self.create_subscription(Path, name, lambda data, n=name: self._paths.__setitem__(n, data), RELIABLE_QOS,
+                                     raw=True)
         self.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, RELIABLE_QOS)
         for side in SIDES:
             self.create_subscription(PointStamped, f'{side}/fixation',
@@ -91,29 +95,27 @@ class Recorder(Node):
     def _on_truth(self, msg: PoseStamped) -> None:
         self.truth.append((stamp_to_sec(msg.header.stamp), msg_to_pose(msg.pose)))
 
-    def _on_path_raw(self, data: bytes) -> None:
-        self._path_raw = data
-
     def _on_diag(self, msg: DiagnosticArray) -> None:
         for st in msg.status:
             self.statuses[st.name] = {'message': st.message, **{kv.key: kv.value for kv in st.values}}
 
-    def _last_path_raw(self) -> Path | None:
-        if self._path_raw is None:
+    def _last_path(self, name: str) -> Path | None:
+        data = self._paths[name]
+        if data is None:
             return None
-        if self._path_raw_parsed is None or self._path_raw_parsed[0] is not self._path_raw:
-            self._path_raw_parsed = (self._path_raw, deserialize_message(self._path_raw, Path))
-        return self._path_raw_parsed[1]
+        if name not in self._parsed or self._parsed[name][0] is not data:
+            self._parsed[name] = (data, deserialize_message(data, Path))
+        return self._parsed[name][1]
 
-    def raw_path_stamp(self) -> float | None:
-        """Stamp of the last path_raw received (its newest pose); None before the first. The estimator publishes
-        paths at most once per path_publish_period_s, and once more when the poses stop."""
-        path = self._last_path_raw()
+    def path_stamp(self, name: str = 'path_raw') -> float | None:
+        """Stamp of the last ``name`` Path received (its newest pose); None before the first. The estimator
+        publishes paths at most once per path_publish_period_s, and once more when the poses stop."""
+        path = self._last_path(name)
         return None if path is None else stamp_to_sec(path.header.stamp)
 
-    def raw_poses(self) -> list[tuple[float, Pose]]:
-        """The two-frame-only trajectory: the last path_raw received."""
-        path = self._last_path_raw()
+    def path_poses(self, name: str) -> list[tuple[float, Pose]]:
+        """The last ``name`` Path received: ``path`` (the smoother's refined trajectory) or ``path_raw``."""
+        path = self._last_path(name)
         if path is None:
             return []
         return [(stamp_to_sec(p.header.stamp), msg_to_pose(p.pose)) for p in path.poses]
@@ -136,5 +138,5 @@ class Recorder(Node):
         for v in self.stage_s.values():
             v.clear()
         self.truth.clear()
-        self._path_raw = None
-        self._path_raw_parsed = None
+        self._paths = dict.fromkeys(PATHS)
+        self._parsed.clear()

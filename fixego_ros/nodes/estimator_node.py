@@ -56,6 +56,7 @@ from std_srvs.srv import Trigger
 
 from fixego_ros.estimation.backend import make_backend
 from fixego_ros.estimation.frames import FrameResult
+from fixego_ros.estimation.live_smoother import LiveSmoother
 from fixego_ros.estimation.scale_requests import ScaleRequests
 from fixego_ros.estimation.status import StepStatus
 from fixego_ros.geometry.frames import static_transforms
@@ -108,6 +109,8 @@ def odom_covariance(cov_rig: np.ndarray, pose_rig: Pose, mount: Pose | None = No
 
 
 class EstimatorNode(Node):
+    REVISION_PERIOD_S = 0.1      # steady clock: how often the smoother process's revisions are taken between frames
+
     def __init__(self, **kwargs) -> None:
         super().__init__('estimator_node', **in_namespace(kwargs))
         self.params = g = declare_parameters(self, PARAMS)
@@ -119,7 +122,7 @@ class EstimatorNode(Node):
         self.intrinsics.wait(float(g('camera_info_wait_s')))
         self.rig = self.intrinsics.rig
         self.config = estimator_config(g, self.rig)
-        self.estimator = make_backend(self.rig, self.config)
+        self.estimator = make_backend(self.rig, self.config, live=True)
         self.odom_frame, self.base_frame = str(g('odom_frame')), str(g('base_frame'))
         self._set_stamp_bounds(g)
         self.once = OnceLogger(self)
@@ -159,6 +162,9 @@ class EstimatorNode(Node):
         self.diag_timer = self.create_timer(float(g('diagnostics_period_s')), self._publish_diagnostics)
         if self.path_period > 0:
             self.create_timer(self.path_period, self._flush_paths, clock=Clock(clock_type=ClockType.STEADY_TIME))
+        if isinstance(self.estimator, LiveSmoother):     # its results arrive between frames, and after the last
+            self.create_timer(self.REVISION_PERIOD_S, self._take_revisions,
+                              clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.status_counts: Counter[str] = Counter()
         self.stats = {'observations': 0, 'malformed': 0, 'out_of_order': 0, 'future_rejected': 0,
                       'skipped_behind': 0, 'published': 0, 'paths_published': 0, 'resets': 0,
@@ -197,6 +203,12 @@ class EstimatorNode(Node):
         static.sendTransform([transform_msg(parent, child, pose, stamp)
                               for parent, child, pose in static_transforms(self.rig, self.base_frame)])
         self._static_tf = static        # kept alive: its latched publisher serves late joiners
+
+    def destroy_node(self) -> None:
+        close = getattr(self.estimator, 'close', None)     # the live smoother's child process (bounded stop)
+        if close is not None:
+            close()
+        super().destroy_node()
 
     # -------------------------------------------------------------------------------------- input
     def _on_observation(self, msg: PointCloud2) -> None:
@@ -350,6 +362,17 @@ class EstimatorNode(Node):
                 changed += 1
         self.stats['path_poses_revised'] = self.stats.get('path_poses_revised', 0) + changed
 
+    def _take_revisions(self) -> None:
+        """The smoother process's results that came in since the last frame go into the path (published at once
+        when paths go out with every pose, by the flush timer once the poses have stopped otherwise)."""
+        revised = self.estimator.drain(0.0)
+        if not revised:
+            return
+        self._revise(revised)
+        self._paths_pending = True
+        if self.path_period == 0:
+            self._publish_paths()
+
     def _publish(self, stamp, res: FrameResult) -> None:
         pose = rig_pose_to_base_link(res.pose, self.rig.mount)
         pose_raw = rig_pose_to_base_link(res.pose_raw, self.rig.mount)
@@ -477,6 +500,9 @@ class EstimatorNode(Node):
         values.update({**percentile_values('solve_ms', self.solve_ms or (0.0,)),
                        'window': self.config.window, 'mode': self.config.mode})
         level, message = OK, 'estimating'
+        if isinstance(self.estimator, LiveSmoother):
+            values.update({'smoother_results': self.estimator.smoothed_results,
+                           'smoother_skipped_frames': self.estimator.frames_skipped})
         if self.last is None:
             level, message = WARN, 'no observation yet'
         else:
@@ -492,6 +518,8 @@ class EstimatorNode(Node):
             level, message = WARN, (f'{", ".join(f"{v} {k}" for k, v in sorted(self.recent.items()))} since the '
                                     f'last report; latest: {self.stamp_problem}')
             self.recent.clear()
+        if isinstance(self.estimator, LiveSmoother) and not self.estimator.alive:
+            level, message = ERROR, 'the smoother process has ended: poses are two-frame only (please report)'
         if self.once.active('malformed'):
             level, message = ERROR, self.last_error
         statuses = [diagnostic_status('fixego estimator_node', 'estimator', level, message, values),

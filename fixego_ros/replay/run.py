@@ -38,8 +38,7 @@ from __future__ import annotations
 import math
 import time
 from collections import Counter
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -49,6 +48,7 @@ from fixego_ros.estimation.backend import Backend, make_backend
 from fixego_ros.estimation.config import EstimatorConfig
 from fixego_ros.geometry.rig import SIDES, Rig
 from fixego_ros.geometry.rotation import Pose, rig_pose_to_base_link
+from fixego_ros.interrupt import sigint_ignored
 from fixego_ros.pipeline.camera_info import CAMERA_INFO_TYPE, IntrinsicsFromInfo
 from fixego_ros.pipeline.frontend import CameraSample, KeyframePolicy, StereoFrontEnd
 from fixego_ros.pipeline.messages import ImageError, gray_for_camera, msg_to_pose, pan_tilt, stamp_to_sec
@@ -294,7 +294,7 @@ class _Subprocess:
         self.inbox, self.outbox = ctx.Queue(), ctx.Queue()
         self.proc = ctx.Process(target=_estimator_worker, args=(make_backend, rig, config, self.inbox, self.outbox),
                                 daemon=True, name='fixego-replay-estimator')
-        with _sigint_ignored():            # inherited through exec: a Ctrl-C while the child boots is the parent's
+        with sigint_ignored():            # inherited through exec: a Ctrl-C while the child boots is the parent's
             self.proc.start()
         self.timeout_s = timeout_s
         self.done: list[_Estimate] = []
@@ -347,22 +347,6 @@ class _Subprocess:
             self.proc.join(timeout=2.0)
         for q in (self.inbox, self.outbox):
             q.close()
-
-
-@contextmanager
-def _sigint_ignored() -> Iterator[None]:
-    """SIGINT ignored while a child process is started (the disposition survives exec, so the child boots
-    immune to the Ctrl-C the terminal sends to the whole process group); no-op outside the main thread."""
-    import signal
-    import threading
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGINT, signal.SIG_DFL if previous is None else previous)
 
 
 class _Timer:

@@ -1,0 +1,364 @@
+"""Live back end: the fixed-lag smoother in a child process, and a pose for every frame at once.
+
+GTSAM holds the GIL for a whole solve (50-120 ms per frame on this machine), so a smoother in a thread would still
+stall the node's callbacks, and one in the callback leaves frames without a pose. :class:`LiveSmoother` runs the
+:class:`~fixego_ros.estimation.smoother.Smoother` in a child process and answers each frame itself: the two-frame
+coplanarity solve keyframe -> frame (a few ms), its length from the smoother's latest speed, placed on the
+smoother's latest estimate of the keyframe. The smoother's results revise the path as they arrive (the live pose
+stays continuous; corrections go to the path). The child takes every keyframe (later flow starts from them, so
+they must be in its graph) and the newest non-keyframe whenever it is idle.
+
+Replay keeps the in-process :class:`Smoother` (every frame in the graph, deterministic); the node uses this.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import multiprocessing as mp
+import signal
+import time
+from collections import deque
+from dataclasses import dataclass, replace
+from enum import Enum
+from typing import Any
+
+import numpy as np
+
+from fixego_ros.estimation.config import EstimatorConfig
+from fixego_ros.estimation.covariance import VAR_MAX, checked_measurement
+from fixego_ros.estimation.frames import Fixation, FrameObservation, FrameResult, fixations_of, step_pairs
+from fixego_ros.estimation.status import StepStatus
+from fixego_ros.estimation.twoframe import TwoFrameSolver
+from fixego_ros.geometry.rig import SIDES, Rig
+from fixego_ros.geometry.rotation import Pose
+from fixego_ros.interrupt import sigint_ignored
+
+
+class Message(Enum):
+    """What the parent sends the smoother process."""
+
+    FRAME = 'frame'
+    VELOCITY = 'velocity'
+    POINT = 'point'
+    CONFIG = 'config'
+    RESET = 'reset'
+    STOP = 'stop'
+
+
+@dataclass(frozen=True)
+class SmootherState:
+    """The smoother's scale bookkeeping, sent with every result (the parent answers the node's queries from it)."""
+
+    scale_observed: bool = False
+    scale_note: str = ''
+    scale_measurement: tuple[float, float] | None = None
+    speed_source_used: bool = False
+    frames_skipped: int = 0
+    last_error: str = ''
+
+
+def _state(smoother: Any, skipped: int, error: str) -> SmootherState:
+    return SmootherState(smoother.scale_observed, smoother.scale_note(), smoother.scale_measurement,
+                         smoother.speed_source_used, skipped, error)
+
+
+def serve(conn: Any, rig: Rig, config: EstimatorConfig) -> None:
+    """The child's loop: drain what the parent sent, then handle the oldest message; a non-keyframe is skipped
+    when a later frame is already waiting. Ends on STOP or when the parent's end closes (the parent exited). Ctrl-C
+    is the parent's (the terminal sends it to the whole process group; the parent stops us)."""
+    from fixego_ros.estimation.smoother import Smoother
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    smoother = Smoother(rig, config)
+    queue: deque[tuple[Message, Any]] = deque()
+    skipped, error = 0, ''
+    while True:
+        try:
+            while conn.poll(0.0 if queue else 1.0):
+                queue.append(conn.recv())
+        except (EOFError, OSError):
+            return
+        if not queue:
+            continue
+        kind, payload = queue.popleft()
+        if kind is Message.STOP:
+            return
+        if kind is Message.RESET:
+            smoother.reset()
+            skipped, error = 0, ''
+        elif kind is Message.CONFIG:
+            smoother.config = payload
+        elif kind is Message.VELOCITY or kind is Message.POINT:
+            try:
+                (smoother.add_velocity if kind is Message.VELOCITY else smoother.add_fixation_point)(*payload)
+            except ValueError as e:
+                error = str(e)
+        elif kind is Message.FRAME:
+            if not payload.keyframe and any(k is Message.FRAME for k, _ in queue):
+                skipped += 1
+                continue
+            result = smoother.update(payload)
+            try:
+                conn.send((replace(result, twoframe=None, ba=None), _state(smoother, skipped, error)))
+            except (BrokenPipeError, OSError):
+                return
+
+
+@dataclass
+class _Recent:
+    """What the parent keeps of a frame: its pose (fast, then the smoother's), its raw pose and its fixations."""
+
+    stamp: float
+    pose: Pose
+    raw: Pose              # two-frame steps only, at the nominal speed (path_raw)
+    fixation: dict[str, Fixation | None]
+    ref: _Recent | None = None      # the frame its flow starts from, and the step from there: a frame the child
+    step: Pose | None = None        # skipped moves with its reference when the smoother revises that
+    smoothed: bool = False
+
+
+class LiveSmoother:
+    """The node's back end (same interface as :class:`~fixego_ros.estimation.smoother.Smoother`); :meth:`close`
+    stops the child process (it also ends by itself when the parent exits)."""
+
+    HISTORY_S = 10.0       # frames kept as references (a keyframe can be this old at most)
+    SPEED_WINDOW_S = 0.5   # the speed of the fast poses: the smoother's motion over about this long
+    JOIN_S = 2.0           # bound on waiting for the child to stop
+
+    def __init__(self, rig: Rig, config: EstimatorConfig | None = None) -> None:
+        self.rig = rig
+        self._config = config or EstimatorConfig()
+        self.solver = TwoFrameSolver(self._config.solver)
+        ctx = mp.get_context('spawn')      # fork would copy the node's DDS threads and locks into the child
+        self._conn, child = ctx.Pipe()
+        self._process = ctx.Process(target=serve, args=(child, rig, self._config), daemon=True,
+                                    name='fixego-smoother')
+        with sigint_ignored():
+            self._process.start()
+        child.close()
+        self.smoothed_results = 0
+        self._local_reset()
+
+    # ------------------------------------------------------------------------------------------- interface
+    @property
+    def config(self) -> EstimatorConfig:
+        return self._config
+
+    @config.setter
+    def config(self, config: EstimatorConfig) -> None:
+        self._config = config
+        self.solver = TwoFrameSolver(config.solver)
+        self._send(Message.CONFIG, config)
+
+    @property
+    def scale_measurement(self) -> tuple[float, float] | None:
+        return self._state.scale_measurement
+
+    @property
+    def speed_source_used(self) -> bool:
+        return self._state.speed_source_used
+
+    @property
+    def scale_observed(self) -> bool:
+        return self._state.scale_observed
+
+    def scale_note(self) -> str:
+        return self._state.scale_note or (f'scale unobserved: steps at the nominal '
+                                          f'{self._config.smoother.nominal_speed:g} m/s until the smoother runs')
+
+    @property
+    def frames_skipped(self) -> int:
+        """Non-keyframes the smoother process skipped to keep up (they still got a pose here)."""
+        return self._state.frames_skipped
+
+    @property
+    def alive(self) -> bool:
+        return self._process.is_alive()
+
+    @property
+    def last_stamp(self) -> float | None:
+        return self._recent[-1].stamp if self._recent else None
+
+    def add_velocity(self, stamp: float, v_rig: np.ndarray, cov_rig: np.ndarray) -> None:
+        """As :meth:`Smoother.add_velocity` (checked here: ValueError on bad values; the child applies it)."""
+        v, cov = checked_measurement(stamp, v_rig, cov_rig, 'velocity sample')
+        self._send(Message.VELOCITY, (float(stamp), v, cov))
+
+    def add_fixation_point(self, stamp: float, side: str, point_rig: np.ndarray, cov_rig: np.ndarray) -> None:
+        """As :meth:`Smoother.add_fixation_point` (checked here; the child applies it)."""
+        if side not in SIDES:
+            raise ValueError(f'side must be one of {SIDES}, got {side!r}')
+        point, cov = checked_measurement(stamp, point_rig, cov_rig, 'fixation point')
+        self._send(Message.POINT, (float(stamp), side, point, cov))
+
+    def reset(self) -> None:
+        self._send(Message.RESET, None)
+        self._local_reset()
+
+    def close(self) -> None:
+        """Stop the child (bounded wait, then terminate); a second call does nothing."""
+        if self._conn.closed:
+            return
+        self._send(Message.STOP, None)
+        self._process.join(self.JOIN_S)
+        if self._process.is_alive():
+            self._process.terminate()
+            self._process.join(self.JOIN_S)
+        self._conn.close()
+
+    def drain(self, timeout_s: float) -> tuple[tuple[float, Pose], ...]:
+        """Wait (at most ``timeout_s``; 0 = only what has arrived) until the smoother has answered or skipped every
+        frame sent to it, and return its revisions not yet handed out by :meth:`update` (the node takes them
+        between frames and after the last)."""
+        end = time.monotonic() + timeout_s
+        while self._sent_frames > self._answered + self._state.frames_skipped and time.monotonic() < end:
+            if self._conn.poll(min(0.05, max(0.0, end - time.monotonic()))):
+                if not self._receive():
+                    break
+            elif not self.alive:
+                break
+        self._receive_all()
+        revised, self._revised = tuple(sorted(self._revised.items())), {}
+        return revised
+
+    # ------------------------------------------------------------------------------------------- frames
+    def update(self, obs: FrameObservation) -> FrameResult:
+        """A pose for ``obs`` now (two-frame solve from its keyframe, placed on the smoother's estimate of it), and
+        the smoother's revisions that arrived since the last call."""
+        self._receive_all()
+        last = self.last_stamp
+        if last is not None and not obs.stamp > last:
+            return self._reject(obs, f'stamp {obs.stamp:.6f} not after the last frame {last:.6f}: ignored')
+        self._index += 1
+        self._send(Message.FRAME, obs)
+        self._sent_frames += 1
+        ref = self._find(obs.prev_stamp if obs.prev_stamp is not None else last)
+        predicted = self._predict(obs.stamp)
+        messages: list[str] = []
+        tf = None
+        if ref is None:
+            pose, step, step_raw = predicted, Pose.identity(), Pose.identity()
+            if last is not None:
+                messages.append('flow reference unknown: pose predicted at constant twist')
+        else:
+            dt = obs.stamp - ref.stamp
+            tf = self.solver.solve(step_pairs(self.rig, ref.fixation, obs, self._config.fixation_weight),
+                                   initial=ref.pose.inverse() @ predicted)
+            if tf.status.usable and tf.pose.is_finite() and tf.cheirality >= 0.5:
+                step = self._scaled(tf.pose, self._speed() * dt)
+                pose = (ref.pose @ step).normalized()
+            else:
+                pose = predicted
+                step = ref.pose.inverse() @ pose
+                messages.append(f'two-frame step not usable ({tf.status.value}): pose predicted at constant twist')
+            step_raw = self._scaled(tf.pose if tf.pose.is_finite() else step,
+                                    self._config.smoother.nominal_speed * dt)
+        raw_base = ref.raw if ref is not None else (self._recent[-1].raw if self._recent else Pose.identity())
+        status = StepStatus.INIT if last is None else (tf.status if tf is not None else StepStatus.REJECTED)
+        frame = _Recent(obs.stamp, pose, (raw_base @ step_raw).normalized(), fixations_of(obs), ref, step)
+        self._recent.append(frame)
+        while self._recent and self._recent[0].stamp < obs.stamp - self.HISTORY_S:
+            self._recent.popleft().ref = None
+        revised, self._revised = tuple(sorted(self._revised.items())), {}
+        if self._state.last_error:
+            messages.append(f'smoother: {self._state.last_error}')
+        unknown = np.diag([1e-2] * 3 + [VAR_MAX] * 3)
+        cov = self._pose_cov if self._pose_cov is not None else unknown
+        return FrameResult(self._index, obs.stamp, status, pose, frame.raw, step, step_raw,
+                           tf.covariance if tf is not None else unknown, cov, '; '.join(messages), tf, None,
+                           ref.stamp if ref is not None else None, scale_observed=self.scale_observed,
+                           scale_note=self.scale_note(), revised=revised)
+
+    # ------------------------------------------------------------------------------------------- pieces
+    def _local_reset(self) -> None:
+        self._recent: deque[_Recent] = deque()
+        self._revised: dict[float, Pose] = {}
+        self._state = SmootherState()
+        self._pose_cov: np.ndarray | None = None
+        self._index = -1
+        self._sent_frames = 0
+        self._answered = 0
+
+    def _send(self, kind: Message, payload: Any) -> None:
+        with contextlib.suppress(BrokenPipeError, OSError):   # the child is gone: ``alive`` says so, and
+            self._conn.send((kind, payload))                  # frames still get their fast poses
+
+    def _receive_all(self) -> None:
+        with contextlib.suppress(EOFError, OSError):
+            while self._conn.poll(0.0):
+                if not self._receive():
+                    break
+
+    def _receive(self) -> int:
+        """One result from the child: its pose and revisions go into the recent frames (and out as revisions)."""
+        try:
+            result, state = self._conn.recv()
+        except (EOFError, OSError):
+            return 0
+        self._state = state
+        self._answered += 1
+        self.smoothed_results += 1
+        if not result.placed:
+            return 1
+        updates = {round(s, 6): p for s, p in result.revised}
+        updates[round(result.stamp, 6)] = result.pose
+        moved: set[int] = set()
+        for r in self._recent:
+            p = updates.get(round(r.stamp, 6))
+            if p is not None and p.is_finite():
+                r.pose, r.smoothed = p, True
+                moved.add(id(r))
+            elif not r.smoothed and r.ref is not None and r.step is not None and id(r.ref) in moved:
+                r.pose = (r.ref.pose @ r.step).normalized()       # skipped by the child: rides on its reference
+                moved.add(id(r))
+            else:
+                continue
+            self._revised[r.stamp] = r.pose
+        if np.all(np.isfinite(result.pose_covariance)):
+            self._pose_cov = result.pose_covariance
+        return 1
+
+    def _find(self, stamp: float | None) -> _Recent | None:
+        if stamp is None:
+            return None
+        for r in reversed(self._recent):
+            if abs(r.stamp - stamp) <= 1e-6:
+                return r
+            if r.stamp < stamp:
+                return None
+        return None
+
+    def _speed(self) -> float:
+        """m/s: the smoother's motion over its newest ``SPEED_WINDOW_S``; the nominal speed before there is one."""
+        smoothed = [r for r in self._recent if r.smoothed]
+        if len(smoothed) >= 2:
+            b = smoothed[-1]
+            a = next((r for r in reversed(smoothed[:-1]) if b.stamp - r.stamp >= self.SPEED_WINDOW_S), smoothed[0])
+            if b.stamp > a.stamp:
+                return float(np.linalg.norm(b.pose.t - a.pose.t)) / (b.stamp - a.stamp)
+        return self._config.smoother.nominal_speed
+
+    @staticmethod
+    def _scaled(step: Pose, length: float) -> Pose:
+        """``step`` with its translation ``length`` long (the two-frame solve gives its direction only)."""
+        n = float(np.linalg.norm(step.t))
+        return Pose(step.R, step.t / n * length if n > 1e-9 else step.t)
+
+    def _predict(self, stamp: float) -> Pose:
+        """Constant twist from the last two frames (hold before there are two)."""
+        if not self._recent:
+            return Pose.identity()
+        if len(self._recent) == 1:
+            return self._recent[-1].pose
+        a, b = self._recent[-2], self._recent[-1]
+        k = (stamp - b.stamp) / max(b.stamp - a.stamp, 1e-9)
+        step = a.pose.inverse() @ b.pose
+        return (b.pose @ Pose.from_rvec(step.rvec() * k, step.t * k)).normalized()
+
+    def _reject(self, obs: FrameObservation, why: str) -> FrameResult:
+        last = self._recent[-1] if self._recent else None
+        pose = last.pose if last is not None else Pose.identity()
+        raw = last.raw if last is not None else Pose.identity()
+        return FrameResult(self._index, obs.stamp, StepStatus.REJECTED, pose, raw, Pose.identity(), Pose.identity(),
+                           np.zeros((6, 6)), np.zeros((6, 6)), why, placed=False,
+                           scale_observed=self.scale_observed, scale_note=self.scale_note())

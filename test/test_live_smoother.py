@@ -1,0 +1,124 @@
+"""The node's back end: the smoother in a child process, a two-frame pose for every frame at once."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from fixego_ros.estimation.backend import make_backend
+from fixego_ros.estimation.config import EstimatorConfig
+from fixego_ros.estimation.live_smoother import LiveSmoother
+from fixego_ros.estimation.smoother import Smoother
+from fixego_ros.estimation.status import StepStatus
+from fixego_ros.estimation.twoframe import SolverConfig
+from fixego_ros.experiments.landmark_scene import LandmarkScene, LandmarkSceneConfig
+from fixego_ros.geometry.rig import make_rig
+from fixego_ros.sim.trajectories import make_trajectory
+
+RIG = make_rig(640, 480, 21.0, 0.2)
+F = RIG.camera('right').fx
+WAIT_S = 60.0        # bound on waiting for the child (it answers in well under a second per frame)
+
+
+@pytest.fixture(scope='module')
+def loop():
+    """8 s of the papers' loop at 5.1 Hz, 0.3 px noise."""
+    scene = LandmarkScene(RIG, LandmarkSceneConfig(noise_px=0.3, max_tracks=40))
+    return scene.run(make_trajectory('paper'), duration=8.0)
+
+
+@pytest.fixture
+def live():
+    sm = LiveSmoother(RIG, EstimatorConfig(solver=SolverConfig(sigma=1.0 / F)))
+    yield sm
+    sm.close()
+
+
+def _vergence(run, k: int):
+    p = run.fixation_points[k]['right']
+    d = float(np.linalg.norm(p))
+    return p, np.eye(3) * (1e-3 * d) ** 2
+
+
+def _feed(backend, run, wait: bool):
+    """Every frame, with a vergence point at each new right fixation; the path as the node keeps it (each result's
+    pose, then the revisions). ``wait``: let the child answer each frame before the next (no frame skipped)."""
+    path, results, last_fid = {}, [], None
+    for k, obs in enumerate(run.observations):
+        r = backend.update(obs)
+        if obs.right.fixation_id != last_fid:
+            backend.add_fixation_point(obs.stamp, 'right', *_vergence(run, k))
+            last_fid = obs.right.fixation_id
+        results.append(r)
+        path[r.stamp] = r.pose.t
+        path.update({s: p.t for s, p in r.revised})
+        if wait and isinstance(backend, LiveSmoother):
+            path.update({s: p.t for s, p in backend.drain(WAIT_S)})
+    if isinstance(backend, LiveSmoother):
+        path.update({s: p.t for s, p in backend.drain(WAIT_S)})
+    return results, np.array([path[s] for s in run.stamps])
+
+
+def test_the_path_is_the_in_process_smoothers(loop, live):
+    """The child runs the same smoother on the same messages in the same order: its path is the in-process one."""
+    _, expected = _feed(Smoother(RIG, EstimatorConfig(solver=SolverConfig(sigma=1.0 / F))), loop, wait=False)
+    results, path = _feed(live, loop, wait=True)
+    assert np.max(np.abs(path - expected)) < 1e-9
+    assert live.frames_skipped == 0 and live.smoothed_results == len(loop.observations)
+    assert results[-1].scale_observed and 'vergence' in results[-1].scale_note
+
+
+def test_every_frame_gets_a_pose_at_once_and_it_follows_the_smoother(loop, live):
+    """Fast poses: the two-frame step at the smoother's speed, on the smoother's latest estimate of its reference.
+    Once the scale is measured they stay close to the truth (generous bound; the path is the refined answer)."""
+    results, _ = _feed(live, loop, wait=True)
+    assert results[0].status is StepStatus.INIT
+    assert all(r.placed and r.pose.is_finite() and np.all(np.isfinite(r.pose_covariance)) for r in results)
+    true = np.array([p.t for p in loop.poses])
+    fast = np.array([r.pose.t for r in results])
+    aided = [k for k, r in enumerate(results) if r.scale_observed]
+    assert len(aided) > len(results) // 2
+    assert np.linalg.norm(fast[aided] - true[aided], axis=1).mean() < 0.3
+
+
+def test_a_busy_smoother_skips_non_keyframes_but_never_a_keyframe(loop, live):
+    """Frames sent faster than the child solves: it takes every keyframe (later flow starts there) and the newest
+    other frame; every frame still gets a pose, and the skipped ones move with the frame their flow starts from
+    when the smoother revises it (the path has no fast poses left among smoothed ones)."""
+    observations = [dataclasses.replace(o, keyframe=(k % 4 == 0)) for k, o in enumerate(loop.observations)]
+    results = [live.update(o) for o in observations]
+    revised = dict(live.drain(WAIT_S))
+    assert all(r.pose.is_finite() for r in results)
+    assert live.smoothed_results + live.frames_skipped == len(observations)
+    keyframes = {o.stamp for o in observations if o.keyframe}
+    assert keyframes <= set(revised)
+    assert set(revised) == {o.stamp for o in observations}
+
+
+def test_bad_aids_are_refused_here_and_a_dead_child_leaves_poses_flowing(loop, live):
+    with pytest.raises(ValueError):
+        live.add_velocity(1.0, np.array([np.nan, 0.0, 0.0]), np.eye(3))
+    with pytest.raises(ValueError):
+        live.add_fixation_point(1.0, 'middle', np.ones(3), np.eye(3))
+    live.update(loop.observations[0])
+    live._process.kill()
+    live._process.join(WAIT_S)
+    assert not live.alive
+    r = live.update(loop.observations[1])
+    assert r.placed and r.pose.is_finite()
+    assert live.drain(1.0) == ()
+    live.close()
+    live.close()
+
+
+def test_the_factory_puts_the_smoother_in_a_child_only_when_live():
+    config = EstimatorConfig()
+    assert isinstance(make_backend(RIG, config), Smoother)
+    backend = make_backend(RIG, config, live=True)
+    try:
+        assert isinstance(backend, LiveSmoother) and backend.alive
+    finally:
+        backend.close()
+    assert not backend.alive
