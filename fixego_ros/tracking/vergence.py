@@ -485,6 +485,7 @@ class VergenceStep:
         self._own: deque[tuple[tuple[float, float] | None, int]] = deque(maxlen=8)   # left's own point (waiting)
         self._sample_cache: dict[float, VergenceSample | str] = {}
         self.phase = 'waiting'
+        self._waiting_for = ''          # why it is still waiting (diagnostics, and the timeout's message)
         self.t_start: float | None = None
         self.t_phase = 0.0
         self.reason = ''
@@ -533,7 +534,8 @@ class VergenceStep:
         (for diagnostics)."""
         outcome = 'done' if self._ended == 'done' else f'failed: {self.reason}' if self._ended else ''
         if not outcome:
-            return f'running: {self.phase}'
+            return f'running: {self.phase}' + (f' ({self._waiting_for})' if self.phase == 'waiting'
+                                               and self._waiting_for else '')
         if not self.finished:
             return f'running: {self.phase} ({"measured" if self._ended == "done" else outcome})'
         return outcome
@@ -571,14 +573,8 @@ class VergenceStep:
                 best = f
         return best
 
-    def _right_triple(self, settled: bool = False):
-        """Newest right (stamp, image, fixation pixel, fixation id, joints) with a centred fixation; ``settled``:
-        and the newest ``settle_frames`` right fixations all centred, of that id."""
-        if settled:
-            last = list(self.right_fix)[-self.p.settle_frames:]
-            if len(last) < self.p.settle_frames or len({f[2] for f in last}) != 1 \
-                    or not all(self._centred('right', f[1]) for f in last):
-                return None
+    def _right_triple(self):
+        """Newest right (stamp, image, fixation pixel, fixation id, joints) with a centred fixation."""
         fixes = {round(f[0], 6): f for f in self.right_fix}
         for t, img in reversed(self.right_images):
             f = fixes.get(round(t, 6))
@@ -597,21 +593,37 @@ class VergenceStep:
         self.phase, self.t_phase = phase, now
         self.timeline.append((phase, now))
 
-    def _own_settled(self) -> bool:
-        """The left's own fixation centred for the last ``settle_frames`` frames and both heads calm (the rig is
-        not turning faster than the servos follow, so the partner point is likely to settle)."""
-        last = list(self._own)[-self.p.settle_frames:]
-        return (len(last) == self.p.settle_frames and len({i for _, i in last}) == 1
-                and all(px is not None and self._centred('left', px) for px, _ in last)
-                and self._calm(self.left_history) and self._calm(self.right_history))
+    def _not_ready(self) -> str:
+        """Why the step cannot leave ``waiting`` yet ('' when it can): the right fixation centred and of one id for
+        the last ``settle_frames`` frames, the left's own fixation likewise, and both heads calm (the rig is not
+        turning faster than the servos follow, so the partner point is likely to settle)."""
+        n = self.p.settle_frames
+        right = list(self.right_fix)[-n:]
+        if len(right) < n or len({f[2] for f in right}) != 1:
+            return 'right fixation changed or too few right frames'
+        if not all(self._centred('right', f[1]) for f in right):
+            off = max(math.dist(f[1], self.rig.right.center) for f in right)
+            return f'right fixation {off:.0f} px from the centre (settle_px {self.p.settle_px:g})'
+        own = list(self._own)[-n:]
+        if len(own) < n or len({i for _, i in own}) != 1 or any(px is None for px, _ in own):
+            return 'left fixation changed or invalid'
+        if not all(self._centred('left', px) for px, _ in own):
+            off = max(math.dist(px, self.rig.left.center) for px, _ in own)
+            return f'left fixation {off:.0f} px from the centre (settle_px {self.p.settle_px:g})'
+        for side, history in (('right', self.right_history), ('left', self.left_history)):
+            rate = self._rate(history)
+            if rate is None or rate > math.radians(self.p.max_rate_deg_s):
+                turning = 'no recent readings' if rate is None else f'turning {math.degrees(rate):.1f} deg/s'
+                return f'{side} head {turning} (max_rate_deg_s {self.p.max_rate_deg_s:g})'
+        return ''
 
-    def _calm(self, history: JointHistory) -> bool:
-        """The head turned at most ``max_rate_deg_s`` over its latest readings."""
+    def _rate(self, history: JointHistory) -> float | None:
+        """How fast the head turned (rad/s) over its latest readings; None without them."""
         latest = history.latest()
         if latest is None:
-            return False
+            return None
         m = self._motion(history, latest[0] - self.p.motion_window_s)
-        return m is not None and m[0] <= math.radians(self.p.max_rate_deg_s)
+        return None if m is None else m[0]
 
     def _fail(self, now: float, reason: str) -> None:
         self.reason, self._ended = reason, 'failed'
@@ -685,9 +697,11 @@ class VergenceStep:
             self.t_start = self.t_phase = now
         self.poll(now)
         if self.phase == 'waiting':
-            trip = self._right_triple(settled=True)
+            self._waiting_for = self._not_ready()
+            trip = self._right_triple()
             home = self.left_history.latest()
-            if trip is None or home is None or not self._own_settled():
+            if trip is None or home is None or self._waiting_for:
+                self._waiting_for = self._waiting_for or 'a right image with its fixation and joints'
                 return Action('track')
             _, _, rpx, rid, rq = trip
             self._right_id = rid
@@ -785,8 +799,8 @@ class VergenceStep:
             return None
         if self.phase == 'waiting':
             if now - self.t_start > self.p.wait_timeout_s:
-                self._fail(now, f'both fixations not settled within {self.p.wait_timeout_s:g} s (the right one '
-                                f'with its image and joints)')
+                self._fail(now, f'both fixations not settled within {self.p.wait_timeout_s:g} s (last: '
+                                f'{self._waiting_for or "no left image"})')
             return None
         if self.t_left is not None and now - self.t_left > self.p.timeout_s:
             note = f' ({self._note})' if self._note else ''
