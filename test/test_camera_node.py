@@ -433,3 +433,34 @@ def test_joint_state_is_published_at_once_past_the_last_reading_and_wait_mode_wa
         node.destroy_node()
         peer.destroy_node()
         emu.stop()
+
+
+def test_near_a_pan_limit_the_head_swings_back_then_fixates_anew(ros_context, rig_file):
+    """A head that starts inside the limit margin turns back (limit_swing_deg towards the middle) with no fixation
+    published meanwhile, then selects a new point at the centre and servoes it again: it does not stay pinned at the
+    limit (what the in-image re-selection it replaces did on the papers' loop)."""
+    emu = ViscaEmulator('evi_d30', baud=9600, start_pan_deg=97.0)
+    port = emu.start()
+    node = CameraNode(context=ros_context, parameter_overrides=[
+        Parameter('side', value='right'), Parameter('port', value=port), Parameter('rig_file', value=rig_file),
+        Parameter('search_radius_px', value=30.0), Parameter('border_margin_px', value=25.0),
+        Parameter('limit_swing_deg', value=40.0)])
+    scene = DriftingView(ros_context, node, emu, seed=4)
+    fixes, joints, publish_frame = scene.fixes, scene.joints, scene.publish_frame
+    ex = executor_for(ros_context, node, scene.peer)
+    try:
+        def fixating_after_swing() -> bool:
+            publish_frame()
+            return (node.stats['limit_swings'] >= 1 and len(fixes) > 5
+                    and bool(joints)
+                    and math.degrees(joints[-1].position[0]) < 70.0)
+        assert spin_until(ex, fixating_after_swing, timeout_s=15.0, step_s=0.005)
+        assert scene.no_fixes, 'no "no valid fixation" while the head turned'
+        pans = [math.degrees(j.position[0]) for j in joints]
+        assert max(pans) > 92.0 and 52.0 < pans[-1] < 70.0      # from the margin to about 97 - 40 deg
+        assert node.stats['limit_swings'] == 1
+    finally:
+        ex.shutdown(timeout_sec=1.0)
+        node.destroy_node()
+        scene.peer.destroy_node()
+        emu.stop()

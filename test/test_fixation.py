@@ -92,29 +92,26 @@ def test_a_jump_lucas_kanade_loses_is_found_again_by_the_template_unless_it_has_
     assert st.reselected and st.fixation_id == 1
 
 
-def test_limit_check_fires_once_per_approach_towards_the_middle():
-    lc = LimitCheck((-1.0, 1.0), (-0.4, 0.4), margin_rad=0.1, offset_px=100.0)
+def test_limit_check_fires_once_per_approach_and_swings_towards_the_middle():
+    lc = LimitCheck((-1.0, 1.0), (-0.4, 0.4), margin_rad=0.1, swing_rad=0.6)
     assert lc.check(0.0, 0.0) is None
-    assert lc.check(0.95, 0.0) == (-100.0, 0.0)        # near +pan (right): choose a point to the left
-    assert lc.check(0.97, 0.0) is None                 # still near: no second re-selection
+    assert lc.check(0.95, 0.05) == pytest.approx((0.35, 0.05))    # near +pan: swing 0.6 back, tilt kept
+    assert lc.check(0.97, 0.0) is None                           # still near: no second swing
     assert lc.check(0.5, 0.0) is None
-    assert lc.check(0.5, -0.35) == (0.0, -100.0)       # near tilt bottom: choose a point above (smaller v)
+    assert lc.check(0.5, -0.35) == pytest.approx((0.5, 0.0))      # near the tilt bottom: to the middle, not past it
+    assert lc.check(-0.5, 0.0) is None                           # clear again: re-armed
+    assert lc.check(-0.95, 0.0) == pytest.approx((-0.35, 0.0))
 
 
-@pytest.mark.parametrize('cal', [PanTiltCalibration(), PanTiltCalibration(pan_sign=-1.0, tilt_sign=-1.0),
-                                 PanTiltCalibration(pan_sign=-1.0, tilt_sign=1.0, pan_offset=0.05)],
-                         ids=['upright', 'inverted', 'pan_inverted'])
-@pytest.mark.parametrize('pan,tilt', [(0.95, 0.0), (-0.95, 0.0), (0.0, 0.35), (0.0, -0.35)])
-def test_limit_reselection_turns_the_head_back_whatever_the_signs(cal, pan, tilt):
-    """The point chosen after a limit re-selection must need device angles further from that limit, also on a
-    head whose angles run against the view (rig file pan_sign/tilt_sign = -1)."""
-    lc = LimitCheck((-1.0, 1.0), (-0.4, 0.4), margin_rad=0.1, offset_px=100.0, signs=(cal.pan_sign, cal.tilt_sign))
-    du, dv = lc.check(pan, tilt)
-    want_pan, want_tilt = centring_angles(CAM, (CAM.cx + du, CAM.cy + dv), pan, tilt, cal)
-    if pan:
-        assert abs(want_pan) < abs(pan) - 0.1
-    else:
-        assert abs(want_tilt) < abs(tilt) - 0.1
+@pytest.mark.parametrize('pan,tilt', [(0.95, 0.0), (-0.95, 0.0), (0.0, 0.35), (0.0, -0.35), (0.93, 0.36)])
+def test_a_limit_swing_ends_clear_of_every_margin(pan, tilt):
+    """Where the head swings to is inside the range with room to follow a point again (the in-image re-selection
+    it replaces left the head inside the margin, where it stayed pinned)."""
+    lc = LimitCheck((-1.0, 1.0), (-0.4, 0.4), margin_rad=0.1, swing_rad=0.6)
+    aim = lc.check(pan, tilt)
+    assert aim is not None
+    assert -0.9 < aim[0] < 0.9 and -0.3 <= aim[1] <= 0.3
+    assert abs(aim[0]) <= abs(pan) and abs(aim[1]) <= abs(tilt)
 
 
 def test_centring_angles_are_exact():

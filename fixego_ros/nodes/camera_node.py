@@ -97,7 +97,7 @@ PARAMS = CAMERA_NODE_PARAMS
 LIVE_TRACKER = tuple(name for name, spec in FIXATION_PARAMS.items() if not spec.read_only)
 LIVE_SERVO = ('servo_gain', 'servo_deadband_px', 'servo_move_time_s', 'servo_max_command_rate_hz',
               'servo_feedforward')
-LIVE_NODE = ('limit_margin_deg', 'limit_reselect_offset_px', 'joint_max_wait_s', 'joint_mode', 'joint_predict_max_s',
+LIVE_NODE = ('limit_margin_deg', 'limit_swing_deg', 'joint_max_wait_s', 'joint_mode', 'joint_predict_max_s',
              'diagnostics_period_s')
 # when vergence steps run (the scheduler's limits); the step itself is read-only
 LIVE_VERGENCE = ('vergence_period_s', 'vergence_min_interval_s', 'vergence_retry_s')
@@ -112,6 +112,9 @@ def servo_params(g: Getter) -> ServoParams:
 
 
 class CameraNode(Node):
+    SWING_TOLERANCE_DEG = 1.0    # a swing back from a limit has arrived within this of its aim ...
+    SWING_TIMEOUT_S = 3.0        # ... or ends after this long (EVI-D30: 200 deg in ~2.5 s)
+
     def __init__(self, **kwargs) -> None:
         super().__init__('camera_node', **in_namespace(kwargs))
         self.params = g = declare_parameters(self, PARAMS)
@@ -142,8 +145,8 @@ class CameraNode(Node):
         pr = self.profile
         self.limits = LimitCheck((pr.pan_rad(pr.pan_min), pr.pan_rad(pr.pan_max)),
                                  (pr.tilt_rad(pr.tilt_min), pr.tilt_rad(pr.tilt_max)),
-                                 math.radians(float(g('limit_margin_deg'))), float(g('limit_reselect_offset_px')),
-                                 signs=(self.calibration.pan_sign, self.calibration.tilt_sign))
+                                 math.radians(float(g('limit_margin_deg'))), math.radians(float(g('limit_swing_deg'))))
+        self._swing: tuple[tuple[float, float], float] | None = None     # (aim, start) while swinging back
         self.servo_params = servo_params(g)
         self.joint_max_wait_s = float(g('joint_max_wait_s'))
         self.joint_mode = str(g('joint_mode'))
@@ -196,8 +199,8 @@ class CameraNode(Node):
         self.create_service(Trigger, '~/reselect', self._srv_reselect)
         self.create_service(Trigger, '~/home', self._srv_home)
         self.diag_timer = self.create_timer(float(g('diagnostics_period_s')), self._publish_diagnostics)
-        self.stats = {'frames': 0, 'frames_without_fixation': 0, 'joint_states': 0, 'joint_states_dropped': 0,
-                      'joint_states_predicted': 0}
+        self.stats = {'frames': 0, 'frames_without_fixation': 0, 'limit_swings': 0, 'joint_states': 0,
+                      'joint_states_dropped': 0, 'joint_states_predicted': 0}
         self.joint_latency_ms: deque[float] = deque(maxlen=300)     # image stamp -> joint state published
         self._setup_vergence(g)
         self.params.start(self._apply_params, LIVE_TRACKER + LIVE_SERVO + LIVE_NODE + LIVE_VERGENCE)
@@ -302,6 +305,8 @@ class CameraNode(Node):
             self._flush_joints()
         joints = self.history.at(t, max_extrapolation_s=0.1)
         act, step = None, self.vergence
+        if self._swinging(t, msg.header.stamp, joints, step):
+            return
         if step is not None and not step.finished:
             self._vergence_stamps[t] = msg.header.stamp
             act = step.on_left_image(t, gray, self._now())
@@ -316,10 +321,6 @@ class CameraNode(Node):
         if act is not None and act.select is not None:
             st = self.tracker.select_at(gray, act.select, t, 'vergence')
         else:
-            if joints is not None and not (step is not None and step.phase == 'converging'):
-                offset = self.limits.check(*joints)
-                if offset is not None:
-                    self.tracker.request_reselect('limit', offset)
             st = self.tracker.update(gray, t)
         if step is not None and step is self.vergence:
             step.on_left_fixation(t, st.pixel, st.fixation_id, st.reselected)
@@ -343,6 +344,34 @@ class CameraNode(Node):
                 return
             self.once.clear('joints')
             self.loop.set_target(self.servo.target(st.pixel, joints, t, self._now()))
+
+    def _swinging(self, t: float, stamp, joints: tuple[float, float] | None, step: VergenceStep | None) -> bool:
+        """Near a pan/tilt limit the head swings back (:class:`LimitCheck`); while it turns, the frame publishes no
+        fixation and is not tracked. Once it is there (or after ``SWING_TIMEOUT_S``) a new point is selected at the
+        centre. Not while a vergence step has left the own fixation (it drives the head then)."""
+        if self.loop is None or joints is None or (step is not None and not step.finished
+                                                   and step.phase not in ('waiting', 'ended')):
+            return False
+        if self._swing is None:
+            aim = self.limits.check(*joints)
+            if aim is None:
+                return False
+            self._swing = (aim, t)
+            self.stats['limit_swings'] += 1
+            self.get_logger().info(f'pan/tilt near a limit: swinging back to pan {math.degrees(aim[0]):.1f}, tilt '
+                                   f'{math.degrees(aim[1]):.1f} deg (counted on /diagnostics)',
+                                   throttle_duration_sec=10.0)
+        aim, t0 = self._swing
+        tol = math.radians(self.SWING_TOLERANCE_DEG)
+        if (abs(joints[0] - aim[0]) <= tol and abs(joints[1] - aim[1]) <= tol) or t - t0 > self.SWING_TIMEOUT_S:
+            self._swing = None
+            self.tracker.request_reselect('limit')
+            return False
+        self.loop.set_target(self._aim_target(aim))
+        self._publish_fixation(stamp, None, NO_FIXATION_ID)
+        if step is not None and not step.finished:
+            step.on_left_fixation(t, None, NO_FIXATION_ID, False)      # waiting: the own point is not settled
+        return True
 
     def _publish_fixation(self, stamp, pixel: tuple[float, float] | None, fixation_id: int) -> None:
         """One message per processed image, so flow_node never waits for one that will not come: the pixel and
@@ -408,7 +437,7 @@ class CameraNode(Node):
             if self.loop is not None:
                 self.loop.params = new
         self.limits.margin_rad = math.radians(float(g('limit_margin_deg')))
-        self.limits.offset_px = float(g('limit_reselect_offset_px'))
+        self.limits.swing_rad = math.radians(float(g('limit_swing_deg')))
         self.joint_max_wait_s = float(g('joint_max_wait_s'))
         self.joint_mode = str(g('joint_mode'))
         if 'joint_predict_max_s' in changes and self.loop is not None:

@@ -348,10 +348,11 @@ CAMERA_NODE_PARAMS: Table = _table(
          gt=0.0, le=1000.0, live=True),
     _bool('servo_feedforward', True, 'lead a drifting fixation point by its estimated angular rate', live=True),
     FIXATION_PARAMS,
-    _num('limit_margin_deg', 5.0, 're-select when pan/tilt comes this close to a limit', ge=0.0, le=90.0, live=True),
-    _num('limit_reselect_offset_px', 120.0, 'after a limit re-selection, pick the new point this far off centre '
-                                            'on the side that moves the head back into its range', ge=0.0,
-         live=True),
+    _num('limit_margin_deg', 5.0, 'when pan/tilt comes this close to a limit, the head swings back and a new '
+                                  'fixation point is selected there', ge=0.0, le=90.0, live=True),
+    _num('limit_swing_deg', 60.0, 'how far the head swings back from a limit (towards the middle of the range, not '
+                                  'past it); no fixation is published while it turns (EVI-D30: ~1 s for 60 deg)',
+         gt=0.0, le=360.0, live=True),
     _str('joint_mode', 'predict', 'joint state at each image stamp: predict = at once, interpolated when a '
                                   'PosInq reading after the stamp exists, else predicted from the last reading and '
                                   "the servo's own commands (1-sigma in effort); wait = only once a reading after "

@@ -8,8 +8,8 @@ forward-backward error and the normalised cross-correlation against the template
 than its pyramid follows: a head that lags the rig at a low frame rate moves the point tens of pixels
 between frames), the template is searched for around the last pixel and, when found unambiguously,
 Lucas-Kanade refines it from there: the same point keeps its id. A new point, with a new id, is selected
-only when that fails too, the point nears the image border, or the caller asks (manual, pan/tilt near a
-limit).
+only when that fails too, the point nears the image border, or the caller asks (manual, or after the head swung
+back from a limit: :class:`LimitCheck`).
 """
 
 from __future__ import annotations
@@ -273,35 +273,36 @@ class FixationTracker:
 
 @dataclass
 class LimitCheck:
-    """Decides when pan/tilt is close enough to a limit that a new fixation point should be chosen, and
-    where: on the side of the image that moves the camera back towards the middle of its range."""
+    """Decides when pan/tilt is close enough to a limit that the head should swing back, and to which device
+    angles: ``swing_rad`` towards the middle of that axis's range, not past the middle. The new fixation point is
+    chosen at the image centre once the head is there. A point chosen inside the current image cannot do this: it
+    needs the head within a few degrees of where it is, still inside the margin, so on the papers' loop (the rig
+    turning 28 deg/s for 7 s) the head stayed pinned at its limit for the rest of the run."""
 
     pan_range_rad: tuple[float, float]
     tilt_range_rad: tuple[float, float]
     margin_rad: float = math.radians(5.0)
-    offset_px: float = 120.0
+    swing_rad: float = math.radians(60.0)
     armed: dict[str, bool] = field(default_factory=lambda: {'pan': True, 'tilt': True})
-    # the rig file's pan_sign, tilt_sign (DESIGN.md §4): -1 = the device angle runs against the view (a head
-    # mounted upside down), so the side of the image that moves it back is the other one
-    signs: tuple[float, float] = (1.0, 1.0)
+
+    def _axis(self, angle: float, limits: tuple[float, float]) -> float | None:
+        """The angle to swing this axis to, or None when it is clear of its margins."""
+        lo, hi = limits
+        mid = 0.5 * (lo + hi)
+        if angle > hi - self.margin_rad:
+            return angle - min(self.swing_rad, max(angle - mid, 0.0))
+        if angle < lo + self.margin_rad:
+            return angle + min(self.swing_rad, max(mid - angle, 0.0))
+        return None
 
     def check(self, pan: float, tilt: float) -> tuple[float, float] | None:
-        """Pixel offset (du, dv) for a re-selection, or None. ``pan``, ``tilt``: device angles (VISCA signs:
-        + pan right, + tilt up, when ``signs`` are +1)."""
-        du = dv = 0.0
-        lo, hi = self.pan_range_rad
-        if pan > hi - self.margin_rad:
-            du = -self.offset_px
-        elif pan < lo + self.margin_rad:
-            du = self.offset_px
-        lo, hi = self.tilt_range_rad
-        if tilt > hi - self.margin_rad:
-            dv = self.offset_px          # look lower: a point below the centre (larger v)
-        elif tilt < lo + self.margin_rad:
-            dv = -self.offset_px
-        du, dv = du * math.copysign(1.0, self.signs[0]), dv * math.copysign(1.0, self.signs[1])
-        fire = (du != 0.0 and self.armed['pan']) or (dv != 0.0 and self.armed['tilt'])
-        # re-arm only once the axis is clear of the margin, so one approach triggers one re-selection
-        self.armed['pan'] = du == 0.0
-        self.armed['tilt'] = dv == 0.0
-        return (du, dv) if fire else None
+        """Device angles (pan, tilt) to swing the head to, or None. Fires once per approach: an axis re-arms only
+        once it is clear of its margin again."""
+        aim_pan = self._axis(pan, self.pan_range_rad)
+        aim_tilt = self._axis(tilt, self.tilt_range_rad)
+        fire = (aim_pan is not None and self.armed['pan']) or (aim_tilt is not None and self.armed['tilt'])
+        self.armed['pan'] = aim_pan is None
+        self.armed['tilt'] = aim_tilt is None
+        if not fire:
+            return None
+        return (pan if aim_pan is None else aim_pan, tilt if aim_tilt is None else aim_tilt)
