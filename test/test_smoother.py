@@ -169,3 +169,49 @@ def test_a_vergence_point_off_the_fixation_ray_is_not_used(loop):
     assert not sm.scale_observed and 'px off the right fixation ray' in sm.scale_note()
     sm.add_fixation_point(loop.stamps[7], 'right', point, cov)
     assert sm.scale_observed
+
+
+def test_a_vergence_point_whose_frame_the_smoother_never_got_is_carried_to_a_neighbour(loop):
+    """The live back end skips frames to keep up, and a measurement arrives after its frame: it is moved into the
+    nearer frame around its stamp (the motion between interpolated) and still makes the loop metric."""
+    sm = Smoother(RIG, _config())
+    rng = np.random.default_rng(3)
+    last_fid, pending, given = None, None, 0
+    for k, obs in enumerate(loop.observations):
+        fid = obs.right.fixation_id
+        skip = fid != last_fid and k > 0
+        if fid != last_fid:
+            pending, last_fid = (obs.stamp, *_vergence(loop, k, 0.005, rng)), fid
+        if skip:
+            continue                    # the measured frame never reaches the smoother
+        sm.update(obs)
+        if pending is not None:
+            sm.add_fixation_point(pending[0], 'right', pending[1], pending[2])
+            pending, given = None, given + 1
+    assert given >= 2 and sm.scale_observed           # one at frame 0, the others carried
+    assert f'({given} vergence measurement(s))' in sm.scale_note()
+    assert sm.restarts == 0
+
+
+def test_at_rest_the_graph_holds_and_keeps_the_scale(loop, monkeypatch):
+    """A rig standing still (the live demo measures its scale at rest before it moves): landmarks seen from one
+    place have no depth information. Without their prior the system is indeterminate and the graph restarts."""
+    first = loop.observations[0]
+    still = {side: dataclasses.replace(cam, flow_prev=cam.track_rays, flow_curr=cam.track_rays)   # zero flow
+             for side, cam in (('right', first.right), ('left', first.left))}
+    rest = [dataclasses.replace(first, stamp=first.stamp + 0.2 * k, prev_stamp=None if k == 0 else
+                                first.stamp + 0.2 * (k - 1), **still) for k in range(25)]
+    rng = np.random.default_rng(3)
+
+    def run() -> Smoother:
+        sm = Smoother(RIG, _config())
+        for k, obs in enumerate(rest):
+            r = sm.update(obs)
+            assert r.pose.is_finite() and np.linalg.norm(r.pose.t) < 0.05
+            if k == 3:
+                sm.add_fixation_point(obs.stamp, 'right', *_vergence(loop, 0, 0.005, rng))
+        return sm
+    sm = run()
+    assert sm.restarts == 0 and sm.scale_observed
+    monkeypatch.setattr(Smoother, 'AT_REST_M', 0.0)      # the failure this guards against
+    assert run().restarts > 0

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import contextlib
 import multiprocessing as mp
+import os
 import signal
 import time
 from collections import deque
@@ -32,6 +33,8 @@ from fixego_ros.estimation.twoframe import TwoFrameSolver
 from fixego_ros.geometry.rig import SIDES, Rig
 from fixego_ros.geometry.rotation import Pose
 from fixego_ros.interrupt import sigint_ignored
+
+CHILD_NICENESS = 5     # the smoother yields the CPU to the per-frame work (its results may come late, poses not)
 
 
 class Message(Enum):
@@ -55,11 +58,12 @@ class SmootherState:
     speed_source_used: bool = False
     frames_skipped: int = 0
     last_error: str = ''
+    restarts: int = 0
 
 
 def _state(smoother: Any, skipped: int, error: str) -> SmootherState:
     return SmootherState(smoother.scale_observed, smoother.scale_note(), smoother.scale_measurement,
-                         smoother.speed_source_used, skipped, error)
+                         smoother.speed_source_used, skipped, error, smoother.restarts)
 
 
 def serve(conn: Any, rig: Rig, config: EstimatorConfig) -> None:
@@ -69,6 +73,8 @@ def serve(conn: Any, rig: Rig, config: EstimatorConfig) -> None:
     from fixego_ros.estimation.smoother import Smoother
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    with contextlib.suppress(OSError):      # the camera and flow nodes' frames come first on a busy machine
+        os.nice(CHILD_NICENESS)
     smoother = Smoother(rig, config)
     queue: deque[tuple[Message, Any]] = deque()
     skipped, error = 0, ''
@@ -170,6 +176,11 @@ class LiveSmoother:
     def frames_skipped(self) -> int:
         """Non-keyframes the smoother process skipped to keep up (they still got a pose here)."""
         return self._state.frames_skipped
+
+    @property
+    def restarts(self) -> int:
+        """The smoother's numerical failures (each starts a new graph at the last estimate)."""
+        return self._state.restarts
 
     @property
     def alive(self) -> bool:

@@ -119,6 +119,7 @@ class Smoother:
     GAP_TOLERANCE_S = 1e-6
     HISTORY_S = 10.0          # frames kept for late vergence measurements and references, beyond the lag
     TWIST_MIN_SPEED = 0.1     # x nominal speed: below it the constant-twist prior's speed change is absolute
+    AT_REST_M = 1e-3          # a landmark whose views' camera centres are all this close was seen from one place
 
     def __init__(self, rig: Rig, config: EstimatorConfig | None = None) -> None:
         self.rig = rig
@@ -134,6 +135,7 @@ class Smoother:
         self.steps = TwoFrameStep(c.step_floor_px / f, c.nominal_speed, c.step_cauchy_k)
         self.vergence = Vergence()
         self.speed_step = SpeedStep()
+        self._depth_prior = gtsam.noiseModel.Isotropic.Sigma(3, c.far_guess_m)    # landmarks seen from one place
         self.reset()
 
     @property
@@ -149,6 +151,7 @@ class Smoother:
         self._note = ''
         self._scale_measured: tuple[float, float] | None = None
         self._vergence_used = 0
+        self.restarts = 0          # numerical failures (each starts a new graph at the last estimate)
         self._restart()
 
     def _restart(self) -> None:
@@ -416,7 +419,8 @@ class Smoother:
         parallax = math.degrees(math.acos(float(np.clip(rays[0] @ rays[-1], -1.0, 1.0))))
         point = triangulate(rays, centers) if parallax >= cfg.min_parallax_deg else None
         behind = point is None or (point - centers[0]) @ rays[0] < 0.3
-        if behind or np.linalg.norm(point - centers[0]) > cfg.max_range_m:
+        unplaced = behind or np.linalg.norm(point - centers[0]) > cfg.max_range_m
+        if unplaced:
             # a fixation point, or a track seen often without parallax, enters anyway (its rays hold the rotation)
             if lid.kind is not LandmarkKind.FIXATION and len(views) < cfg.patient_views:
                 return
@@ -425,7 +429,12 @@ class Smoother:
         f = self.rig.camera('right').fx
         if any(off_ray_px(point - c, r, f) > cfg.gate_px for r, c in zip(rays, centers, strict=True)):
             return
-        self._add_landmark(lid, point, up, stamp)
+        index = self._add_landmark(lid, point, up, stamp)
+        if unplaced and max(float(np.linalg.norm(c - centers[0])) for c in centers) < self.AT_REST_M:
+            # seen from one place (the rig at rest): nothing holds its depth, the system is indeterminate and the
+            # whole graph restarts, losing the scale. Only then: a prior this firm moves the paper bag's blind last
+            # frames (terminal 5.1 -> 11.1 cm) when every no-parallax landmark gets it
+            up.graph.add(gtsam.PriorFactorPoint3(landmark_key(index), point, self._depth_prior))
 
     def _add_landmark(self, lid: LandmarkId, point: np.ndarray, up: _Update, stamp: float) -> int:
         index = next(self._next_landmark)
@@ -472,6 +481,8 @@ class Smoother:
         kept = []
         for p in self._points:
             frame = self._frame_at(p.stamp)
+            if frame is None and last is not None and p.stamp < last:
+                frame, p = self._carried(p, up)
             if frame is None or frame.fixation.get(p.side) is None:
                 if last is not None and p.stamp > last + self.GAP_TOLERANCE_S:
                     kept.append(p)
@@ -503,6 +514,36 @@ class Smoother:
             self._vergence_used += 1
         self._points = kept
 
+    def _carried(self, p: _PendingPoint, up: _Update) -> tuple[_Frame | None, _PendingPoint]:
+        """A measurement whose frame is not in the graph (the live back end skips frames to keep up) moved into a
+        graph frame around its stamp: the rig's motion from that frame to the stamp is interpolated (constant twist)
+        from the two frames' estimates, and its uncertainty added to the covariance (half the translation, a tenth
+        of the rotation at the point's distance). The nearer frame first; the other when the point is not on the
+        nearer one's fixation ray (the camera re-selected its point in between: the skipped frame was the first
+        of the new one). (None, p) when no graph frames bracket the stamp."""
+        after = next((f for f in self._frames if f.stamp > p.stamp), None)
+        before = next((f for f in reversed(self._frames) if f.stamp < p.stamp), None)
+        placed = lambda f: up.values.exists(pose_key(f.index)) or self._in_graph(f)  # noqa: E731  (this frame's too)
+        if after is None or before is None or not (placed(after) and placed(before)):
+            return None, p
+        a, b = to_gtsam(before.pose), to_gtsam(after.pose)
+        alpha = (p.stamp - before.stamp) / (after.stamp - before.stamp)
+        at_stamp = a.compose(gtsam.Pose3.Expmap(gtsam.Pose3.Logmap(a.between(b)) * alpha))
+        moved = []
+        for frame in ((before, after) if alpha <= 0.5 else (after, before)):
+            motion = from_gtsam(to_gtsam(frame.pose).between(at_stamp))
+            point = motion.apply(p.point)
+            spread = (0.5 * float(np.linalg.norm(motion.t))) ** 2 + \
+                (0.1 * float(np.linalg.norm(motion.rvec())) * float(np.linalg.norm(p.point))) ** 2
+            moved.append((frame, _PendingPoint(frame.stamp, p.side, point,
+                                               motion.R @ p.cov @ motion.R.T + np.eye(3) * spread)))
+        f = self.rig.camera(p.side).fx
+        for frame, q in moved:
+            fix = frame.fixation.get(p.side)
+            if fix is not None and off_ray_px(q.point - self.rig.center(p.side), fix[0], f) <= self.settings.gate_px:
+                return frame, q
+        return moved[0]
+
     def _solve(self, up: _Update) -> bool:
         """Add one frame's factors and relinearise; on a numerical failure start a new graph at the estimate."""
         try:
@@ -511,6 +552,7 @@ class Smoother:
             self._window.update(up.graph, up.values, up.stamps, newest, self.settings.iterations)
             self._estimate = self._window.estimate()
         except RuntimeError:
+            self.restarts += 1
             self._restart()
             return False
         for lid in [lid for lid, k in self._landmarks.items() if not self._estimate.exists(landmark_key(k))]:

@@ -502,7 +502,8 @@ class EstimatorNode(Node):
         level, message = OK, 'estimating'
         if isinstance(self.estimator, LiveSmoother):
             values.update({'smoother_results': self.estimator.smoothed_results,
-                           'smoother_skipped_frames': self.estimator.frames_skipped})
+                           'smoother_skipped_frames': self.estimator.frames_skipped,
+                           'smoother_restarts': self.estimator.restarts})
         if self.last is None:
             level, message = WARN, 'no observation yet'
         else:
