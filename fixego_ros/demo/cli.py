@@ -30,6 +30,7 @@ from fixego_ros.tracking.joint_prediction import MODES as JOINT_MODES
 
 PROG = 'fixego demo'
 READY_TIMEOUT_MAX = 3600.0     # s
+SCALE_AT_REST_TIMEOUT_S = 15.0  # s: the request may wait out the camera node's vergence_min_interval_s, then ~3 s
 
 
 def register(subparsers) -> None:
@@ -183,7 +184,10 @@ def _run(args: argparse.Namespace, out: Path, rig_path: Path, launcher) -> int:
             return 1
         _say(args, f'fixego demo: pipeline up in {time.monotonic() - t_ready:.1f} s; resetting the estimator and '
                    'starting the rig')
+        t_reset = node.get_clock().now().nanoseconds * 1e-9
         for client, what in ((node.reset_client, 'estimator reset'), (node.start_client, 'rig start')):
+            if client is node.start_client:
+                _scale_at_rest(args, node, vergence_stamps, t_reset, spin)
             success, message = node.call(client, ex, 10.0)
             if not success:
                 print(f'fixego demo: {what} failed: {message}', file=sys.stderr)
@@ -224,6 +228,22 @@ def _run(args: argparse.Namespace, out: Path, rig_path: Path, launcher) -> int:
 def _path_period() -> float:
     from fixego_ros.pipeline.params import ESTIMATOR_NODE_PARAMS
     return float(ESTIMATOR_NODE_PARAMS['path_publish_period_s'].default)
+
+
+def _scale_at_rest(args: argparse.Namespace, node, vergence_stamps: list[float], t_reset: float, spin) -> None:
+    """Before the rig moves: ask for a vergence step and wait (bounded) for its measurement, so the trajectory
+    starts metric. The start-up step the left camera node made on its own came before the estimator reset, which
+    forgets it; the request may wait out the camera node's vergence_min_interval_s."""
+    from std_msgs.msg import Empty
+
+    from fixego_ros.demo.launcher import wait_for
+    from fixego_ros.nodes.common import RELIABLE_QOS
+    node.create_publisher(Empty, 'vergence_request', RELIABLE_QOS).publish(Empty())
+    if wait_for(lambda: any(t >= t_reset for t in vergence_stamps), SCALE_AT_REST_TIMEOUT_S, spin=spin):
+        _say(args, 'fixego demo: scale measured at rest (vergence step); starting the rig')
+    else:
+        _say(args, f'fixego demo: no vergence measurement within {SCALE_AT_REST_TIMEOUT_S:g} s of the request; '
+                   'starting the rig without one (the scale waits for a step during the run)')
 
 
 def _path_length(args: argparse.Namespace) -> int:
