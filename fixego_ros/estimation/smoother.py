@@ -119,7 +119,7 @@ class Smoother:
     GAP_TOLERANCE_S = 1e-6
     HISTORY_S = 10.0          # frames kept for late vergence measurements and references, beyond the lag
     TWIST_MIN_SPEED = 0.1     # x nominal speed: below it the constant-twist prior's speed change is absolute
-    AT_REST_M = 1e-3          # a landmark whose views' camera centres are all this close was seen from one place
+    AT_REST_M = 0.01          # a landmark whose views' camera centres are all this close was seen from one place
 
     def __init__(self, rig: Rig, config: EstimatorConfig | None = None) -> None:
         self.rig = rig
