@@ -119,6 +119,7 @@ class Smoother:
     GAP_TOLERANCE_S = 1e-6
     HISTORY_S = 10.0          # frames kept for late vergence measurements and references, beyond the lag
     TWIST_MIN_SPEED = 0.1     # x nominal speed: below it the constant-twist prior's speed change is absolute
+    CARRY_MAX_S = 0.5         # a vergence measurement is carried at most this far to a frame with its camera
     AT_REST_M = 0.01          # a landmark whose views' camera centres are all this close was seen from one place
 
     def __init__(self, rig: Rig, config: EstimatorConfig | None = None) -> None:
@@ -481,10 +482,10 @@ class Smoother:
         kept = []
         for p in self._points:
             frame = self._frame_at(p.stamp)
-            if frame is None and last is not None and p.stamp < last:
+            if (frame is None or frame.fixation.get(p.side) is None) and last is not None and p.stamp < last:
                 frame, p = self._carried(p, up)
             if frame is None or frame.fixation.get(p.side) is None:
-                if last is not None and p.stamp > last + self.GAP_TOLERANCE_S:
+                if last is not None and p.stamp > last - self.CARRY_MAX_S:     # a frame to carry it to may come
                     kept.append(p)
                 else:
                     self._note = (f'vergence measurement at {p.stamp:.3f} s matches no frame with a {p.side} fixation '
@@ -515,16 +516,19 @@ class Smoother:
         self._points = kept
 
     def _carried(self, p: _PendingPoint, up: _Update) -> tuple[_Frame | None, _PendingPoint]:
-        """A measurement whose frame is not in the graph (the live back end skips frames to keep up) moved into a
-        graph frame around its stamp: the rig's motion from that frame to the stamp is interpolated (constant twist)
-        from the two frames' estimates, and its uncertainty added to the covariance (half the translation, a tenth
-        of the rotation at the point's distance). The nearer frame first; the other when the point is not on the
-        nearer one's fixation ray (the camera re-selected its point in between: the skipped frame was the first
-        of the new one). (None, p) when no graph frames bracket the stamp."""
-        after = next((f for f in self._frames if f.stamp > p.stamp), None)
-        before = next((f for f in reversed(self._frames) if f.stamp < p.stamp), None)
+        """A measurement whose frame is not in the graph (the live back end skips frames to keep up), or came
+        without that camera (a single-camera frame of a loaded flow_node), moved into a graph frame around its
+        stamp, within ``CARRY_MAX_S``, that has the camera's fixation: the rig's motion from that frame to the stamp
+        is interpolated (constant twist) from the two frames' estimates, and its uncertainty added to the
+        covariance (half the translation, a tenth of the rotation at the point's distance). The nearer frame
+        first; the other when the point is not on the nearer one's fixation ray (the camera re-selected its point
+        in between). (None, p) when no such frames bracket the stamp."""
         placed = lambda f: up.values.exists(pose_key(f.index)) or self._in_graph(f)  # noqa: E731  (this frame's too)
-        if after is None or before is None or not (placed(after) and placed(before)):
+        usable = lambda f: (placed(f) and f.fixation.get(p.side) is not None  # noqa: E731
+                            and abs(f.stamp - p.stamp) <= self.CARRY_MAX_S)
+        after = next((f for f in self._frames if f.stamp > p.stamp and usable(f)), None)
+        before = next((f for f in reversed(self._frames) if f.stamp < p.stamp and usable(f)), None)
+        if after is None or before is None:
             return None, p
         a, b = to_gtsam(before.pose), to_gtsam(after.pose)
         alpha = (p.stamp - before.stamp) / (after.stamp - before.stamp)
