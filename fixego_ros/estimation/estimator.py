@@ -308,8 +308,7 @@ class Estimator:
         latest = self._latest
         pose, pose_raw, cov = ((latest.pose, latest.pose_raw, latest.pose_cov) if latest is not None
                                else (self._key_pose, self._key_pose_raw, self._key_cov))
-        return FrameResult(self._index, obs.stamp, StepStatus.REJECTED, pose, pose_raw, Pose.identity(),
-                           Pose.identity(), np.zeros((6, 6)), cov.copy(), why, placed=False)
+        return FrameResult.rejected(self._index, obs.stamp, pose, pose_raw, why, cov)
 
     def update(self, obs: FrameObservation) -> FrameResult:
         """Process one frame. Never raises on bad data; bad steps are flagged and predicted.

@@ -104,3 +104,12 @@ class FrameResult:
     # the smoother's newer estimates of earlier frames still in its lag: (stamp, pose) each, to replace the poses
     # reported for them then (the live pose stays continuous; the path takes these)
     revised: tuple[tuple[float, Pose], ...] = ()
+
+    @classmethod
+    def rejected(cls, index: int, stamp: float, pose: Pose, pose_raw: Pose, why: str,
+                 pose_covariance: np.ndarray | None = None, scale_observed: bool = False,
+                 scale_note: str = '') -> FrameResult:
+        """A frame a back end could not place (out of order, ...): the last poses again, state unchanged."""
+        cov = np.zeros((6, 6)) if pose_covariance is None else pose_covariance.copy()
+        return cls(index, stamp, StepStatus.REJECTED, pose, pose_raw, Pose.identity(), Pose.identity(),
+                   np.zeros((6, 6)), cov, why, placed=False, scale_observed=scale_observed, scale_note=scale_note)

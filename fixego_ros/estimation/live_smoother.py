@@ -370,6 +370,5 @@ class LiveSmoother:
         last = self._recent[-1] if self._recent else None
         pose = last.pose if last is not None else Pose.identity()
         raw = last.raw if last is not None else Pose.identity()
-        return FrameResult(self._index, obs.stamp, StepStatus.REJECTED, pose, raw, Pose.identity(), Pose.identity(),
-                           np.zeros((6, 6)), np.zeros((6, 6)), why, placed=False,
-                           scale_observed=self.scale_observed, scale_note=self.scale_note())
+        return FrameResult.rejected(self._index, obs.stamp, pose, raw, why, scale_observed=self.scale_observed,
+                                    scale_note=self.scale_note())

@@ -227,9 +227,8 @@ class Smoother:
         last = self._frames[-1] if self._frames else None
         pose = last.pose if last is not None else Pose.identity()
         raw = last.pose_raw if last is not None else Pose.identity()
-        return FrameResult(self._index, obs.stamp, StepStatus.REJECTED, pose, raw, Pose.identity(), Pose.identity(),
-                           np.zeros((6, 6)), np.zeros((6, 6)), why, placed=False,
-                           scale_observed=self.scale_observed, scale_note=self.scale_note())
+        return FrameResult.rejected(self._index, obs.stamp, pose, raw, why, scale_observed=self.scale_observed,
+                                    scale_note=self.scale_note())
 
     def _recent_frames(self) -> list[_Frame]:
         """The last two frames of this graph (fewer right after a start or restart)."""
