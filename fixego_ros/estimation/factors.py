@@ -23,6 +23,20 @@ def from_gtsam(pose: gtsam.Pose3) -> Pose:
     return Pose(project_to_so3(pose.rotation().matrix()), np.asarray(pose.translation(), float))
 
 
+def with_length(step: Pose, length: float) -> Pose:
+    """``step`` with its translation ``length`` long: the two-frame solve gives the direction only."""
+    n = float(np.linalg.norm(step.t))
+    return Pose(step.R, step.t / n * length if n > 1e-9 else step.t)
+
+
+def constant_twist(a: Pose, t_a: float, b: Pose, t_b: float, stamp: float) -> Pose:
+    """The pose at ``stamp`` moving on from ``b`` with the twist ``a`` -> ``b`` (a prediction, and the motion
+    between two frames at a stamp between them)."""
+    step = gtsam.Pose3.Logmap(to_gtsam(a).between(to_gtsam(b)))
+    k = (stamp - t_b) / max(t_b - t_a, 1e-9)
+    return from_gtsam(to_gtsam(b).compose(gtsam.Pose3.Expmap(step * k)))
+
+
 def _jac(rows: int, cols: int) -> np.ndarray:
     return np.zeros((rows, cols), order='F')
 
@@ -145,8 +159,7 @@ class TwoFrameStep:
         self.robust = gtsam.noiseModel.mEstimator.Cauchy.Create(cauchy_k)
 
     def scaled(self, step: Pose, dt: float) -> Pose:
-        n = float(np.linalg.norm(step.t))
-        return Pose(step.R, step.t / n * self.nominal_speed * dt if n > 1e-9 else step.t)
+        return with_length(step, self.nominal_speed * dt)
 
     def rotation_covariance(self, covariance: np.ndarray) -> np.ndarray:
         return np.diag(np.clip(np.diag(covariance)[:3], self.rotation_floor ** 2, None))

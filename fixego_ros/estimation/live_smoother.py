@@ -27,6 +27,7 @@ import numpy as np
 
 from fixego_ros.estimation.config import EstimatorConfig
 from fixego_ros.estimation.covariance import VAR_MAX, checked_measurement
+from fixego_ros.estimation.factors import constant_twist, with_length
 from fixego_ros.estimation.frames import Fixation, FrameObservation, FrameResult, fixations_of, step_pairs
 from fixego_ros.estimation.status import StepStatus
 from fixego_ros.estimation.twoframe import TwoFrameSolver
@@ -256,13 +257,13 @@ class LiveSmoother:
             tf = self.solver.solve(step_pairs(self.rig, ref.fixation, obs, self._config.fixation_weight),
                                    initial=ref.pose.inverse() @ predicted)
             if tf.status.usable and tf.pose.is_finite() and tf.cheirality >= 0.5:
-                step = self._scaled(tf.pose, self._speed() * dt)
+                step = with_length(tf.pose, self._speed() * dt)
                 pose = (ref.pose @ step).normalized()
             else:
                 pose = predicted
                 step = ref.pose.inverse() @ pose
                 messages.append(f'two-frame step not usable ({tf.status.value}): pose predicted at constant twist')
-            step_raw = self._scaled(tf.pose if tf.pose.is_finite() else step,
+            step_raw = with_length(tf.pose if tf.pose.is_finite() else step,
                                     self._config.smoother.nominal_speed * dt)
         raw_base = ref.raw if ref is not None else (self._recent[-1].raw if self._recent else Pose.identity())
         status = StepStatus.INIT if last is None else (tf.status if tf is not None else StepStatus.REJECTED)
@@ -349,12 +350,6 @@ class LiveSmoother:
                 return float(np.linalg.norm(b.pose.t - a.pose.t)) / (b.stamp - a.stamp)
         return self._config.smoother.nominal_speed
 
-    @staticmethod
-    def _scaled(step: Pose, length: float) -> Pose:
-        """``step`` with its translation ``length`` long (the two-frame solve gives its direction only)."""
-        n = float(np.linalg.norm(step.t))
-        return Pose(step.R, step.t / n * length if n > 1e-9 else step.t)
-
     def _predict(self, stamp: float) -> Pose:
         """Constant twist from the last two frames (hold before there are two)."""
         if not self._recent:
@@ -362,9 +357,7 @@ class LiveSmoother:
         if len(self._recent) == 1:
             return self._recent[-1].pose
         a, b = self._recent[-2], self._recent[-1]
-        k = (stamp - b.stamp) / max(b.stamp - a.stamp, 1e-9)
-        step = a.pose.inverse() @ b.pose
-        return (b.pose @ Pose.from_rvec(step.rvec() * k, step.t * k)).normalized()
+        return constant_twist(a.pose, a.stamp, b.pose, b.stamp, stamp)
 
     def _reject(self, obs: FrameObservation, why: str) -> FrameResult:
         last = self._recent[-1] if self._recent else None

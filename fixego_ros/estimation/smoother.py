@@ -35,6 +35,7 @@ from fixego_ros.estimation.factors import (
     SpeedStep,
     TwoFrameStep,
     Vergence,
+    constant_twist,
     from_gtsam,
     to_gtsam,
 )
@@ -242,9 +243,7 @@ class Smoother:
         if len(recent) == 1:
             return recent[0].pose
         a, b = recent
-        step = gtsam.Pose3.Logmap(to_gtsam(a.pose).between(to_gtsam(b.pose)))
-        k = (stamp - b.stamp) / max(b.stamp - a.stamp, 1e-9)
-        return from_gtsam(to_gtsam(b.pose).compose(gtsam.Pose3.Expmap(step * k)))
+        return constant_twist(a.pose, a.stamp, b.pose, b.stamp, stamp)
 
     def update(self, obs: FrameObservation) -> FrameResult:
         """Place one frame and smooth the lag. Never raises on bad data: a frame that cannot be placed is rejected
@@ -529,12 +528,11 @@ class Smoother:
         before = next((f for f in reversed(self._frames) if f.stamp < p.stamp and usable(f)), None)
         if after is None or before is None:
             return None, p
-        a, b = to_gtsam(before.pose), to_gtsam(after.pose)
-        alpha = (p.stamp - before.stamp) / (after.stamp - before.stamp)
-        at_stamp = a.compose(gtsam.Pose3.Expmap(gtsam.Pose3.Logmap(a.between(b)) * alpha))
+        at_stamp = constant_twist(before.pose, before.stamp, after.pose, after.stamp, p.stamp)
         moved = []
-        for frame in ((before, after) if alpha <= 0.5 else (after, before)):
-            motion = from_gtsam(to_gtsam(frame.pose).between(at_stamp))
+        nearer_before = p.stamp - before.stamp <= after.stamp - p.stamp
+        for frame in ((before, after) if nearer_before else (after, before)):
+            motion = frame.pose.inverse() @ at_stamp
             point = motion.apply(p.point)
             spread = (0.5 * float(np.linalg.norm(motion.t))) ** 2 + \
                 (0.1 * float(np.linalg.norm(motion.rvec())) * float(np.linalg.norm(p.point))) ** 2
