@@ -225,6 +225,48 @@ def test_sim_wheel_odometry_is_the_true_twist_plus_seeded_noise(tmp_path):
     assert _read(again) == b
 
 
+def test_sim_wheel_odometry_at_its_own_rate_with_a_scale_bias(tmp_path):
+    """``--wheel-odom-rate 20 --wheel-odom-bias 0.01``: samples every 50 ms, not at the frames, written in stamp
+    order before the frame after them; their speed is the true one times 1.01 (the covariance does not show it),
+    the images are unchanged."""
+    pytest.importorskip('rclpy')
+    from nav_msgs.msg import Odometry
+    from rclpy.serialization import deserialize_message
+
+    from fixego_ros.cli import main as fixego
+    from fixego_ros.geometry.rig import load_rig
+    from fixego_ros.sim.bag_writer import WHEEL_ODOM_TOPIC
+    from fixego_ros.sim.run import SimSettings, Simulation
+
+    plain, wheel, unbiased = tmp_path / 'plain', tmp_path / 'wheel', tmp_path / 'unbiased'
+    assert fixego(['sim', *SIM_ARGS, '--out', str(plain)]) == 0
+    common = ['--wheel-odom-std', '0.0', '--wheel-odom-rate', '20']
+    assert fixego(['sim', *SIM_ARGS, '--out', str(wheel), *common, '--wheel-odom-bias', '0.01']) == 0
+    assert fixego(['sim', *SIM_ARGS, '--out', str(unbiased), *common]) == 0
+    a, b = _read(plain), _read(wheel)
+    assert [m for m in b if m[0] != WHEEL_ODOM_TOPIC] == a
+    assert [m[2] for m in b] == sorted(m[2] for m in b)               # log times in order
+    odo = [(t, deserialize_message(raw, Odometry)) for topic, _, t, raw in b if topic == WHEEL_ODOM_TOPIC]
+    flat = [deserialize_message(raw, Odometry) for topic, _, _, raw in _read(unbiased) if topic == WHEEL_ODOM_TOPIC]
+    frames = sorted({t for topic, _, t, _ in a})
+    span = (frames[-1] - frames[0]) * 1e-9
+    assert abs(len(odo) - (span * 20 + 1)) <= 1
+    stamps = np.array([m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec for _, m in odo])
+    np.testing.assert_allclose(np.diff(stamps), 0.05, atol=1e-6)
+    assert np.array_equal([t for t, _ in odo], np.round(stamps * 1e9).astype(np.int64))
+    speed = np.array([np.hypot(m.twist.twist.linear.x, m.twist.twist.linear.y) for _, m in odo])
+    true = np.array([np.hypot(m.twist.twist.linear.x, m.twist.twist.linear.y) for m in flat])
+    moving = true > 0.05
+    assert moving.sum() > 10
+    np.testing.assert_allclose(speed[moving] / true[moving], 1.01, rtol=1e-9)
+    # and the unbiased samples are the simulator's true velocity at their stamps
+    settings = SimSettings(trajectory='paper', seed=0, fps=10.0, steps=8, vergence='off', texel=0.006)
+    from fixego_ros.sim.run import resize_rig
+    sim = Simulation(resize_rig(load_rig(plain / 'rig.yaml'), 160, 120), settings)
+    v = sim.base_velocities(stamps - settings.epoch)
+    np.testing.assert_allclose(true, np.hypot(v[:, 0], v[:, 1]), atol=1e-6)   # stamps: ns and float rounding
+
+
 def test_sim_true_velocity_in_base_link():
     from fixego_ros.geometry.rig import default_rig_path, load_rig
     from fixego_ros.sim.run import SimSettings, Simulation, resize_rig

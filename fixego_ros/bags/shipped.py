@@ -26,6 +26,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from fixego_ros.sim.run import SimSettings
+from fixego_ros.sim.wheel_odometry import WheelOdometry
 
 BAGS_DIR = Path(__file__).resolve().parents[2] / 'bags'
 
@@ -55,10 +56,10 @@ def by_name(name: str) -> ShippedBag:
     raise KeyError(f'no shipped bag {name!r} (have {", ".join(b.name for b in SHIPPED)})')
 
 
-def generate(spec: ShippedBag, out_dir: Path, progress: bool = False, wheel_odom_std: float | None = None,
+def generate(spec: ShippedBag, out_dir: Path, progress: bool = False, wheel_odom: WheelOdometry | None = None,
              vergence: str | None = None):
     """Write ``spec`` to ``out_dir`` (must not exist) with its ground truth as TUM; returns the summary.
-    ``wheel_odom_std`` adds simulated wheel odometry (the shipped bags have none); ``vergence`` (a
+    ``wheel_odom`` adds simulated wheel odometry (the shipped bags have none); ``vergence`` (a
     ``SimSettings.vergence`` mode) replaces the spec's."""
     from dataclasses import replace
 
@@ -70,7 +71,7 @@ def generate(spec: ShippedBag, out_dir: Path, progress: bool = False, wheel_odom
     settings = spec.settings if vergence is None else replace(spec.settings, vergence=vergence)
     rig = resize_rig(load_rig(default_rig_path()), spec.width, spec.height)
     sim = Simulation(rig, settings)
-    summary = write_bag(out_dir, rig, settings, progress=progress, sim=sim, wheel_odom_std=wheel_odom_std)
+    summary = write_bag(out_dir, rig, settings, progress=progress, sim=sim, wheel_odom=wheel_odom)
     write_tum(out_dir / 'ground_truth.tum', [settings.epoch + t for t in sim.stamps], sim.ground_truth())
     return summary
 

@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from fixego_ros.bench.replay import trajectory_figures
+from fixego_ros.sim.wheel_odometry import WheelOdometry
 
 PRESETS = ('paper', 'window', 'full')
 REFINEMENTS = ('local', 'smoother', 'constant')
@@ -58,7 +59,7 @@ def _aided_bags() -> dict[str, Path]:
              'paper+aids': by_name('paper'), 'walk+aids': by_name('walk')}
     for name, spec in specs.items():
         path = Path(_tmp.name) / name.replace('+', '_')
-        generate(spec, path, wheel_odom_std=WHEEL_STD, vergence='measurements')
+        generate(spec, path, wheel_odom=WheelOdometry(WHEEL_STD), vergence='measurements')
         out[name] = path
     return out
 

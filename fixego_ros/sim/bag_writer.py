@@ -13,13 +13,14 @@ Topics (namespace ``/fixego``): ``{right,left}/image_raw``, ``{right,left}/camer
 of the servo's fixation point, no message while it is behind the camera; ``point.z`` = fixation id, which
 increases by one at each re-selection).
 
-Optional (``wheel_odom_std``, off by default, so the default output is unchanged byte for byte):
+Optional (``wheel_odom``, off by default, so the default output is unchanged byte for byte):
 ``wheel/odom`` (nav_msgs/Odometry, frame ``odom``, child ``base_link``), one per frame and written before
-the frame's images: the true ``base_link`` linear velocity in ``base_link`` (finite differences of the
-true poses, :meth:`~fixego_ros.sim.run.Simulation.base_velocities`) plus seeded Gaussian noise of std
-``wheel_odom_std`` m/s per axis, with covariance diag(std²) on the linear part (at least (1e-4 m/s)², so
-it never reads as "unknown"). The angular part is not measured: zero with variance 1e6. The pose is left
-at identity with variance 1e6 (a speed source only).
+the frame's images, or at ``rate_hz`` (each written before the first frame at or after its stamp): the true
+``base_link`` linear velocity in ``base_link`` (finite differences of the true poses,
+:meth:`~fixego_ros.sim.run.Simulation.base_velocities`), times ``1 + scale_bias``, plus seeded Gaussian noise of
+std ``std_m_s`` per axis (:mod:`fixego_ros.sim.wheel_odometry`), with covariance diag(std²) on the linear part (at
+least (1e-4 m/s)², so it never reads as "unknown"; the bias is not in it, as on a robot). The angular part is not
+measured: zero with variance 1e6. The pose is left at identity with variance 1e6 (a speed source only).
 
 Vergence (``SimSettings.vergence``; ``off`` writes nothing new, so its output is unchanged byte for byte):
 ``vergence`` (geometry_msgs/PoseWithCovarianceStamped, frame ``rig``, offered as transient local like
@@ -50,12 +51,12 @@ from fixego_ros.progress import Progress
 from fixego_ros.sim.run import Frame, SimSettings, Simulation
 from fixego_ros.sim.vergence_measure import input_sigmas
 from fixego_ros.sim.vergence_step import VergenceStep
+from fixego_ros.sim.wheel_odometry import WheelOdometry
 
 NS = '/fixego'
 SIDES = ('right', 'left')
 WHEEL_ODOM_TOPIC = f'{NS}/wheel/odom'
 UNKNOWN_VARIANCE = 1e6
-_WHEEL_NOISE_STREAM = 0x0D0   # second seed word of the wheel odometry noise (its own stream: images unchanged)
 VERGENCE_TOPIC = f'{NS}/vergence'
 
 
@@ -219,13 +220,13 @@ def vergence_record(sim: Simulation, settings: SimSettings) -> dict:
 
 
 def write_bag(out_dir: str | Path, rig: Rig, settings: SimSettings | None = None, progress: bool = True,
-              sim: Simulation | None = None, wheel_odom_std: float | None = None) -> BagSummary:
+              sim: Simulation | None = None, wheel_odom: WheelOdometry | None = None) -> BagSummary:
     """Simulate ``settings`` on ``rig`` and write the bag directory ``out_dir`` (must not exist);
-    ``wheel_odom_std`` (m/s) adds the simulated wheel odometry topic, ``settings.vergence`` the vergence
+    ``wheel_odom`` adds the simulated wheel odometry topic, ``settings.vergence`` the vergence
     measurements (module docstring)."""
     settings = settings or (sim.s if sim is not None else SimSettings())
-    if wheel_odom_std is not None and not (np.isfinite(wheel_odom_std) and wheel_odom_std >= 0):
-        raise ValueError(f'wheel odometry std must be a finite number >= 0 m/s, got {wheel_odom_std}')
+    if wheel_odom is not None and (why := wheel_odom.problems()):
+        raise ValueError('; '.join(why))
     from rosbags.typesys import Stores, get_typestore
 
     from fixego_ros.bags.mcap_storage import bag_writer
@@ -235,11 +236,8 @@ def write_bag(out_dir: str | Path, rig: Rig, settings: SimSettings | None = None
     if out_dir.exists():
         raise FileExistsError(f'{out_dir} exists already; rosbag2 directories are never overwritten')
     sim = sim or Simulation(rig, settings)
-    wheel = None
-    if wheel_odom_std is not None:
-        rng = np.random.default_rng([settings.seed, _WHEEL_NOISE_STREAM])
-        v_true = sim.base_velocities()
-        wheel = v_true + rng.normal(0.0, wheel_odom_std, v_true.shape) if wheel_odom_std > 0 else v_true
+    wheel = wheel_odom.samples(sim, settings.seed) if wheel_odom is not None else None
+    n_wheel = 0                       # samples written so far
     vergence = sim.vergence is not None
     typestore = get_typestore(Stores.ROS2_JAZZY)
     wall0 = time.monotonic()
@@ -248,8 +246,11 @@ def write_bag(out_dir: str | Path, rig: Rig, settings: SimSettings | None = None
     writer = bag_writer(out_dir)     # zstd MCAP chunks, as rosbag2's; with chunk, data and summary CRCs
     with writer:
         writer.set_custom_data('fixego_sim', ' '.join(f'{k}={v}' for k, v in settings.to_dict().items()))
-        if wheel is not None:
-            writer.set_custom_data('fixego_sim_wheel_odom_std', f'{wheel_odom_std}')
+        if wheel_odom is not None:
+            writer.set_custom_data('fixego_sim_wheel_odom_std', f'{wheel_odom.std_m_s}')
+            if wheel_odom.rate_hz is not None or wheel_odom.scale_bias:
+                writer.set_custom_data('fixego_sim_wheel_odom', f'rate_hz={wheel_odom.rate_hz} '
+                                                                f'scale_bias={wheel_odom.scale_bias}')
         conns = {topic: writer.add_connection(topic, msgtype, typestore=typestore,
                                               offered_qos_profiles=[_qos(topic.endswith('image_raw'),
                                                                          topic == VERGENCE_TOPIC)])
@@ -257,15 +258,20 @@ def write_bag(out_dir: str | Path, rig: Rig, settings: SimSettings | None = None
         for frame in sim.frames():
             stamp_ns = round((settings.epoch + frame.t) * 1e9)
             t = settings.epoch + frame.t
-            msgs = frame_messages(frame, rig, settings.epoch, settings.encoding)
+            msgs = [(topic, msg, stamp_ns) for topic, msg in frame_messages(frame, rig, settings.epoch,
+                                                                             settings.encoding)]
             if frame.vergence is not None:   # before the images: replay gives it to the estimator first
                 m = frame.vergence
-                msgs.insert(0, (VERGENCE_TOPIC, vergence_to_msg(sec_to_stamp(t), m.point_rig, m.cov_rig)))
+                msgs.insert(0, (VERGENCE_TOPIC, vergence_to_msg(sec_to_stamp(t), m.point_rig, m.cov_rig), stamp_ns))
                 n_verg += 1
-            if wheel is not None:            # first of all, as before
-                msgs.insert(0, (WHEEL_ODOM_TOPIC, wheel_odom_msg(t, wheel[frame.index], wheel_odom_std)))
-            for topic, msg in msgs:
-                writer.write(conns[topic], stamp_ns, canonical_cdr(msg, conns[topic].msgtype, typestore))
+            if wheel is not None:            # first of all, as before: the samples up to this frame, in order
+                times, v = wheel
+                due = int(np.searchsorted(times, frame.t + 1e-9, side='right'))
+                msgs[:0] = [(WHEEL_ODOM_TOPIC, wheel_odom_msg(settings.epoch + times[j], v[j], wheel_odom.std_m_s),
+                             round((settings.epoch + times[j]) * 1e9)) for j in range(n_wheel, due)]
+                n_wheel = due
+            for topic, msg, log_ns in msgs:
+                writer.write(conns[topic], log_ns, canonical_cdr(msg, conns[topic].msgtype, typestore))
                 n_msgs += 1
             bar.update(frame.index + 1)
     rig.save(out_dir / 'rig.yaml')
@@ -273,8 +279,8 @@ def write_bag(out_dir: str | Path, rig: Rig, settings: SimSettings | None = None
             'topics_simulator_only': [f'{NS}/ground_truth/{s}/fixation' for s in SIDES],
             'step_marks_s': None if sim.trajectory.marks is None
             else [float(settings.epoch + m) for m in sim.trajectory.marks]}
-    if wheel is not None:
-        meta['wheel_odometry'] = {'topic': WHEEL_ODOM_TOPIC, 'std_m_s': float(wheel_odom_std)}
+    if wheel_odom is not None:
+        meta['wheel_odometry'] = wheel_odom.record(WHEEL_ODOM_TOPIC)
     if vergence:
         meta['vergence'] = vergence_record(sim, settings)
     (out_dir / 'sim.yaml').write_text(yaml.safe_dump(meta, sort_keys=False))

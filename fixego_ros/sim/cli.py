@@ -48,6 +48,7 @@ from fixego_ros.sim.run import (
 )
 from fixego_ros.sim.trajectories import NAMES
 from fixego_ros.sim.vergence_measure import VERGENCE_MODES
+from fixego_ros.sim.wheel_odometry import BIAS_MAX, RATE_MAX_HZ, WheelOdometry
 
 PROG = 'fixego sim'
 # upper limit of the wheel odometry noise (fixego_ros.sim.bag_writer only refuses negative/non-finite ones)
@@ -125,6 +126,11 @@ def register(subparsers) -> None:
                    help='also write /fixego/wheel/odom (nav_msgs/Odometry, one per frame): the true base_link '
                         'velocity plus seeded Gaussian noise of std S m/s, covariance S^2; S in '
                         f'[0, {WHEEL_ODOM_STD_MAX:g}] (default: off)')
+    p.add_argument('--wheel-odom-rate', type=float, metavar='HZ',
+                   help=f'with --wheel-odom-std: samples at HZ in (0, {RATE_MAX_HZ:g}] instead of one per frame')
+    p.add_argument('--wheel-odom-bias', type=float, default=0.0, metavar='B',
+                   help='with --wheel-odom-std: the velocity is scaled by 1 + B (a wheel radius off by B, not in the '
+                        f'covariance), B in [-{BIAS_MAX:g}, {BIAS_MAX:g}] (default 0)')
     p.add_argument('--vergence', choices=VERGENCE_MODES, default=VERGENCE_DEFAULT,
                    help='the rig\'s vergence step, at the first frame and at each new right fixation: physical = '
                         'the left head verges on the right\'s fixation point and back (its images and joint states '
@@ -156,6 +162,11 @@ def check_args(args: argparse.Namespace):
     check_float(args.texel, '--texel', *TEXEL_RANGE, unit='m')
     if args.wheel_odom_std is not None:
         check_float(args.wheel_odom_std, '--wheel-odom-std', 0.0, WHEEL_ODOM_STD_MAX, unit='m/s')
+    elif args.wheel_odom_rate is not None or args.wheel_odom_bias:
+        raise OptionError('--wheel-odom-rate and --wheel-odom-bias need --wheel-odom-std')
+    if args.wheel_odom_rate is not None:
+        check_float(args.wheel_odom_rate, '--wheel-odom-rate', 0.0, RATE_MAX_HZ, lo_open=True, unit='Hz')
+    check_float(args.wheel_odom_bias, '--wheel-odom-bias', -BIAS_MAX, BIAS_MAX)
     if args.out is not None and (not args.out or not args.out.strip()):
         raise OptionError('--out must name a directory to create, got an empty path')
     rig = read_rig(args.rig)
@@ -231,8 +242,9 @@ def run(args: argparse.Namespace) -> int:
     with _tracked_stderr() as err:
         try:
             with signals_interrupt():
-                s = write_bag(out, rig, settings, progress=not args.no_progress,
-                              wheel_odom_std=args.wheel_odom_std)
+                wheel = (None if args.wheel_odom_std is None else
+                         WheelOdometry(args.wheel_odom_std, args.wheel_odom_rate, args.wheel_odom_bias))
+                s = write_bag(out, rig, settings, progress=not args.no_progress, wheel_odom=wheel)
         except KeyboardInterrupt as e:
             signum = getattr(e, 'signum', signal.SIGINT)
             _say(err, f'interrupted by {signal.Signals(signum).name}: stopped; {_remove_partial(out)}')

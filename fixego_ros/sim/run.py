@@ -192,17 +192,20 @@ class Simulation:
         """``base_link`` in ``odom`` (= ``base_link`` at frame 0) at every frame, with the rig's mount."""
         return [rig_pose_to_base_link(p, self.rig.mount) for p in relative_poses(self.poses)]
 
-    def base_velocities(self, h: float = DT) -> np.ndarray:
-        """(n, 3) true linear velocity of ``base_link`` in ``base_link`` (REP-105 twist) at every frame, m/s:
-        central differences of the true poses over ±``h`` (one-sided at the ends), with the rig's mount."""
-        out = np.zeros((len(self.stamps), 3))
+    def base_velocities(self, times: np.ndarray | None = None, h: float = DT) -> np.ndarray:
+        """(n, 3) true linear velocity of ``base_link`` in ``base_link`` (REP-105 twist), m/s, at every frame or at
+        ``times`` (s since the start): central differences of the true poses over ±``h`` (one-sided at the ends),
+        with the rig's mount."""
+        stamps = self.stamps if times is None else np.asarray(times, float)
+        poses = self.poses if times is None else [self.trajectory.pose_at(float(t)) for t in stamps]
+        out = np.zeros((len(stamps), 3))
         mount = self.rig.mount
         inv = mount.inverse() if mount is not None else None
 
         def origin(t: float) -> np.ndarray:       # base_link origin in the world
             pose = self.trajectory.pose_at(t)
             return pose.t if inv is None else (pose @ inv).t
-        for k, (t, pose) in enumerate(zip(self.stamps, self.poses, strict=True)):
+        for k, (t, pose) in enumerate(zip(stamps, poses, strict=True)):
             t0, t1 = max(t - h, 0.0), min(t + h, self.trajectory.duration)
             if t1 > t0:
                 v_world = (origin(t1) - origin(t0)) / (t1 - t0)
