@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Protocol, TypeVar
 
 import numpy as np
 
@@ -45,6 +47,12 @@ class FrameObservation:
         return self.right if side == 'right' else self.left
 
 
+class _HasStamp(Protocol):
+    stamp: float
+
+
+_Stamped = TypeVar('_Stamped', bound=_HasStamp)
+
 Fixation = tuple[np.ndarray, int, np.ndarray]   # (rig-frame ray, fixation id, cam_to_rig)
 
 
@@ -57,6 +65,22 @@ def fixations_of(obs: FrameObservation) -> dict[str, Fixation | None]:
               and bool(np.all(np.isfinite(cam.fixation_ray))) and bool(np.all(np.isfinite(cam.cam_to_rig))))
         out[side] = (np.asarray(cam.fixation_ray, float), int(cam.fixation_id), cam.cam_to_rig) if ok else None
     return out
+
+
+STAMP_TOLERANCE_S = 1e-6   # two stamps this close name the same frame
+
+
+def at_stamp(frames: Sequence[_Stamped], stamp: float | None) -> _Stamped | None:
+    """The frame of ``frames`` (oldest first) at ``stamp`` (within ``STAMP_TOLERANCE_S``), searched from the newest;
+    None when there is none or ``stamp`` is None."""
+    if stamp is None:
+        return None
+    for f in reversed(frames):
+        if abs(f.stamp - stamp) <= STAMP_TOLERANCE_S:
+            return f
+        if f.stamp < stamp:
+            return None
+    return None
 
 
 def step_pairs(rig: Rig, prev: dict[str, Fixation | None], obs: FrameObservation,

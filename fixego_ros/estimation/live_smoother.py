@@ -28,7 +28,14 @@ import numpy as np
 from fixego_ros.estimation.config import EstimatorConfig
 from fixego_ros.estimation.covariance import VAR_MAX, checked_measurement
 from fixego_ros.estimation.factors import constant_twist, with_length
-from fixego_ros.estimation.frames import Fixation, FrameObservation, FrameResult, fixations_of, step_pairs
+from fixego_ros.estimation.frames import (
+    Fixation,
+    FrameObservation,
+    FrameResult,
+    at_stamp,
+    fixations_of,
+    step_pairs,
+)
 from fixego_ros.estimation.status import StepStatus
 from fixego_ros.estimation.twoframe import TwoFrameSolver
 from fixego_ros.geometry.rig import SIDES, Rig
@@ -230,8 +237,7 @@ class LiveSmoother:
             elif not self.alive:
                 break
         self._receive_all()
-        revised, self._revised = tuple(sorted(self._revised.items())), {}
-        return revised
+        return self._take_revised()
 
     # ------------------------------------------------------------------------------------------- frames
     def update(self, obs: FrameObservation) -> FrameResult:
@@ -244,7 +250,7 @@ class LiveSmoother:
         self._index += 1
         self._send(Message.FRAME, obs)
         self._sent_frames += 1
-        ref = self._find(obs.prev_stamp if obs.prev_stamp is not None else last)
+        ref = at_stamp(self._recent, obs.prev_stamp if obs.prev_stamp is not None else last)
         predicted = self._predict(obs.stamp)
         messages: list[str] = []
         tf = None
@@ -271,7 +277,7 @@ class LiveSmoother:
         self._recent.append(frame)
         while self._recent and self._recent[0].stamp < obs.stamp - self.HISTORY_S:
             self._recent.popleft().ref = None
-        revised, self._revised = tuple(sorted(self._revised.items())), {}
+        revised = self._take_revised()
         if self._state.last_error:
             messages.append(f'smoother: {self._state.last_error}')
         unknown = np.diag([1e-2] * 3 + [VAR_MAX] * 3)
@@ -290,6 +296,11 @@ class LiveSmoother:
         self._index = -1
         self._sent_frames = 0
         self._answered = 0
+
+    def _take_revised(self) -> tuple[tuple[float, Pose], ...]:
+        """The revisions not handed out yet, oldest first; from now on the caller has them."""
+        revised, self._revised = tuple(sorted(self._revised.items())), {}
+        return revised
 
     def _send(self, kind: Message, payload: Any) -> None:
         with contextlib.suppress(BrokenPipeError, OSError):   # the child is gone: ``alive`` says so, and
@@ -329,16 +340,6 @@ class LiveSmoother:
         if np.all(np.isfinite(result.pose_covariance)):
             self._pose_cov = result.pose_covariance
         return 1
-
-    def _find(self, stamp: float | None) -> _Recent | None:
-        if stamp is None:
-            return None
-        for r in reversed(self._recent):
-            if abs(r.stamp - stamp) <= 1e-6:
-                return r
-            if r.stamp < stamp:
-                return None
-        return None
 
     def _speed(self) -> float:
         """m/s: the smoother's motion over its newest ``SPEED_WINDOW_S``; the nominal speed before there is one."""

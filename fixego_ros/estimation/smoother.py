@@ -40,7 +40,7 @@ from fixego_ros.estimation.factors import (
     to_gtsam,
 )
 from fixego_ros.estimation.fixed_lag import FixedLagWindow
-from fixego_ros.estimation.frames import Fixation, FrameObservation, FrameResult, fixations_of, step_pairs
+from fixego_ros.estimation.frames import Fixation, FrameObservation, FrameResult, at_stamp, fixations_of, step_pairs
 from fixego_ros.estimation.keys import LandmarkId, LandmarkKind, camera_key, landmark_key, pose_key
 from fixego_ros.estimation.speed_samples import SpeedSamples
 from fixego_ros.estimation.status import StepStatus
@@ -117,7 +117,6 @@ class Smoother:
     :class:`~fixego_ros.estimation.estimator.Estimator`; its results also carry ``revised``: the smoothed poses of
     earlier frames still in the lag (the caller's path should take them)."""
 
-    GAP_TOLERANCE_S = 1e-6
     HISTORY_S = 10.0          # frames kept for late vergence measurements and references, beyond the lag
     TWIST_MIN_SPEED = 0.1     # x nominal speed: below it the constant-twist prior's speed change is absolute
     CARRY_MAX_S = 0.5         # a vergence measurement is carried at most this far to a frame with its camera
@@ -213,14 +212,6 @@ class Smoother:
         return self._frames[-1].stamp if self._frames else None
 
     # ------------------------------------------------------------------------------------------- frames
-    def _frame_at(self, stamp: float) -> _Frame | None:
-        for f in reversed(self._frames):
-            if abs(f.stamp - stamp) <= self.GAP_TOLERANCE_S:
-                return f
-            if f.stamp < stamp:
-                return None
-        return None
-
     def _in_graph(self, frame: _Frame) -> bool:
         return frame.index >= self._graph_start and self._estimate.exists(pose_key(frame.index))
 
@@ -255,7 +246,7 @@ class Smoother:
         i = self._index
         fix = fixations_of(obs)
         ref_stamp = obs.prev_stamp if obs.prev_stamp is not None else last
-        ref = self._frame_at(ref_stamp) if ref_stamp is not None else None
+        ref = at_stamp(self._frames, ref_stamp)
         ref = ref if ref is not None and self._in_graph(ref) else None
         messages: list[str] = []
         if last is not None and ref is None:
@@ -479,7 +470,7 @@ class Smoother:
         last = self.last_stamp
         kept = []
         for p in self._points:
-            frame = self._frame_at(p.stamp)
+            frame = at_stamp(self._frames, p.stamp)
             if (frame is None or frame.fixation.get(p.side) is None) and last is not None and p.stamp < last:
                 frame, p = self._carried(p, up)
             if frame is None or frame.fixation.get(p.side) is None:
@@ -492,10 +483,7 @@ class Smoother:
             if not (up.values.exists(pose_key(frame.index)) or self._in_graph(frame)):
                 self._note = f'vergence measurement at {p.stamp:.3f} s arrived after its frame left the lag: ignored'
                 continue
-            # the measurement says "the point this camera fixates is here": a point off the fixation ray is another
-            # point (on the paper bag one 4.5 deg, 68 px, off pulled the last 3 s of the loop 80 cm off)
-            off_px = off_ray_px(p.point - self.rig.center(p.side), frame.fixation[p.side][0],
-                                self.rig.camera(p.side).fx)
+            off_px = self._off_fixation_px(p, frame.fixation[p.side][0])
             if off_px > self.settings.gate_px:
                 self._note = (f'vergence measurement at {p.stamp:.3f} s lies {off_px:.0f} px off the {p.side} fixation '
                               'ray of its frame (not the point that camera fixates): ignored')
@@ -538,12 +526,17 @@ class Smoother:
                 (0.1 * float(np.linalg.norm(motion.rvec())) * float(np.linalg.norm(p.point))) ** 2
             moved.append((frame, _PendingPoint(frame.stamp, p.side, point,
                                                motion.R @ p.cov @ motion.R.T + np.eye(3) * spread)))
-        f = self.rig.camera(p.side).fx
         for frame, q in moved:
             fix = frame.fixation.get(p.side)
-            if fix is not None and off_ray_px(q.point - self.rig.center(p.side), fix[0], f) <= self.settings.gate_px:
+            if fix is not None and self._off_fixation_px(q, fix[0]) <= self.settings.gate_px:
                 return frame, q
         return moved[0]
+
+    def _off_fixation_px(self, p: _PendingPoint, ray: np.ndarray) -> float:
+        """How far (image px) the measured point lies from the camera's fixation ray at that frame. The measurement
+        says "the point this camera fixates is here": a point off the ray is another point (measured on the paper
+        bag: one 4.5 deg (68 px) off pulled the last 3 s of the loop 80 cm off)."""
+        return off_ray_px(p.point - self.rig.center(p.side), ray, self.rig.camera(p.side).fx)
 
     def _solve(self, up: _Update) -> bool:
         """Add one frame's factors and relinearise; on a numerical failure start a new graph at the estimate."""

@@ -107,7 +107,7 @@ class Recorder(Node):
             self._parsed[name] = (data, deserialize_message(data, Path))
         return self._parsed[name][1]
 
-    def path_stamp(self, name: str = 'path_raw') -> float | None:
+    def path_stamp(self, name: str) -> float | None:
         """Stamp of the last ``name`` Path received (its newest pose); None before the first. The estimator
         publishes paths at most once per path_publish_period_s, and once more when the poses stop."""
         path = self._last_path(name)

@@ -598,24 +598,26 @@ class VergenceStep:
         the last ``settle_frames`` frames, the left's own fixation likewise, and both heads calm (the rig is not
         turning faster than the servos follow, so the partner point is likely to settle)."""
         n = self.p.settle_frames
-        right = list(self.right_fix)[-n:]
-        if len(right) < n or len({f[2] for f in right}) != 1:
-            return 'right fixation changed or too few right frames'
-        if not all(self._centred('right', f[1]) for f in right):
-            off = max(math.dist(f[1], self.rig.right.center) for f in right)
-            return f'right fixation {off:.0f} px from the centre (settle_px {self.p.settle_px:g})'
-        own = list(self._own)[-n:]
-        if len(own) < n or len({i for _, i in own}) != 1 or any(px is None for px, _ in own):
-            return 'left fixation changed or invalid'
-        if not all(self._centred('left', px) for px, _ in own):
-            off = max(math.dist(px, self.rig.left.center) for px, _ in own)
-            return f'left fixation {off:.0f} px from the centre (settle_px {self.p.settle_px:g})'
+        right = [(px, i) for _, px, i in list(self.right_fix)[-n:]]
+        for side, fixes in (('right', right), ('left', list(self._own)[-n:])):
+            why = self._unsettled(side, fixes)
+            if why:
+                return why
         for side, history in (('right', self.right_history), ('left', self.left_history)):
             rate = self._rate(history)
             if rate is None or rate > math.radians(self.p.max_rate_deg_s):
                 turning = 'no recent readings' if rate is None else f'turning {math.degrees(rate):.1f} deg/s'
                 return f'{side} head {turning} (max_rate_deg_s {self.p.max_rate_deg_s:g})'
         return ''
+
+    def _unsettled(self, side: str, fixes: list[tuple[tuple[float, float] | None, int]]) -> str:
+        """Why ``side``'s newest (pixel, id) fixations are not ``settle_frames`` of one valid, centred point ('' when
+        they are)."""
+        if len(fixes) < self.p.settle_frames or len({i for _, i in fixes}) != 1 or any(px is None for px, _ in fixes):
+            return f'{side} fixation changed, invalid or too few frames'
+        off = max(math.dist(px, self.rig.camera(side).center) for px, _ in fixes)
+        return f'{side} fixation {off:.0f} px from the centre (settle_px {self.p.settle_px:g})' \
+            if not all(self._centred(side, px) for px, _ in fixes) else ''
 
     def _rate(self, history: JointHistory) -> float | None:
         """How fast the head turned (rad/s) over its latest readings; None without them."""
