@@ -159,3 +159,21 @@ def test_closed_loop_converges_ros_free():
     assert m['fixation_err_px_mean'] < 3.0 and m['fixation_err_px_max'] < 6.0
     assert m['joint_interp_err_deg_p95'] < 0.15
     assert m['servo_loop_hz'] > 30
+
+
+def test_told_the_head_fixates_the_centre_a_tracker_off_centre_selects_there():
+    """Replay's passive trackers: a vergence measurement says the head fixates what is at the image centre. A point
+    followed off the centre (carried across a head's swing) is not that point: select anew at the centre. A point
+    near the centre is kept (same id)."""
+    view = SyntheticView(CAM, seed=5)
+    tr = FixationTracker(CAM, FixationParams(search_radius_px=20.0, border_margin_px=30.0))
+    st = tr.update(view.render(0, 0), 0.0)
+    assert not tr.expect_centre('vergence')                       # within the radius: nothing to do
+    assert tr.update(view.render(0, 0, ox=2.0), 0.1).fixation_id == st.fixation_id
+    for k in range(1, 8):                                         # followed 84 px off the centre
+        st = tr.update(view.render(0, 0, ox=2.0 + 12.0 * k), 0.1 + 0.1 * k)
+    assert not st.reselected and abs(st.pixel[0] - CAM.cx) > 60
+    assert tr.expect_centre('vergence')
+    again = tr.update(view.render(0, 0, ox=86.0), 1.0)
+    assert again.reselected and again.reason == 'vergence' and again.fixation_id == st.fixation_id + 1
+    assert math.hypot(again.pixel[0] - CAM.cx, again.pixel[1] - CAM.cy) < 25

@@ -227,7 +227,9 @@ def _run(args: argparse.Namespace, bars: list) -> int:
     if settings.speed.topic:
         say(f'speed aid {settings.speed.topic}: {c["speed_samples"]} samples given to the estimator')
     if settings.vergence_topic:
-        say(f'vergence {settings.vergence_topic}: {c["vergence"]} measurement(s) given to the estimator')
+        say(f'vergence {settings.vergence_topic}: {c["vergence"]} measurement(s) given to the estimator'
+            + (f'; the right fixation moved to the image centre for {c["vergence_recentred"]} of them (it followed a '
+               'point the head had left)' if c['vergence_recentred'] else ''))
     say(f'wrote {out} and {raw_out}')
     if res.gt_stamps:
         code = _evaluate(args, res, say, fail)

@@ -479,6 +479,8 @@ def replay(bag: Bag, rig: Rig, settings: ReplaySettings, topics: ReplayTopics = 
                     continue
                 estimator.submit_fixation_point(v_stamp, 'right', point, cov)
                 res.counts['vergence'] += 1
+                if trackers['right'].expect_centre('vergence'):
+                    res.counts['vergence_recentred'] += 1
                 continue
             if kind == 'image':
                 res.counts['images'] += 1
