@@ -5,6 +5,7 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 import pytest
+from gtsam.symbol_shorthand import L, X
 
 from fixego_ros.estimation.fixed_lag import FixedLagWindow
 
@@ -70,3 +71,58 @@ def test_a_numerical_failure_raises():
     values.insert(2, np.zeros(3))
     with pytest.raises(RuntimeError):             # nothing fixes the pair's absolute position
         window.update(graph, values, {1: 0.0, 2: 0.0})
+
+
+def _pose_chain(window: FixedLagWindow, n: int) -> None:
+    """Poses x0..x(n-1), 1 s apart, 10 cm steps along z, the first held by a prior."""
+    noise = gtsam.noiseModel.Isotropic.Sigma(6, 1e-2)
+    step = gtsam.Pose3(gtsam.Rot3(), np.array([0.0, 0.0, 0.1]))
+    for k in range(n):
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        if k == 0:
+            graph.add(gtsam.PriorFactorPose3(X(0), gtsam.Pose3(), noise))
+        else:
+            graph.add(gtsam.BetweenFactorPose3(X(k - 1), X(k), step, noise))
+        values.insert(X(k), gtsam.Pose3(gtsam.Rot3(), np.array([0.0, 0.0, 0.1 * k])))
+        window.update(graph, values, {X(k): float(k)}, newest=(X(k),))
+
+
+def test_a_landmark_nothing_places_is_dropped_and_the_window_goes_on():
+    """One view of a point leaves its depth free: the repair drops the point and keeps everything else (it used to
+    raise, and the smoother started a new graph without any landmark)."""
+    window = FixedLagWindow(lag_s=10.0)
+    _pose_chain(window, 3)
+    K = gtsam.Cal3_S2(500.0, 500.0, 0.0, 0.0, 0.0)
+    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    graph.add(gtsam.GenericProjectionFactorCal3_S2(np.array([10.0, 0.0]), gtsam.noiseModel.Isotropic.Sigma(2, 1.0),
+                                                   X(2), L(0), K, False, False))
+    values.insert(L(0), np.array([0.1, 0.0, 5.0]))
+    window.update(graph, values, {L(0): 2.0})
+    assert window.repairs == ['dropped l0']
+    estimate = window.estimate()
+    assert not estimate.exists(L(0)) and all(estimate.exists(X(k)) for k in range(3))
+    np.testing.assert_allclose(estimate.atPose3(X(2)).translation(), [0.0, 0.0, 0.2], atol=1e-9)
+    _pose_chain_continues = gtsam.NonlinearFactorGraph()
+    _pose_chain_continues.add(gtsam.BetweenFactorPose3(X(2), X(3), gtsam.Pose3(), gtsam.noiseModel.Isotropic.Sigma(
+        6, 1e-2)))
+    values = gtsam.Values()
+    values.insert(X(3), gtsam.Pose3(gtsam.Rot3(), np.array([0.0, 0.0, 0.2])))
+    window.update(_pose_chain_continues, values, {X(3): 3.0}, newest=(X(3),))
+    assert window.estimate().exists(X(3)) and len(window.repairs) == 1
+
+
+def test_a_pose_nothing_holds_is_anchored_where_it_is():
+    """Two new poses tied only to each other: the pair is free; the repair holds one where it was placed."""
+    window = FixedLagWindow(lag_s=10.0)
+    _pose_chain(window, 2)
+    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    step = gtsam.Pose3(gtsam.Rot3(), np.array([0.0, 0.0, 0.5]))
+    graph.add(gtsam.BetweenFactorPose3(X(5), X(6), step, gtsam.noiseModel.Isotropic.Sigma(6, 1e-2)))
+    values.insert(X(5), gtsam.Pose3(gtsam.Rot3(), np.array([1.0, 2.0, 3.0])))
+    values.insert(X(6), gtsam.Pose3(gtsam.Rot3(), np.array([1.0, 2.0, 3.4])))
+    window.update(graph, values, {X(5): 2.0, X(6): 2.0}, newest=(X(6),))
+    assert len(window.repairs) == 1 and window.repairs[0] in ('anchored x5', 'anchored x6')
+    estimate = window.estimate()
+    gap = estimate.atPose3(X(6)).translation() - estimate.atPose3(X(5)).translation()
+    np.testing.assert_allclose(gap, [0.0, 0.0, 0.5], atol=1e-6)
+    assert abs(estimate.atPose3(X(5)).translation()[2] - 3.0) < 0.3

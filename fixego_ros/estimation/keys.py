@@ -10,6 +10,7 @@ from __future__ import annotations
 from enum import IntEnum
 from typing import NamedTuple
 
+import gtsam
 from gtsam.symbol_shorthand import C, L, X
 
 from fixego_ros.geometry.rig import SIDES
@@ -38,3 +39,12 @@ def camera_key(frame: int, side: str) -> int:
 
 def landmark_key(index: int) -> int:
     return L(index)
+
+
+def is_landmark(key: int) -> bool:
+    return gtsam.Symbol(key).chr() == gtsam.Symbol(L(0)).chr()
+
+
+def is_pose(key: int) -> bool:
+    """A rig pose or a camera pose (both Pose3)."""
+    return gtsam.Symbol(key).chr() in (gtsam.Symbol(X(0)).chr(), gtsam.Symbol(C(0)).chr())

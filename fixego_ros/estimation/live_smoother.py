@@ -67,11 +67,12 @@ class SmootherState:
     frames_skipped: int = 0
     last_error: str = ''
     restarts: int = 0
+    repairs: int = 0
 
 
 def _state(smoother: Any, skipped: int, error: str) -> SmootherState:
     return SmootherState(smoother.scale_observed, smoother.scale_note(), smoother.scale_measurement,
-                         smoother.speed_source_used, skipped, error, smoother.restarts)
+                         smoother.speed_source_used, skipped, error, smoother.restarts, smoother.repairs)
 
 
 def serve(conn: Any, rig: Rig, config: EstimatorConfig) -> None:
@@ -189,6 +190,11 @@ class LiveSmoother:
     def restarts(self) -> int:
         """The smoother's numerical failures (each starts a new graph at the last estimate)."""
         return self._state.restarts
+
+    @property
+    def repairs(self) -> int:
+        """The smoother's numerical failures repaired in place (a landmark dropped or a pose held)."""
+        return self._state.repairs
 
     @property
     def alive(self) -> bool:

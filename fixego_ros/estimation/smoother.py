@@ -153,6 +153,7 @@ class Smoother:
         self._scale_measured: tuple[float, float] | None = None
         self._vergence_used = 0
         self.restarts = 0          # numerical failures (each starts a new graph at the last estimate)
+        self.repairs = 0           # numerical failures the window repaired in place (FixedLagWindow)
         self._restart()
 
     def _restart(self) -> None:
@@ -543,8 +544,12 @@ class Smoother:
         try:
             newest = tuple(k for k in (pose_key(self._index), *(camera_key(self._index, s) for s in SIDES))
                            if up.values.exists(k))
+            before = len(self._window.repairs)
             self._window.update(up.graph, up.values, up.stamps, newest, self.settings.iterations)
             self._estimate = self._window.estimate()
+            for what in self._window.repairs[before:]:
+                self.repairs += 1
+                self._note = f'numerically indeterminate: {what} (repair {self.repairs})'
         except RuntimeError:
             self.restarts += 1
             self._restart()

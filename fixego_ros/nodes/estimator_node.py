@@ -503,7 +503,8 @@ class EstimatorNode(Node):
         if isinstance(self.estimator, LiveSmoother):
             values.update({'smoother_results': self.estimator.smoothed_results,
                            'smoother_skipped_frames': self.estimator.frames_skipped,
-                           'smoother_restarts': self.estimator.restarts})
+                           'smoother_restarts': self.estimator.restarts,
+                           'smoother_repairs': self.estimator.repairs})
         if self.last is None:
             level, message = WARN, 'no observation yet'
         else:
