@@ -9,7 +9,7 @@ import pytest
 from fixego_ros.geometry.rig import default_rig_path, load_rig
 from fixego_ros.sim.run import SimSettings, Simulation, resize_rig
 from fixego_ros.sim.servo_model import ServoParams, required_readings
-from fixego_ros.sim.vergence_measure import VergenceParams, measure, sample, tick_times
+from fixego_ros.sim.vergence_measure import VergenceParams, measure, off_axis_deg, sample, tick_times
 from fixego_ros.sim.vergence_step import VergenceStep
 
 # the paper loop's first 9 s at 10 Hz: start-up, and the right camera re-selects once (at 7.4 s)
@@ -139,10 +139,16 @@ def test_measurements_mode_leaves_the_heads_alone(rig, off):
         assert a.states['left'].fixation_id == b.states['left'].fixation_id
     changes = _right_changes(frames)
     ms = sim.vergence.measurements
-    assert [m.frame for m in ms] == changes                     # at start-up and at each new right fixation
-    for m in ms:
+    assert ms and ms[0].frame == changes[0] == 0
+    settle = VergenceParams().settle_deg
+    for m in ms:                  # one per new right fixation, once the right head is on its point (not before)
         assert frames[m.frame].vergence is m
+        k = max(c for c in changes if c <= m.frame)
+        st = frames[m.frame].states['right']
+        assert m.right_fixation_id == frames[k].states['right'].fixation_id == st.fixation_id
+        assert off_axis_deg(rig, 'right', frames[m.frame].rig_pose, st.pan, st.tilt, st.point) <= settle
         assert abs(m.distance_m - m.distance_true_m) < 4.0 * m.std_m and m.std_m < 0.05 * m.distance_true_m
+    assert len(ms) + len(sim.vergence.failures) == len(changes)
 
 
 def test_off_has_no_vergence(off):
