@@ -161,19 +161,17 @@ def test_closed_loop_converges_ros_free():
     assert m['servo_loop_hz'] > 30
 
 
-def test_told_the_head_fixates_the_centre_a_tracker_off_centre_selects_there():
-    """Replay's passive trackers: a vergence measurement says the head fixates what is at the image centre. A point
-    followed off the centre (carried across a head's swing) is not that point: select anew at the centre. A point
-    near the centre is kept (same id)."""
+def test_reselect_last_starts_a_new_point_in_the_last_image_that_the_next_frame_follows():
+    """Replay: a vergence measurement shows where the head's point is in the image just tracked; the tracker
+    starts a new fixation there (new id) and follows it on the next image. Too near the border: no change."""
     view = SyntheticView(CAM, seed=5)
     tr = FixationTracker(CAM, FixationParams(search_radius_px=20.0, border_margin_px=30.0))
     st = tr.update(view.render(0, 0), 0.0)
-    assert not tr.expect_centre('vergence')                       # within the radius: nothing to do
-    assert tr.update(view.render(0, 0, ox=2.0), 0.1).fixation_id == st.fixation_id
-    for k in range(1, 8):                                         # followed 84 px off the centre
-        st = tr.update(view.render(0, 0, ox=2.0 + 12.0 * k), 0.1 + 0.1 * k)
-    assert not st.reselected and abs(st.pixel[0] - CAM.cx) > 60
-    assert tr.expect_centre('vergence')
-    again = tr.update(view.render(0, 0, ox=86.0), 1.0)
-    assert again.reselected and again.reason == 'vergence' and again.fixation_id == st.fixation_id + 1
-    assert math.hypot(again.pixel[0] - CAM.cx, again.pixel[1] - CAM.cy) < 25
+    other = (st.pixel[0] + 45.0, st.pixel[1] - 20.0)
+    scene = view.scene_point(other, 0, 0)
+    assert not tr.reselect_last((3.0, 3.0), 'vergence') and tr.fixation_id == st.fixation_id
+    assert tr.reselect_last(other, 'vergence')
+    assert tr.last.fixation_id == st.fixation_id + 1 and tr.last.reason == 'vergence' and tr.last.stamp == 0.0
+    nxt = tr.update(view.render(0, 0, ox=3.0, oy=-2.0), 0.1)
+    assert nxt.valid and not nxt.reselected and nxt.fixation_id == st.fixation_id + 1
+    assert np.allclose(nxt.pixel, view.pixel_of(scene, 0, 0, 3.0, -2.0), atol=0.3)

@@ -166,27 +166,44 @@ def test_a_vergence_point_off_the_fixation_ray_is_not_used(loop):
     a = math.radians(3.0)
     turn = np.array([[math.cos(a), 0.0, math.sin(a)], [0.0, 1.0, 0.0], [-math.sin(a), 0.0, math.cos(a)]])
     sm.add_fixation_point(loop.stamps[7], 'right', center + turn @ (point - center), cov)
+    later = [obs for obs in loop.observations[8:] if obs.stamp <= loop.stamps[7] + Smoother.CARRY_MAX_S + 0.2]
+    for obs in later:                   # (kept a while: a later frame's fixation might be the measured point)
+        sm.update(obs)
+    assert later[-1].stamp > loop.stamps[7] + Smoother.CARRY_MAX_S
     assert not sm.scale_observed and 'px off the right fixation ray' in sm.scale_note()
     sm.add_fixation_point(loop.stamps[7], 'right', point, cov)
     assert sm.scale_observed
 
 
-@pytest.mark.parametrize('gap', ['skipped', 'single_camera'])
+def _off_ray(obs, previous_id: int):
+    """The frame's right fixation as a passive tracker that still follows another point gives it: 3 deg off."""
+    a = math.radians(3.0)
+    turn = np.array([[math.cos(a), 0.0, math.sin(a)], [0.0, 1.0, 0.0], [-math.sin(a), 0.0, math.cos(a)]])
+    return dataclasses.replace(obs, right=dataclasses.replace(obs.right, fixation_ray=turn @ obs.right.fixation_ray,
+                                                              fixation_id=previous_id))
+
+
+@pytest.mark.parametrize('gap', ['skipped', 'single_camera', 'off_ray'])
 def test_a_vergence_point_whose_frame_is_missing_or_lacks_the_camera_is_carried_to_a_neighbour(loop, gap):
-    """The live back end skips frames to keep up, a loaded flow_node sends frames with one camera, and a measurement
-    arrives after its frame: it is moved into a nearby frame with the right fixation (the motion between
-    interpolated) and still used."""
+    """The live back end skips frames to keep up, a loaded flow_node sends frames with one camera, a replay's
+    passive tracker re-selects the measured point only on the next frame, and a measurement arrives after its frame:
+    it is moved into a nearby frame with the right fixation (the motion between interpolated) and still used."""
     sm = Smoother(RIG, _config())
     rng = np.random.default_rng(3)
     last_fid, pending, given = None, None, 0
     for k, obs in enumerate(loop.observations):
         fid = obs.right.fixation_id
         skip = fid != last_fid and k > 0
+        previous = last_fid
         if fid != last_fid:
             pending, last_fid = (obs.stamp, *_vergence(loop, k, 0.005, rng)), fid
         if skip and gap == 'skipped':
             continue                    # the measured frame never reaches the smoother
-        sm.update(dataclasses.replace(obs, right=None) if skip else obs)
+        if skip and gap == 'off_ray':
+            obs = _off_ray(obs, previous)
+        elif skip:
+            obs = dataclasses.replace(obs, right=None)
+        sm.update(obs)
         if pending is not None:
             sm.add_fixation_point(pending[0], 'right', pending[1], pending[2])
             pending, given = None, given + 1

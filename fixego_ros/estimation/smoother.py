@@ -470,24 +470,25 @@ class Smoother:
         (with a note)."""
         last = self.last_stamp
         kept = []
-        for p in self._points:
+        for measured in self._points:
+            p = measured
             frame = at_stamp(self._frames, p.stamp)
-            if (frame is None or frame.fixation.get(p.side) is None) and last is not None and p.stamp < last:
+            if not self._fits(frame, p) and last is not None and p.stamp < last:
                 frame, p = self._carried(p, up)
-            if frame is None or frame.fixation.get(p.side) is None:
-                if last is not None and p.stamp > last - self.CARRY_MAX_S:     # a frame to carry it to may come
-                    kept.append(p)
-                else:
+            if not self._fits(frame, p):
+                if last is not None and measured.stamp > last - self.CARRY_MAX_S:     # a frame to carry it to may come
+                    kept.append(measured)
+                elif frame is None or frame.fixation.get(p.side) is None:
                     self._note = (f'vergence measurement at {p.stamp:.3f} s matches no frame with a {p.side} fixation '
                                   'still in the smoother: ignored')
+                else:
+                    off_px = self._off_fixation_px(p, frame.fixation[p.side][0])
+                    self._note = (f'vergence measurement at {measured.stamp:.3f} s lies {off_px:.0f} px off the '
+                                  f'{p.side} fixation ray of its frame and its neighbours (not the point that camera '
+                                  'fixates): ignored')
                 continue
             if not (up.values.exists(pose_key(frame.index)) or self._in_graph(frame)):
                 self._note = f'vergence measurement at {p.stamp:.3f} s arrived after its frame left the lag: ignored'
-                continue
-            off_px = self._off_fixation_px(p, frame.fixation[p.side][0])
-            if off_px > self.settings.gate_px:
-                self._note = (f'vergence measurement at {p.stamp:.3f} s lies {off_px:.0f} px off the {p.side} fixation '
-                              'ray of its frame (not the point that camera fixates): ignored')
                 continue
             lid = LandmarkId(LandmarkKind.FIXATION, p.side, frame.fixation[p.side][1])
             index = self._landmarks.get(lid)
@@ -503,8 +504,9 @@ class Smoother:
         self._points = kept
 
     def _carried(self, p: _PendingPoint, up: _Update) -> tuple[_Frame | None, _PendingPoint]:
-        """A measurement whose frame is not in the graph (the live back end skips frames to keep up), or came
-        without that camera (a single-camera frame of a loaded flow_node), moved into a graph frame around its
+        """A measurement whose frame is not in the graph (the live back end skips frames to keep up), came without
+        that camera (a single-camera frame of a loaded flow_node), or whose frame's fixation is another point (replay's
+        passive tracker re-selects at the measured point on a later frame), moved into a graph frame around its
         stamp, within ``CARRY_MAX_S``, that has the camera's fixation: the rig's motion from that frame to the stamp
         is interpolated (constant twist) from the two frames' estimates, and its uncertainty added to the
         covariance (half the translation, a tenth of the rotation at the point's distance). The nearer frame
@@ -532,6 +534,11 @@ class Smoother:
             if fix is not None and self._off_fixation_px(q, fix[0]) <= self.settings.gate_px:
                 return frame, q
         return moved[0]
+
+    def _fits(self, frame: _Frame | None, p: _PendingPoint) -> bool:
+        """The frame has the measured camera's fixation, and the point lies on its ray (within ``gate_px``)."""
+        fix = frame.fixation.get(p.side) if frame is not None else None
+        return fix is not None and self._off_fixation_px(p, fix[0]) <= self.settings.gate_px
 
     def _off_fixation_px(self, p: _PendingPoint, ray: np.ndarray) -> float:
         """How far (image px) the measured point lies from the camera's fixation ray at that frame. The measurement

@@ -201,6 +201,18 @@ class Rig:
         rays = self.camera(side).pixels_to_rays(uv)
         return rays @ self.cam_to_rig(side, pan_reading, tilt_reading).T
 
+    def rig_points_to_pixels(self, side: str, points: np.ndarray, pan_reading: float,
+                             tilt_reading: float) -> np.ndarray:
+        """Pixels (N, 2) of rig-frame points seen by ``side`` at the given joint readings (NaN behind it); the
+        inverse of :meth:`pixels_to_rig_rays`."""
+        d = (np.asarray(points, float).reshape(-1, 3) - self.center(side)) @ self.cam_to_rig(side, pan_reading,
+                                                                                             tilt_reading)
+        out = np.full((len(d), 2), np.nan)
+        front = d[:, 2] > 1e-6
+        if np.any(front):
+            out[front] = self.camera(side).rays_to_pixels(d[front])
+        return out
+
     def to_dict(self) -> dict[str, Any]:
         out = dict(self.extra)
         for side, cam in (('right', self.right), ('left', self.left)):

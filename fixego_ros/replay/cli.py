@@ -228,8 +228,8 @@ def _run(args: argparse.Namespace, bars: list) -> int:
         say(f'speed aid {settings.speed.topic}: {c["speed_samples"]} samples given to the estimator')
     if settings.vergence_topic:
         say(f'vergence {settings.vergence_topic}: {c["vergence"]} measurement(s) given to the estimator'
-            + (f'; the right fixation moved to the image centre for {c["vergence_recentred"]} of them (it followed a '
-               'point the head had left)' if c['vergence_recentred'] else ''))
+            + (f'; the right fixation re-selected at the measured point for {c["vergence_reselections"]} of them (it '
+               'followed another point)' if c['vergence_reselections'] else ''))
     say(f'wrote {out} and {raw_out}')
     if res.gt_stamps:
         code = _evaluate(args, res, say, fail)

@@ -95,19 +95,17 @@ class FixationTracker:
         """Select a new point on the next frame, near the centre plus ``offset_px``."""
         self._request = (reason, (float(offset_px[0]), float(offset_px[1])))
 
-    def expect_centre(self, reason: str) -> bool:
-        """Told that the head fixates what is at the image centre now (a vergence measurement was just made on it):
-        select a new point there on the next frame unless the point followed is within ``search_radius_px`` of the
-        centre. Why: a passive tracker (replay) follows its point across a head's swing by template search and can
-        end up 100-200 px from the centre, on a point the head no longer fixates (measured on a 30 Hz simulated loop:
-        6 of 7 vergence measurements lay 90-220 px off the replay's fixation ray and were ignored). True when it
-        will re-select."""
-        track = self._track
-        if track is not None and math.hypot(track.pixel[0] - self.camera.cx,
-                                            track.pixel[1] - self.camera.cy) <= self.params.search_radius_px:
+    def reselect_last(self, pixel: tuple[float, float], reason: str = 'external') -> bool:
+        """Start a new fixation at ``pixel`` of the last image seen, which the next :meth:`update` follows on
+        (replay: a vergence measurement of that image's frame shows where the head's point is). False, with no
+        change, when there is no image yet or the pixel is too close to the border."""
+        if self._prev is None or self.last is None:
             return False
-        self.request_reselect(reason)
-        return True
+        before = (self._track, self.last)
+        state = self.select_at(self._prev, pixel, self.last.stamp, reason)
+        if not state.valid:
+            self._track, self.last = before
+        return state.valid
 
     def reset(self) -> None:
         self._prev, self._track, self._request = None, None, None
