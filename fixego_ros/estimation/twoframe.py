@@ -430,16 +430,20 @@ class TwoFrameSolver:
     def _cold_starts(self, pairs: RayPairs, R_rot: np.ndarray) -> list[Pose]:
         return essential_start(pairs) + [Pose(R_rot, p.t) for p in canonical_starts(self.config.prior_step)]
 
+    @staticmethod
+    def better(a: TwoFrameResult | None, b: TwoFrameResult | None) -> TwoFrameResult | None:
+        """Of two solutions of the same pairs: the one in front of the cameras, then the lower cost (``a`` on a
+        tie; None only when both are)."""
+        if a is None or b is None:
+            return a if b is None else b
+        return b if (b.cheirality < 0.5, b.cost) < (a.cheirality < 0.5, a.cost) else a
+
     def _best(self, pairs: RayPairs, starts: list[Pose],
               prior: MotionPrior | None = None) -> TwoFrameResult | None:
         """Refine every start; prefer solutions in front of the cameras, then the lowest cost."""
         best: TwoFrameResult | None = None
         for start in starts:
-            res = self._refine(pairs, start, prior)
-            if res is None:
-                continue
-            if best is None or (res.cheirality < 0.5, res.cost) < (best.cheirality < 0.5, best.cost):
-                best = res
+            best = self.better(best, self._refine(pairs, start, prior))
         return best
 
     def _refine(self, pairs: RayPairs, start: Pose,
