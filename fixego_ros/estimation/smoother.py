@@ -121,6 +121,7 @@ class Smoother:
     TWIST_MIN_SPEED = 0.1     # x nominal speed: below it the constant-twist prior's speed change is absolute
     CARRY_MAX_S = 0.5         # a vergence measurement is carried at most this far to a frame with its camera
     AT_REST_M = 0.01          # a landmark whose views' camera centres are all this close was seen from one place
+    COLD_START_GAIN = 0.5     # a cold-started step replaces the warm one below this fraction of its cost
 
     def __init__(self, rig: Rig, config: EstimatorConfig | None = None) -> None:
         self.rig = rig
@@ -294,18 +295,23 @@ class Smoother:
                    ) -> tuple[TwoFrameResult | None, Pose]:
         """The coplanarity solve keyframe -> frame, and the raw step (its rotation, nominal length).
 
-        Solved from the graph's prediction and from the solver's own cold starts, the better kept: from the
-        prediction alone, a graph that had drifted led the solve into a wrong minimum (1-2 deg of rotation, the
-        direction 40-60 deg off, where the cold starts find a third of its cost), and that step pulled the graph
-        further. Measured on the 30 Hz paper bag with only the front end's keyframes in the smoother: 93 -> 3.3 cm
-        mean; +14 ms per frame (67 -> 81 median)."""
+        Solved from the graph's prediction and from the solver's own cold starts; the cold solution replaces the
+        warm one when its cost is below ``COLD_START_GAIN`` of it. From the prediction alone, a graph that had
+        drifted led the solve into a wrong minimum (1-2 deg of rotation, the direction 40-60 deg off, at 30-40x the
+        cold starts' cost), and that step pulled the graph further. Measured on the 30 Hz paper bag with only the
+        front end's keyframes in the smoother: 93 -> 3.3 cm mean; +14 ms per frame (67 -> 81 median). The margin:
+        taking the lower cost outright flips between near-equal minima with the last bit's rounding (the walk bag
+        moved 2.3 cm RMS under another BLAS kernel)."""
         if ref is None:
             return None, Pose.identity()
         dt = obs.stamp - ref.stamp
         pairs = step_pairs(self.rig, ref.fixation, obs, self.config.fixation_weight)
         warm = self.solver.solve(pairs, initial=ref.pose.inverse() @ pose0)
-        solved = warm.status in (StepStatus.OK, StepStatus.WEAK)       # (no parallax or too few pairs: no starts)
-        tf = self.solver.better(warm, self.solver.solve(pairs)) if solved else warm
+        tf = warm
+        if warm.status in (StepStatus.OK, StepStatus.WEAK):       # (no parallax or too few pairs: no starts)
+            cold = self.solver.solve(pairs)
+            if cold.status.usable and cold.cheirality >= 0.5 and cold.cost < self.COLD_START_GAIN * warm.cost:
+                tf = cold
         return tf, self.steps.scaled(tf.pose if self._good(tf) else ref.pose.inverse() @ pose0, dt)
 
     @staticmethod
