@@ -18,9 +18,9 @@ A numerical failure (GTSAM's "indeterminate linear system near variable v") is r
 handed up: the window is rebuilt from its own factors and linearisation point without that variable when it is
 a landmark (a point whose views' robust kernels have given up on it), or with a weak prior on it otherwise (10x
 firmer each time the same pose fails again within one update: on a live demo's frames a 1 rad / 10 m prior often
-did not make the system determinate). Before,
-the smoother started a whole new graph, losing every landmark and the measured scale; on a 30 Hz simulated loop
-that happened 35 times in 25 s and froze the trajectory for its last 4 s.
+did not make the system determinate). Before, the smoother started a whole new graph, losing every landmark and
+the measured scale; on a 30 Hz simulated loop that happened 35 times in 25 s and froze the trajectory for its
+last 4 s.
 """
 
 from __future__ import annotations
