@@ -26,6 +26,7 @@ last 4 s.
 from __future__ import annotations
 
 import re
+from collections import Counter
 
 import gtsam
 import numpy as np
@@ -80,7 +81,8 @@ class FixedLagWindow:
     def _repair(self, error: RuntimeError, newest: tuple[int, ...], iterations: int) -> None:
         """Rebuild the window from the failed ISAM2's factors and linearisation point (they hold this update's
         additions), without or anchoring the variable it failed near; repeat while it fails near another one."""
-        for attempt in range(self.MAX_REPAIRS):
+        anchored: Counter[int] = Counter()     # poses anchored in this update, and how often
+        for _ in range(self.MAX_REPAIRS):
             key = failed_variable(error)
             if key is None or not (is_landmark(key) or is_pose(key)):
                 raise error
@@ -96,9 +98,9 @@ class FixedLagWindow:
                 self._stamps.pop(key, None)
                 self.repairs.append(f'dropped {name}')
             else:
-                again = sum(1 for r in self.repairs[len(self.repairs) - attempt:] if r.endswith(f' {name}'))
                 rotation, position = self.REPAIR_SIGMAS       # 10x firmer each time the same variable fails again
-                sigmas = np.array([rotation] * 3 + [position] * 3) / 10.0 ** again
+                sigmas = np.array([rotation] * 3 + [position] * 3) / 10.0 ** anchored[key]
+                anchored[key] += 1
                 graph.add(gtsam.PriorFactorPose3(key, theta.atPose3(key), gtsam.noiseModel.Diagonal.Sigmas(sigmas)))
                 self.repairs.append(f'anchored {name}')
             stamps = {k: s for k, s in self._stamps.items() if theta.exists(k)}

@@ -543,11 +543,7 @@ class Smoother:
                 (0.1 * float(np.linalg.norm(motion.rvec())) * float(np.linalg.norm(p.point))) ** 2
             moved.append((frame, _PendingPoint(frame.stamp, p.side, point,
                                                motion.R @ p.cov @ motion.R.T + np.eye(3) * spread)))
-        for frame, q in moved:
-            fix = frame.fixation.get(p.side)
-            if fix is not None and self._off_fixation_px(q, fix[0]) <= self.settings.gate_px:
-                return frame, q
-        return moved[0]
+        return next(((frame, q) for frame, q in moved if self._fits(frame, q)), moved[0])
 
     def _fits(self, frame: _Frame | None, p: _PendingPoint) -> bool:
         """The frame has the measured camera's fixation, and the point lies on its ray (within ``gate_px``)."""

@@ -431,7 +431,7 @@ class TwoFrameSolver:
         return essential_start(pairs) + [Pose(R_rot, p.t) for p in canonical_starts(self.config.prior_step)]
 
     @staticmethod
-    def better(a: TwoFrameResult | None, b: TwoFrameResult | None) -> TwoFrameResult | None:
+    def _better(a: TwoFrameResult | None, b: TwoFrameResult | None) -> TwoFrameResult | None:
         """Of two solutions of the same pairs: the one in front of the cameras, then the lower cost (``a`` on a
         tie; None only when both are)."""
         if a is None or b is None:
@@ -443,7 +443,7 @@ class TwoFrameSolver:
         """Refine every start; prefer solutions in front of the cameras, then the lowest cost."""
         best: TwoFrameResult | None = None
         for start in starts:
-            best = self.better(best, self._refine(pairs, start, prior))
+            best = self._better(best, self._refine(pairs, start, prior))
         return best
 
     def _refine(self, pairs: RayPairs, start: Pose,
