@@ -73,6 +73,7 @@ def test_sync_bounded_waits_give_single_camera_and_no_fixation_frames():
     assert frame.cameras['left'] is None
     assert frame.cameras['right'].fixation_px is None and frame.cameras['right'].fixation_id == -1
     assert sync.stats.single_camera_frames == 1 and sync.stats.no_fixation == 1
+    assert sync.stats.partner_timeouts == 1 and sync.stats.partner_missing == 0    # waited, not known lost
     # no joints at all: the camera cannot be used, the frame is skipped after the wait
     sync.add_image('left', 2.0, 'l', now=1.0)
     assert sync.pop_ready(now=1.5) == []
@@ -141,6 +142,7 @@ def test_sync_partner_past_means_no_wait_and_late_images_dropped():
     _feed(sync, 'left', 1.1, now=0.0)                  # left dropped its 1.0 frame
     frames = sync.pop_ready(now=0.0)
     assert [(f.stamp, f.cameras['left'] is not None) for f in frames] == [(1.0, False), (1.1, True)]
+    assert sync.stats.partner_missing == 1 and sync.stats.partner_timeouts == 0   # lost on the way, no wait
     assert not sync.add_image('right', 1.05, 'late', now=0.0)
     assert not sync.add_image('right', float('nan'), 'nan', now=0.0)
     assert sync.stats.late_images == 1 and sync.stats.rejected == 1

@@ -287,7 +287,7 @@ def run(args: list[str] | None = None, overrides: list[Parameter] | None = None,
     """Init rclpy, play until the bag ends (or Ctrl-C), shut down; the exit code (0, 1 failure, 2 setup)."""
     try:
         node = spin_node(lambda: BagPlayer(parameter_overrides=overrides or []), args,
-                         finished=lambda n: n.finished, domain_id=domain_id)
+                         finished=lambda n: n.finished, domain_id=domain_id, images=True)
     except (BagError, PlayError, *SETUP_ERRORS) as e:
         print(f'{prog}: {e}', file=sys.stderr)
         return 2

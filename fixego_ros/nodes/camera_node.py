@@ -694,7 +694,7 @@ class CameraNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    return run_node(CameraNode, 'camera_node', args)
+    return run_node(CameraNode, 'camera_node', args, images=True)
 
 
 if __name__ == '__main__':

@@ -29,6 +29,7 @@ from sensor_msgs.msg import Image, PointCloud2, PointField
 
 from fixego_ros.geometry.rig import RigError
 from fixego_ros.geometry.rotation import Pose, quat_xyzw
+from fixego_ros.nodes.dds_profile import use_image_profile
 from fixego_ros.pipeline.messages import (  # noqa: F401 - re-exported: nodes import them from here
     ENCODINGS,
     ImageError,
@@ -196,14 +197,20 @@ SETUP_ERRORS: tuple[type[Exception], ...] = (ParamsError, RigError)
 
 
 def spin_node(factory: Callable[[], Node], args: list[str] | None = None, *,
-              finished: Callable[[Node], bool] | None = None, domain_id: int | None = None) -> Node | None:
+              finished: Callable[[Node], bool] | None = None, domain_id: int | None = None,
+              images: bool = False) -> Node | None:
     """``main`` of a node: init, spin until Ctrl-C, shutdown or ``finished(node)`` (for nodes that end by
     themselves), destroy the node, shut down. Returns the destroyed node (what it recorded, e.g. an exit
-    code, stays readable); exceptions from ``factory`` propagate after the clean-up."""
+    code, stays readable); exceptions from ``factory`` propagate after the clean-up. ``images``: the node
+    publishes images, so its participant gets the package's Fast DDS profile
+    (:func:`~fixego_ros.nodes.dds_profile.use_image_profile`) unless the user set one."""
+    note = use_image_profile() if images else ''
     rclpy.init(args=args, domain_id=domain_id)
     node = None
     try:
         node = factory()
+        if note:
+            node.get_logger().info(note)
         if finished is None:
             rclpy.spin(node)
         else:
@@ -219,11 +226,11 @@ def spin_node(factory: Callable[[], Node], args: list[str] | None = None, *,
 
 
 def run_node(factory: Callable[[], Node], prog: str, args: list[str] | None = None, *,
-             finished: Callable[[Node], bool] | None = None) -> int:
+             finished: Callable[[Node], bool] | None = None, images: bool = False) -> int:
     """:func:`spin_node` for a node's ``main``: a bad parameter or rig file ends it with one line on stderr
     (``prog: parameter NAME: VALUE ... (allowed: ...)``) and exit code 2, not a traceback; 0 otherwise."""
     try:
-        spin_node(factory, args, finished=finished)
+        spin_node(factory, args, finished=finished, images=images)
     except SETUP_ERRORS as e:
         print(f'{prog}: {e}', file=sys.stderr)
         return 2

@@ -62,6 +62,8 @@ LIVE_FLOW = ('min_eig', 'fb_max_px', 'ransac_px')
 LIVE_KEYFRAMES = ('keyframe_max_frames', 'keyframe_min_parallax_px', 'keyframe_min_tracked_fraction',
                   'keyframe_max_rotation_deg')
 LIVE_SYNC = ('slop_s', 'max_wait_s', 'joint_extrapolation_s')
+# images lost on the way (a frame whose other image never came): warned about once this share of frames is lost
+LOST_IMAGES_WARN_FRACTION, LOST_IMAGES_MIN_FRAMES = 0.05, 100
 
 
 class FlowNode(Node):
@@ -200,7 +202,7 @@ class FlowNode(Node):
                        'single_camera_frames': s.single_camera_frames, 'late_images': s.late_images,
                        'overflow_images': s.overflow_images, 'no_joints': s.no_joints, 'no_fixation': s.no_fixation,
                        'fixation_skipped': s.fixation_skipped, 'fixation_timeouts': s.fixation_timeouts,
-                       'partner_timeouts': s.partner_timeouts,
+                       'partner_timeouts': s.partner_timeouts, 'partner_missing': s.partner_missing,
                        'rejected_inputs': s.rejected, 'preset': self.flow_params.preset,
                        'slop_s_used': f'{self.sync.slop_s:.4f}'})
         values.update(self.frontend.stats)     # each camera's last status, reason and point counts
@@ -218,6 +220,12 @@ class FlowNode(Node):
             level, message = WARN, self.last_problem
         elif s.single_camera_frames > 0 and s.stereo_frames == 0:
             level, message = WARN, 'only one camera delivers frames'
+        elif s.frames >= LOST_IMAGES_MIN_FRAMES and s.partner_missing > LOST_IMAGES_WARN_FRACTION * s.frames:
+            level, message = WARN, (f'{s.partner_missing} of {s.frames} frames lost one camera\'s image on the way '
+                                    f'(best-effort images dropped between publisher and flow_node; a Fast DDS '
+                                    f'publisher needs a shared-memory segment of several images: README "Images '
+                                    f'over DDS")')
+            self.once.warn('images_lost', message)
         publish_diagnostics(self, self.pub_diag, [diagnostic_status('fixego flow_node', 'flow', level, message,
                                                                     values),
                                                   self.intrinsics.status('fixego flow_node: intrinsics')])

@@ -241,7 +241,7 @@ class SimRigNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    return run_node(SimRigNode, 'sim_rig_node', args, finished=lambda n: n.finished)
+    return run_node(SimRigNode, 'sim_rig_node', args, finished=lambda n: n.finished, images=True)
 
 
 if __name__ == '__main__':

@@ -88,6 +88,7 @@ class SyncStats:
     fixation_skipped: int = 0                  # ... of which its camera's next message came first (image not seen)
     fixation_timeouts: int = 0                 # ... of which after waiting max_wait_s for a message that never came
     partner_timeouts: int = 0                  # single-camera frames after waiting max_wait_s for the other image
+    partner_missing: int = 0                   # single-camera frames whose other image never came (lost on the way)
     rejected: int = 0                          # non-finite stamps/values
 
 
@@ -225,6 +226,7 @@ class StereoSync:
             return self._next(now, flush)        # nothing usable in this frame: move on
         self.stats.frames += 1
         self.stats.partner_timeouts += partner_timeout
+        self.stats.partner_missing += len(members) < len(SIDES) and not partner_timeout and not flush
         if len(present) == 2:
             self.stats.stereo_frames += 1
         else:
