@@ -430,7 +430,7 @@ def test_scheduler_ignores_and_counts_triggers_while_a_step_runs_and_coalesces_w
     s = VergenceScheduler(VergenceSchedule(min_interval_s=5.0), now=0.0)
     s.started(s.due(0.0), 0.0)
     s.on_right_fixation(0, 0.1)
-    assert not s.on_right_fixation(1, 0.5) and not s.trigger('request', 0.6)
+    assert not s.on_right_fixation(1, 0.5) and not s.trigger('period', 0.6)
     assert s.ignored == 2 and s.pending is None
     s.finished(True, 2.0)
     assert s.due(10.0) is None                      # the ignored ones are not run later
@@ -438,6 +438,16 @@ def test_scheduler_ignores_and_counts_triggers_while_a_step_runs_and_coalesces_w
     assert s.due(7.0) == 'request'                  # two waiting triggers: one step
     s.started('request', 7.0)
     assert s.pending is None and s.due(30.0) is None
+
+
+def test_a_request_during_a_step_waits_for_the_next_one():
+    """fixego demo resets the estimator, then asks for a measurement at rest: the start-up step still running
+    then must not swallow the request (stop 31: two of three demo runs started the rig without a scale)."""
+    s = VergenceScheduler(VergenceSchedule(min_interval_s=5.0), now=0.0)
+    s.started(s.due(0.0), 0.0)
+    assert s.trigger('request', 0.5) and s.ignored == 0
+    s.finished(True, 2.0)
+    assert s.due(6.9) is None and s.due(7.0) == 'request'       # after the min interval
 
 
 def test_scheduler_min_interval_counts_from_steps_that_left_the_own_point():

@@ -938,8 +938,9 @@ class VergenceScheduler:
     fixation point (its id changes), when asked (a request), periodically, and after a failure (back-off) -
     never closer than ``min_interval_s`` after the previous step that left the own point, so the left camera's
     own fixation is interrupted for a bounded share of the time. A trigger during the min interval waits
-    (triggers coalesce); one arriving while a step runs is ignored and counted. Plain data in, no clock of its
-    own."""
+    (triggers coalesce). One arriving while a step runs is ignored and counted, except a request: it asks for a
+    measurement made after it (the estimator or ``fixego demo`` may have reset and forgotten the running step's),
+    so it waits for the next step. Plain data in, no clock of its own."""
 
     def __init__(self, params: VergenceSchedule | None = None, now: float = 0.0) -> None:
         self.p = params or VergenceSchedule()
@@ -958,8 +959,12 @@ class VergenceScheduler:
         self.last_trigger = ''
 
     def trigger(self, reason: str, now: float) -> bool:
-        """A reason for a step; False (and counted as ignored) while a step runs."""
+        """A reason for a step; False (and counted as ignored) while a step runs, but for a request, which then
+        waits for the next step."""
         self.triggers[reason] = self.triggers.get(reason, 0) + 1
+        if self.running and reason == 'request':
+            self.pending = reason
+            return True
         if self.running:
             self.ignored += 1
             return False
