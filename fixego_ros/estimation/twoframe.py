@@ -392,13 +392,16 @@ class TwoFrameSolver:
         self.config = config or SolverConfig()
 
     def solve(self, pairs: RayPairs, initial: Pose | None = None, prior_t: np.ndarray | None = None,
-              prior_sigma_t: float = 0.0, prior_length: tuple[float, float] | None = None) -> TwoFrameResult:
+              prior_sigma_t: float = 0.0, prior_length: tuple[float, float] | None = None,
+              fallback: bool = True) -> TwoFrameResult:
         """Solve one step. With ``prior_t`` and ``prior_sigma_t`` > 0 a weak Gaussian prior on T (e.g. a
         constant-velocity prediction) keeps directions the rays do not observe (the scale under pure
         translation) where the prediction puts them instead of letting the optimiser wander; with
         ``prior_length = (length, sigma)`` a prior on |T| alone does that for the scale only (the direction
         stays the rays'). The covariance returned is the rays' alone, so those directions still show as
-        unobserved."""
+        unobserved. ``fallback`` False: a warm start that lands behind the cameras is returned as DEGENERATE
+        instead of trying the ~10 cold starts, for a caller with a cheaper fallback of its own and a time budget
+        (the live pose: the constant-twist prediction)."""
         prior = MotionPrior.build(prior_t, prior_sigma_t, prior_length)
         cfg = self.config
         m = len(pairs)
@@ -417,7 +420,7 @@ class TwoFrameSolver:
         # a poor warm start gets the cold starts too, unless a prior on T anchors it (real time: the cold starts
         # cost ~10 solves; a prior-anchored bad step is flagged below and predicted by the caller). A prior on
         # the length alone does not: it holds T and -T alike
-        if warm and (best is None or (best.cheirality < 0.5 and (prior is None or prior.t is None))):
+        if fallback and warm and (best is None or (best.cheirality < 0.5 and (prior is None or prior.t is None))):
             best = self._best(pairs, self._cold_starts(pairs, R_rot) + ([best.pose] if best else []), prior)
         if best is None:
             return TwoFrameResult(initial or Pose.identity(), StepStatus.FAILED, n_constraints=m,
