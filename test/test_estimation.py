@@ -210,3 +210,17 @@ def test_blind_step_is_bridged_from_the_rates_on_both_sides():
     assert yaw_error[0] > 1.0 and yaw_error[1] < 0.1      # predicted: the whole turn rate; bridged: half of it
     later = results[-1].pose
     assert np.degrees(np.linalg.norm((poses[-1].inverse() @ later).rvec())) < 0.1
+
+
+def test_a_warm_start_behind_the_cameras_gets_the_cold_starts_unless_the_caller_has_its_own_fallback():
+    """The live pose turns the cold starts off (fallback=False) to bound its time: the warm solve behind the
+    cameras is then returned as DEGENERATE (the caller predicts), while the default still recovers the motion."""
+    scene, steps, _, _, clean = scene_and_steps(CLEAN, 2)
+    pairs = pairs_of(scene, clean, 1)
+    solver = TwoFrameSolver(papers_solver(sigma=1e-4 / scene.rig.right.fx, prior_step=0.25))
+    behind = Pose(steps[0].R, -steps[0].t)          # the mirror solution: the points behind the cameras
+    res = solver.solve(pairs, initial=behind, fallback=False)
+    assert res.status is StepStatus.DEGENERATE and res.cheirality < 0.5
+    res = solver.solve(pairs, initial=behind)
+    assert res.status.usable and res.cheirality >= 0.5
+    assert np.linalg.norm(res.pose.t - steps[0].t) <= 1e-6
