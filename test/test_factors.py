@@ -6,7 +6,7 @@ import gtsam
 import numpy as np
 import pytest
 
-from fixego_ros.estimation.factors import ConstantTwist, TwoFrameStep
+from fixego_ros.estimation.factors import ConstantTwist, StepDirection, TwoFrameStep
 from fixego_ros.estimation.keys import pose_key
 from fixego_ros.geometry.rotation import Pose
 
@@ -82,3 +82,54 @@ def test_the_step_length_gauge_relaxes_once_the_scale_is_measured():
 
     assert length_sigma(False) == pytest.approx(0.25)            # nominal 0.5 m/s over 0.5 s, 100 %
     assert length_sigma(True) == pytest.approx(0.25 * TwoFrameStep.AIDED_LENGTH_SIGMA)
+
+
+def _pair(rng: np.random.Generator, step: np.ndarray) -> gtsam.Values:
+    values = gtsam.Values()
+    p0 = gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(0.0, 0.2, 3)), rng.normal(0.0, 1.0, 3))
+    values.insert(pose_key(0), p0)
+    values.insert(pose_key(1), p0.compose(gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(0.0, 0.05, 3)), step)))
+    return values
+
+
+def test_step_direction_jacobian_matches_central_differences():
+    direction = StepDirection(cauchy_k=1.0)
+    step, cov = Pose(np.eye(3), np.array([0.3, -0.1, 1.0])), np.diag([1e-6] * 3 + [1e-4] * 3)
+    factor = direction.factor(0, 1, step, cov)
+    values = _pair(np.random.default_rng(2), np.array([0.5, 0.2, 0.9]))
+    sigma = direction.sigma(step, cov)
+    J = np.column_stack([_numeric_jacobian_pair(factor, values, k, d) for k in range(2) for d in range(6)]) / sigma
+    A, _ = factor.linearize(values).jacobian()
+    weight = np.abs(A).max() / np.abs(J).max()              # the Cauchy kernel's weight at this error
+    np.testing.assert_allclose(A, weight * J, atol=1e-5 * np.abs(A).max())
+
+
+def _numeric_jacobian_pair(factor: gtsam.CustomFactor, values: gtsam.Values, k: int, d: int) -> np.ndarray:
+    dv = np.zeros(6)
+    dv[d] = 1e-6
+    errs = []
+    for sign in (1.0, -1.0):
+        v = gtsam.Values(values)
+        v.update(pose_key(k), values.atPose3(pose_key(k)).retract(sign * dv))
+        errs.append(np.asarray(factor.unwhitenedError(v)))
+    return (errs[0] - errs[1]) / 2e-6
+
+
+def test_step_direction_holds_the_direction_and_leaves_the_length_free():
+    """The rays fix the step's direction, not its length: any length along the solved direction costs nothing, a
+    turn away from it costs its angle; a direction the solve barely knows adds no factor."""
+    direction = StepDirection(cauchy_k=1.0)
+    solved = Pose(np.eye(3), np.array([0.0, 0.0, 2.0]))
+    cov = np.diag([1e-6] * 3 + [(2.0 * 0.01) ** 2] * 3)         # 0.01 rad across the direction
+    factor = direction.factor(0, 1, solved, cov)
+    assert direction.sigma(solved, cov) == pytest.approx(0.01)
+    rng = np.random.default_rng(4)
+    for length in (0.01, 0.3, 5.0):
+        values = _pair(rng, np.array([0.0, 0.0, length]))
+        rel = values.atPose3(pose_key(0)).between(values.atPose3(pose_key(1)))
+        np.testing.assert_allclose(rel.translation(), [0.0, 0.0, length], atol=1e-9)
+        assert np.linalg.norm(factor.unwhitenedError(values)) < 1e-9
+    turned = _pair(rng, np.array([np.sin(0.05), 0.0, np.cos(0.05)]))
+    assert np.linalg.norm(factor.unwhitenedError(turned)) == pytest.approx(np.sin(0.05), rel=1e-6)
+    loose = np.diag([1e-6] * 3 + [4.0] * 3)                       # 1 rad across a 2 m step
+    assert direction.sigma(solved, loose) is None and direction.factor(0, 1, solved, loose) is None

@@ -2,10 +2,12 @@
 
 Each class holds its noise model and builds GTSAM factors for given keys. GTSAM's own factor types are used
 where one fits (projection, between); the two that have none are :class:`gtsam.CustomFactor` with analytic
-Jacobians (:class:`ConstantTwist`, :class:`Vergence`).
+Jacobians (:class:`ConstantTwist`, :class:`StepDirection`, :class:`Vergence`).
 """
 
 from __future__ import annotations
+
+import math
 
 import gtsam
 import numpy as np
@@ -173,6 +175,58 @@ class TwoFrameStep:
         return gtsam.BetweenFactorPose3(pose_key(ref), pose_key(frame), to_gtsam(self.scaled(step, dt)),
                                         gtsam.noiseModel.Robust.Create(self.robust,
                                                                        gtsam.noiseModel.Gaussian.Covariance(cov)))
+
+
+class StepDirection:
+    """The direction of the two-frame step keyframe -> frame: the rays fix it (not its length), so the factor is
+    the unit vector of the relative translation against the solved one, 2 components across it, with the
+    solve's own angular std (floored). :class:`TwoFrameStep` alone carries it only through an isotropic
+    translation sigma, ten nominal steps once a scale aid has measured the scale, which leaves the direction to the
+    landmarks; the smoother adds this factor from then on. Cauchy-robust like the step. Measured (stop 31): a
+    live-demo dump whose smoother restarted without it 19 -> 9 cm; but a 30 Hz simulated loop replayed on every
+    frame 3.8 -> 12.3 cm, and the point-level loop of ``test_smoother`` path x0.97 -> x0.87."""
+
+    MIN_SIGMA_RAD = math.radians(0.5)
+    MAX_SIGMA_RAD = math.radians(30.0)     # a direction less certain than this is not added
+    MIN_LENGTH_M = 1e-6                    # the graph's relative translation at least this long (else no error)
+
+    def __init__(self, cauchy_k: float) -> None:
+        self.robust = gtsam.noiseModel.mEstimator.Cauchy.Create(cauchy_k)
+
+    def sigma(self, step: Pose, covariance: np.ndarray) -> float | None:
+        """Angular std of the solved direction (rad), floored; None when it is not worth a factor."""
+        t = np.asarray(step.t, float)
+        n = float(np.linalg.norm(t))
+        cov = np.asarray(covariance, float)[3:, 3:]
+        if n < 1e-9 or not np.all(np.isfinite(cov)):
+            return None
+        u = t / n
+        P = np.eye(3) - np.outer(u, u)
+        spread = float(np.linalg.eigvalsh(P @ (0.5 * (cov + cov.T)) @ P)[-1])
+        sigma = max(math.sqrt(max(spread, 0.0)) / n, self.MIN_SIGMA_RAD)
+        return sigma if sigma <= self.MAX_SIGMA_RAD else None
+
+    def factor(self, ref: int, frame: int, step: Pose, covariance: np.ndarray) -> gtsam.NonlinearFactor | None:
+        sigma = self.sigma(step, covariance)
+        if sigma is None:
+            return None
+        u = np.asarray(step.t, float) / float(np.linalg.norm(step.t))
+        basis = np.linalg.svd(u.reshape(1, 3))[2][1:]          # (2, 3): orthonormal, across u
+        keys = [pose_key(ref), pose_key(frame)]
+
+        def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list[np.ndarray] | None) -> np.ndarray:
+            H1, H2, Ht = _jac(6, 6), _jac(6, 6), _jac(3, 6)
+            rel = values.atPose3(keys[0]).between(values.atPose3(keys[1]), H1, H2)
+            t = rel.translation(Ht)
+            length = max(float(np.linalg.norm(t)), self.MIN_LENGTH_M)
+            d = t / length
+            if H is not None:
+                J = basis @ ((np.eye(3) - np.outer(d, d)) / length) @ Ht      # d e / d rel (2 x 6)
+                H[0], H[1] = J @ H1, J @ H2
+            return basis @ d
+
+        noise = gtsam.noiseModel.Robust.Create(self.robust, gtsam.noiseModel.Isotropic.Sigma(2, sigma))
+        return gtsam.CustomFactor(noise, keys, error)
 
 
 class Vergence:

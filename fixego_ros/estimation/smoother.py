@@ -33,6 +33,7 @@ from fixego_ros.estimation.factors import (
     ConstantTwist,
     Projection,
     SpeedStep,
+    StepDirection,
     TwoFrameStep,
     Vergence,
     constant_twist,
@@ -118,7 +119,10 @@ class Smoother:
     earlier frames still in the lag (the caller's path should take them)."""
 
     HISTORY_S = 10.0          # frames kept for late vergence measurements and references, beyond the lag
-    TWIST_MIN_SPEED = 0.1     # x nominal speed: below it the constant-twist prior's speed change is absolute
+    # x nominal speed (0.2 m/s): below it the constant-twist prior's speed change is absolute. At 0.1 a rig that
+    # starts from rest (the demo measures its scale standing still) could speed up by 1.5 cm/s per frame at one
+    # sigma and was held near standing for seconds (the loop after 0.4 s at rest: 80 -> 18 cm mean)
+    TWIST_MIN_SPEED = 0.4
     CARRY_MAX_S = 0.5         # a vergence measurement is carried at most this far to a frame with its camera
     AT_REST_M = 0.01          # a landmark whose views' camera centres are all this close was seen from one place
     COLD_START_GAIN = 0.5     # a cold-started step replaces the warm one below this fraction of its cost
@@ -135,6 +139,7 @@ class Smoother:
                                    self.TWIST_MIN_SPEED * c.nominal_speed)
         f = rig.camera('right').fx
         self.steps = TwoFrameStep(c.step_floor_px / f, c.nominal_speed, c.step_cauchy_k)
+        self.direction = StepDirection(c.step_cauchy_k)
         self.vergence = Vergence()
         self.speed_step = SpeedStep()
         self._depth_prior = gtsam.noiseModel.Isotropic.Sigma(3, c.far_guess_m)    # landmarks seen from one place
@@ -264,6 +269,12 @@ class Smoother:
         if self._good(tf) and ref is not None:
             up.graph.add(self.steps.factor(ref.index, i, tf.pose, tf.covariance, obs.stamp - ref.stamp,
                                             self.scale_observed))
+            # once a scale aid is used the step's length sigma is ten nominal steps, isotropic: the direction then
+            # needs its own factor (before, the 100 % length sigma holds it, and the factor doubled the unaided
+            # gauge's path on the point-level loop)
+            direction = self.direction.factor(ref.index, i, tf.pose, tf.covariance) if self.scale_observed else None
+            if direction is not None:
+                up.graph.add(direction)
         self._add_speed(i, obs.stamp, ref, tf, up)
         self._add_motion_prior(i, obs.stamp, up)
         raw_base = ref.pose_raw if ref is not None else (self._frames[-1].pose_raw if self._frames else Pose.identity())
@@ -425,9 +436,13 @@ class Smoother:
         point = triangulate(rays, centers) if parallax >= cfg.min_parallax_deg else None
         behind = point is None or (point - centers[0]) @ rays[0] < 0.3
         unplaced = behind or np.linalg.norm(point - centers[0]) > cfg.max_range_m
+        baseline = max(float(np.linalg.norm(c - centers[0])) for c in centers)
         if unplaced:
-            # a fixation point, or a track seen often without parallax, enters anyway (its rays hold the rotation)
-            if lid.kind is not LandmarkKind.FIXATION and len(views) < cfg.patient_views:
+            # a fixation point, or a track seen often without parallax, enters anyway (its rays hold the rotation);
+            # a track only once the views span the baseline at which a landmark at the far guess would show the
+            # parallax: seen from one place (the rig at rest) its views say nothing about its depth
+            far_baseline = cfg.far_guess_m * math.tan(math.radians(cfg.min_parallax_deg))
+            if lid.kind is not LandmarkKind.FIXATION and (len(views) < cfg.patient_views or baseline < far_baseline):
                 return
             if behind:
                 point = centers[-1] + cfg.far_guess_m * rays[-1]
@@ -435,7 +450,7 @@ class Smoother:
         if any(off_ray_px(point - c, r, f) > cfg.gate_px for r, c in zip(rays, centers, strict=True)):
             return
         index = self._add_landmark(lid, point, up, stamp)
-        if unplaced and max(float(np.linalg.norm(c - centers[0])) for c in centers) < self.AT_REST_M:
+        if unplaced and baseline < self.AT_REST_M:
             # seen from one place (the rig at rest): nothing holds its depth, the system is indeterminate and the
             # whole graph restarts, losing the scale. Only then: a prior this firm moves the paper bag's blind last
             # frames (terminal 5.1 -> 11.1 cm) when every no-parallax landmark gets it
