@@ -269,10 +269,7 @@ class Smoother:
         if self._good(tf) and ref is not None:
             up.graph.add(self.steps.factor(ref.index, i, tf.pose, tf.covariance, obs.stamp - ref.stamp,
                                             self.scale_observed))
-            # once a scale aid is used the step's length sigma is ten nominal steps, isotropic: the direction then
-            # needs its own factor (before, the 100 % length sigma holds it, and the factor doubled the unaided
-            # gauge's path on the point-level loop)
-            direction = self.direction.factor(ref.index, i, tf.pose, tf.covariance) if self.scale_observed else None
+            direction = self.direction.factor(ref.index, i, tf.pose, tf.covariance)
             if direction is not None:
                 up.graph.add(direction)
         self._add_speed(i, obs.stamp, ref, tf, up)
