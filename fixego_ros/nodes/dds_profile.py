@@ -13,13 +13,14 @@ import os
 from collections.abc import MutableMapping
 from pathlib import Path
 
+from fixego_ros.geometry.rig import default_rig_path
+
 PROFILE_ENV = ('FASTRTPS_DEFAULT_PROFILES_FILE', 'FASTDDS_DEFAULT_PROFILES_FILE')   # Fast DDS 2.x, 3.x
 PROFILE_NAME = 'fastdds_images.xml'
 
 
 def profile_path() -> Path:
     """``config/fastdds_images.xml`` of the source tree or of the installed package (share/)."""
-    from fixego_ros.geometry.rig import default_rig_path
     return default_rig_path().with_name(PROFILE_NAME)
 
 

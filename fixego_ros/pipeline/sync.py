@@ -201,7 +201,7 @@ class StereoSync:
         for s, h in heads.items():
             if abs(h.stamp - first.stamp) <= slop:
                 members[s] = h
-        partner_timeout = False
+        partner_timeout = partner_past = False
         if len(members) < len(SIDES):
             # a partner may still come: wait unless the other camera is already past this stamp
             missing = [s for s in SIDES if s not in members]
@@ -226,7 +226,7 @@ class StereoSync:
             return self._next(now, flush)        # nothing usable in this frame: move on
         self.stats.frames += 1
         self.stats.partner_timeouts += partner_timeout
-        self.stats.partner_missing += len(members) < len(SIDES) and not partner_timeout and not flush
+        self.stats.partner_missing += partner_past and not flush
         if len(present) == 2:
             self.stats.stereo_frames += 1
         else:
