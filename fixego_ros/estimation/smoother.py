@@ -269,7 +269,9 @@ class Smoother:
         if self._good(tf) and ref is not None:
             up.graph.add(self.steps.factor(ref.index, i, tf.pose, tf.covariance, obs.stamp - ref.stamp,
                                             self.scale_observed))
-            direction = self.direction.factor(ref.index, i, tf.pose, tf.covariance)
+            # keyframe -> keyframe only: a frame the front end does not keep has a short baseline (at 30 Hz a few
+            # mm) whose solved direction is biased, and it reuses its keyframe's rays (README "Stop 32")
+            direction = self.direction.factor(ref.index, i, tf.pose, tf.covariance) if obs.keyframe else None
             if direction is not None:
                 up.graph.add(direction)
         self._add_speed(i, obs.stamp, ref, tf, up)
