@@ -120,6 +120,24 @@ def test_cli_on_walk_bag_writes_tum_and_prints_ate(tmp_path):
         assert (tmp_path / 'eval' / f).stat().st_size > 0
 
 
+def test_the_estimator_process_leaves_nothing_for_the_resource_tracker(monkeypatch):
+    """``--workers 2`` talks to its estimator over plain pipes: nothing is registered with Python's resource
+    tracker, which at exit now and then reported a queue's semaphore as leaked, after replay's last line."""
+    import multiprocessing.resource_tracker as tracker
+
+    from fixego_ros.estimation.config import EstimatorConfig
+    from fixego_ros.replay.run import _Subprocess
+    registered: list[tuple[str, str]] = []
+    monkeypatch.setattr(tracker, 'register', lambda name, rtype: registered.append((name, rtype)))
+    worker = _Subprocess(load_rig(PAPER / 'rig.yaml'), EstimatorConfig(), timeout_s=60.0)
+    try:
+        assert worker.finish() == []
+    finally:
+        worker.abort()
+    assert not worker.proc.is_alive() and worker.proc.exitcode == 0
+    assert registered == []
+
+
 def test_replay_is_deterministic_and_same_with_two_workers(tmp_path):
     outs = []
     for i, workers in enumerate(('1', '2', '2')):

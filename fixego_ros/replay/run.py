@@ -35,7 +35,10 @@ A message that cannot be converted or that the estimator refuses is skipped and 
 
 from __future__ import annotations
 
+import contextlib
 import math
+import queue
+import threading
 import time
 from collections import Counter
 from collections.abc import Callable
@@ -219,15 +222,15 @@ class _Failed:
 
 def _estimator_worker(factory: Callable[[Rig, EstimatorConfig], Backend], rig: Rig, config: EstimatorConfig,
                       inbox, outbox) -> None:
-    """Second process: estimate observations (and take velocity samples and fixation points) from ``inbox`` in
-    order until None, results (and refused points) to ``outbox``. ``factory`` is the parent's
+    """Second process: estimate observations (and take velocity samples and fixation points) from the ``inbox``
+    connection in order until None, results (and refused points) to ``outbox``. ``factory`` is the parent's
     :func:`make_backend` (a test may put a spy there), so both processes run the same back end.
 
     The parent owns this process: Ctrl-C is ignored here (the terminal sends it to the whole process group; the
-    parent ends us), and we exit on our own when the parent is gone (killed without cleaning up), so no
-    orphan waits for ever on a queue. An exception is sent to the parent as :class:`_Failed`, not printed."""
+    parent ends us), and we exit on our own when the parent is gone (killed without cleaning up: its ends of the
+    pipes close), so no orphan waits for ever. An exception is sent to the parent as :class:`_Failed`, not
+    printed."""
     import multiprocessing as mp
-    import queue
     import signal
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     parent = mp.parent_process()
@@ -235,12 +238,11 @@ def _estimator_worker(factory: Callable[[Rig, EstimatorConfig], Backend], rig: R
         estimator = factory(rig, config)
         batch: list[_Estimate | _Refused] = []
         while True:
-            try:
-                item = inbox.get(timeout=1.0)
-            except queue.Empty:
+            if not inbox.poll(1.0):
                 if parent is not None and not parent.is_alive():
                     return
                 continue
+            item = inbox.recv()
             if item is None:
                 break
             if isinstance(item, VelocitySample):
@@ -252,12 +254,15 @@ def _estimator_worker(factory: Callable[[Rig, EstimatorConfig], Backend], rig: R
                 continue
             batch.append(_update(estimator, *item))
             if len(batch) >= 16:
-                outbox.put(batch)
+                outbox.send(batch)
                 batch = []
-        outbox.put(batch)
-        outbox.put(None)
+        outbox.send(batch)
+        outbox.send(None)
+    except (EOFError, OSError):        # the parent's ends closed: it has gone or given up on us
+        return
     except Exception as e:  # reported by the parent in one line; the worker must not print a traceback
-        outbox.put(_Failed(' '.join(f'{type(e).__name__}: {e}'.split())))
+        with contextlib.suppress(OSError):
+            outbox.send(_Failed(' '.join(f'{type(e).__name__}: {e}'.split())))
 
 
 class _InProcess:
@@ -284,47 +289,69 @@ class _InProcess:
 
 
 class _Subprocess:
-    """The estimator in its own process. Every wait is bounded: a worker that dies, fails or stalls raises
-    :class:`ReplayError`; :meth:`abort` (any error, Ctrl-C) ends it and never leaves the parent waiting on a
-    queue at exit (a terminated worker leaves unread data in the inbox pipe, and a queue joins its feeder
-    thread at exit unless told not to)."""
+    """The estimator in its own process, fed through two one-way pipes. Every wait is bounded: a worker that
+    dies, fails or stalls raises :class:`ReplayError`; :meth:`abort` (any error, Ctrl-C) ends it.
+
+    Pipes rather than ``multiprocessing.Queue``: a queue's named semaphores go through Python's resource tracker,
+    which now and then reported one of them as leaked at exit (after replay's last line). The main thread never
+    writes to the pipe itself: a sender thread does, so the main thread never blocks on a worker that is busy or
+    waiting for its results to be read."""
 
     def __init__(self, rig: Rig, config: EstimatorConfig, timeout_s: float = 120.0) -> None:
         import multiprocessing as mp
         ctx = mp.get_context('spawn')      # no fork: the parent holds OpenCV's thread pool
-        self.inbox, self.outbox = ctx.Queue(), ctx.Queue()
-        self.proc = ctx.Process(target=_estimator_worker, args=(make_backend, rig, config, self.inbox, self.outbox),
+        child_in, self._to_child = ctx.Pipe(duplex=False)
+        self._from_child, child_out = ctx.Pipe(duplex=False)
+        self.proc = ctx.Process(target=_estimator_worker, args=(make_backend, rig, config, child_in, child_out),
                                 daemon=True, name='fixego-replay-estimator')
         with sigint_ignored():            # inherited through exec: a Ctrl-C while the child boots is the parent's
             self.proc.start()
+        child_in.close()
+        child_out.close()
+        self._outgoing: queue.SimpleQueue = queue.SimpleQueue()
+        self._sender = threading.Thread(target=self._send_in_order, daemon=True, name='fixego-replay-sender')
+        self._sender.start()
         self.timeout_s = timeout_s
         self.done: list[_Estimate] = []
         self.refused: list[_Refused] = []     # known once finished
 
+    def _send_in_order(self) -> None:
+        """The sender thread: everything queued, in order, up to and including the end (None)."""
+        while True:
+            item = self._outgoing.get()
+            try:
+                self._to_child.send(item)
+            except (OSError, ValueError):     # the worker is gone or we aborted: finish() or abort() says so
+                return
+            if item is None:
+                return
+
     def submit(self, stamp: float, obs) -> None:
-        self.inbox.put((stamp, obs))
+        self._outgoing.put((stamp, obs))
 
     def submit_velocity(self, s: VelocitySample) -> None:
-        self.inbox.put(s)
+        self._outgoing.put(s)
 
     def submit_fixation_point(self, stamp: float, side: str, point: np.ndarray, cov: np.ndarray) -> None:
-        self.inbox.put(_FixationPoint(stamp, side, point, cov))
+        self._outgoing.put(_FixationPoint(stamp, side, point, cov))
 
     def finish(self) -> list[_Estimate]:
         """All results, in order; the worker has exited when this returns."""
-        import queue
-        self.inbox.put(None)
+        self._outgoing.put(None)
         quiet_since = time.monotonic()
         while True:
-            try:
-                batch = self.outbox.get(timeout=0.5)
-            except queue.Empty:
-                if not self.proc.is_alive():
-                    raise ReplayError(f'the estimator process ended unexpectedly (exit code {self.proc.exitcode})'
-                                      ) from None
+            if not self._from_child.poll(0.5):
+                if not self.proc.is_alive() and not self._from_child.poll(0.0):
+                    raise ReplayError(f'the estimator process ended unexpectedly (exit code {self.proc.exitcode})')
                 if time.monotonic() - quiet_since > self.timeout_s:
-                    raise ReplayError(f'the estimator process gave no result for {self.timeout_s:.0f} s') from None
+                    raise ReplayError(f'the estimator process gave no result for {self.timeout_s:.0f} s')
                 continue
+            try:
+                batch = self._from_child.recv()
+            except EOFError:
+                self.proc.join(timeout=2.0)
+                raise ReplayError(f'the estimator process ended unexpectedly (exit code {self.proc.exitcode})'
+                                  ) from None
             if batch is None:
                 break
             if isinstance(batch, _Failed):
@@ -337,17 +364,18 @@ class _Subprocess:
         return self.done
 
     def abort(self) -> None:
-        """End the worker (bounded: terminate, then kill) and let the queues go without joining their threads."""
-        for q in (self.inbox, self.outbox):
-            q.cancel_join_thread()
+        """End the worker (bounded: terminate, then kill) and close our ends; the sender thread then ends too
+        (its write fails), and being a daemon it never holds up the exit."""
         if self.proc.is_alive():
             self.proc.terminate()
             self.proc.join(timeout=2.0)
         if self.proc.is_alive():
             self.proc.kill()
             self.proc.join(timeout=2.0)
-        for q in (self.inbox, self.outbox):
-            q.close()
+        self._outgoing.put(None)           # a sender still waiting for work stops at once
+        self._sender.join(timeout=2.0)
+        self._to_child.close()
+        self._from_child.close()
 
 
 class _Timer:
