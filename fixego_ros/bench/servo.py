@@ -149,9 +149,18 @@ def run_closed_loop(duration_s: float = 6.0, baud: int = 9600, fps: float = 30.0
     return out
 
 
+TURN_DEG_S = 14.0       # the turn case: about half the heads' rate on the demo loop's arcs
+
+
 def run() -> dict[str, float]:
-    """Benchmark entry point: 8 s at 9600 baud with the scene drifting ~4.6 deg/s (rig turning)."""
-    return run_closed_loop(duration_s=8.0, baud=9600, verbose=True)
+    """Benchmark entry point: 8 s at 9600 baud with the scene drifting ~4.6 deg/s (rig turning), then 5 s of the
+    demo's camera (640x480, fx 1727) with the scene turning at ``TURN_DEG_S`` (``turn_`` keys)."""
+    out = run_closed_loop(duration_s=8.0, baud=9600, verbose=True)
+    cam = CameraModel(640, 480, 1727.0, 1727.0, 319.5, 239.5)
+    turn = run_closed_loop(duration_s=5.0, baud=9600, drift_px_s=(math.radians(TURN_DEG_S) * cam.fx, 0.0),
+                           settle_s=2.0, camera=cam, verbose=True)
+    out.update({f'turn_{k}': v for k, v in turn.items() if k.startswith(('fixation_err', 'reselections'))})
+    return out
 
 
 if __name__ == '__main__':
