@@ -258,8 +258,8 @@ def _estimator_worker(factory: Callable[[Rig, EstimatorConfig], Backend], rig: R
                 batch = []
         outbox.send(batch)
         outbox.send(None)
-    except (EOFError, OSError):        # the parent's ends closed: it has gone or given up on us
-        return
+    except (EOFError, BrokenPipeError, ConnectionResetError):     # the parent's ends closed: it has gone or
+        return                                                       # given up on us
     except Exception as e:  # reported by the parent in one line; the worker must not print a traceback
         with contextlib.suppress(OSError):
             outbox.send(_Failed(' '.join(f'{type(e).__name__}: {e}'.split())))
