@@ -17,7 +17,7 @@ import time
 import cv2
 import numpy as np
 
-from fixego_ros.geometry.rig import CameraModel
+from fixego_ros.geometry.rig import CameraModel, default_rig_path, load_rig
 from fixego_ros.tracking.fixation import FixationParams, FixationTracker
 from fixego_ros.tracking.servo import FixationServo, ServoLoop, ServoParams
 from fixego_ros.visca.driver import ViscaCamera
@@ -154,9 +154,10 @@ TURN_DEG_S = 14.0       # the turn case: about half the heads' rate on the demo 
 
 def run() -> dict[str, float]:
     """Benchmark entry point: 8 s at 9600 baud with the scene drifting ~4.6 deg/s (rig turning), then 5 s of the
-    demo's camera (640x480, fx 1727) with the scene turning at ``TURN_DEG_S`` (``turn_`` keys)."""
+    demo's camera (the default rig file's right camera: 640x480, fx 1727) with the scene turning at ``TURN_DEG_S``
+    (``turn_`` keys)."""
     out = run_closed_loop(duration_s=8.0, baud=9600, verbose=True)
-    cam = CameraModel(640, 480, 1727.0, 1727.0, 319.5, 239.5)
+    cam = load_rig(default_rig_path()).camera('right')
     turn = run_closed_loop(duration_s=5.0, baud=9600, drift_px_s=(math.radians(TURN_DEG_S) * cam.fx, 0.0),
                            settle_s=2.0, camera=cam, verbose=True)
     out.update({f'turn_{k}': v for k, v in turn.items() if k.startswith(('fixation_err', 'reselections'))})

@@ -321,7 +321,7 @@ class _Subprocess:
             item = self._outgoing.get()
             try:
                 self._to_child.send(item)
-            except (OSError, ValueError):     # the worker is gone or we aborted: finish() or abort() says so
+            except OSError:     # the worker is gone or we aborted (our end closed): finish() or abort() says so
                 return
             if item is None:
                 return
