@@ -308,3 +308,16 @@ def test_cli_ctrl_c_is_one_line_and_130(tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(metrics, 'evaluate', interrupted)
     assert main(['eval', str(tmp_path / 'gt.tum'), str(tmp_path / 'gt.tum')]) == 130
     assert capsys.readouterr().err == 'fixego eval: interrupted\n'
+
+
+def test_demo_report_joint_errors_compare_published_and_true_angles_at_the_same_stamps():
+    from fixego_ros.demo.report import joint_errors
+    assert joint_errors({0.0: (0.0, 0.0)}, {1.0: (0.0, 0.0)}) == {}          # no common stamp: nothing to say
+    true = {0.1 * k: (0.0, 0.0) for k in range(5)} | {0.5 + 0.1 * k: (0.05 * (k + 1), 0.0) for k in range(5)}
+    est = dict(true)
+    est[0.2] = (0.0, np.radians(0.1))            # at rest, 0.1 deg off in tilt
+    est[0.7] = (true[0.7][0] - np.radians(0.4), 0.0)   # turning (0.5 rad/s), 0.4 deg behind
+    est[9.0] = (0.0, 0.0)                        # no true angle at this stamp: not counted
+    e = joint_errors(est, true)
+    assert e['frames'] == 10 and e['max_deg'] == pytest.approx(0.4) and e['p50_deg'] == 0.0
+    assert e['moving_frames'] == 6 and e['moving_p95_deg'] > e['p95_deg'] - 1e-12

@@ -379,5 +379,10 @@ def test_demo_runs_every_node_as_a_process_and_writes_a_report(tmp_path):
     for name in ('joint_publish', 'joint_state', 'fixation', 'flow_image_in', 'flow_ready', 'flow_compute',
                  'observation', 'estimator_solve', 'pose'):
         assert stages[name]['p50'] >= 0 and stages[name]['p95'] >= stages[name]['p50'], (name, stages[name])
+    # the camera nodes' joint states against the simulator's true angles at the same image stamps
+    for side in ('right', 'left'):
+        je = report['joint_error_deg'][side]
+        assert je['frames'] >= 10 and 0.0 <= je['p50_deg'] <= je['p95_deg'] <= je['max_deg'] < 5.0, (side, je)
+    assert 'joint states against the true angles' in (out / 'report.txt').read_text()
     for name in ('sim_rig_node', 'right_camera_node', 'left_camera_node', 'flow_node', 'estimator_node'):
         assert (out / 'logs' / f'{name}.log').exists()

@@ -42,9 +42,9 @@ def _read_until_completion(port, timeout_s: float = 5.0) -> list[bytes]:
 
 
 def test_images_follow_visca_commands(ros_context, tmp_path):
-    from sensor_msgs.msg import CameraInfo, Image
+    from sensor_msgs.msg import CameraInfo, Image, JointState
 
-    from fixego_ros.nodes.common import SENSOR_QOS, image_to_gray
+    from fixego_ros.nodes.common import RELIABLE_QOS, SENSOR_QOS, image_to_gray
     from fixego_ros.nodes.sim_rig_node import SimRigNode
 
     pty_file = tmp_path / 'ptys.json'
@@ -63,6 +63,8 @@ def test_images_follow_visca_commands(ros_context, tmp_path):
         probe.create_subscription(Image, f'/fixego/{side}/image_raw',
                                   lambda m, s=side: images[s].append(m), SENSOR_QOS)
     probe.create_subscription(CameraInfo, '/fixego/right/camera_info', infos.append, SENSOR_QOS)
+    true_joints: list[JointState] = []
+    probe.create_subscription(JointState, '/fixego/ground_truth/right/joint_states', true_joints.append, RELIABLE_QOS)
     try:
         ptys = json.loads(pty_file.read_text())
         assert set(ptys) == {'right', 'left'} and ptys == node.ptys
@@ -99,6 +101,16 @@ def test_images_follow_visca_commands(ros_context, tmp_path):
         after = image_to_gray(fresh()[-1]).astype(int)
         assert np.abs(after - before).mean() > 10  # the view moved with the head
         assert np.abs(after - expected('right')).mean() < 0.5  # exactly what the new angles show
+        # the true angles at each image stamp: the start pose before the move, the commanded one after it
+        stamps = {m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for m in images['right']}
+        assert spin_until(ex, lambda: any(m.header.stamp.sec * 10**9 + m.header.stamp.nanosec > t_done
+                                          for m in true_joints), 5.0)
+        assert all(m.name == ['right_pan', 'right_tilt'] for m in true_joints)
+        assert np.degrees(true_joints[0].position) == pytest.approx([node.p['start_pan_deg_right'], 0.0], abs=0.01)
+        assert np.degrees(true_joints[-1].position) == pytest.approx([pan_deg, tilt_deg], abs=0.01)
+        last_image = max(stamps)
+        assert spin_until(ex, lambda: any(m.header.stamp.sec * 10**9 + m.header.stamp.nanosec == last_image
+                                          for m in true_joints), 5.0)      # one per image, at its stamp
         # the other camera did not move
         assert spin_until(ex, lambda: len(images['left']) > n + 1, 5.0)
         assert np.abs(image_to_gray(images['left'][-1]).astype(int) - left_before).mean() < 0.5

@@ -48,6 +48,9 @@ class Recorder(Node):
         self.latency_s: list[float] = []
         self.stage_s: dict[str, list[float]] = {k: [] for k in STAGES}
         self.truth: list[tuple[float, Pose]] = []
+        # (stamp -> pan, tilt in rad) per side: the camera nodes' joint states and the simulator's true angles
+        self.joints: dict[str, dict[float, tuple[float, float]]] = {s: {} for s in SIDES}
+        self.true_joints: dict[str, dict[float, tuple[float, float]]] = {s: {} for s in SIDES}
         self.fixations: Counter[str] = Counter()
         self.statuses: dict[str, dict[str, str]] = {}
         # the last path / path_raw received (bytes: deserialised only when asked for, then cached with its bytes)
@@ -63,8 +66,9 @@ class Recorder(Node):
             self.create_subscription(PointStamped, f'{side}/fixation',
                                      lambda m, s=side: self._on_fixation(s, m), RELIABLE_QOS)
             self.create_subscription(JointState, f'{side}/joint_states',
-                                     lambda m, s=side: self._arrived(f'joint_state_{s}', m.header.stamp),
-                                     RELIABLE_QOS)
+                                     lambda m, s=side: self._on_joints(s, m), RELIABLE_QOS)
+            self.create_subscription(JointState, f'ground_truth/{side}/joint_states',
+                                     lambda m, s=side: self._keep_joints(self.true_joints[s], m), RELIABLE_QOS)
         self.create_subscription(PointCloud2, 'flow/observation', self._on_observation, RELIABLE_QOS, raw=True)
         self.reset_client = self.create_client(Trigger, 'estimator_node/reset')
         self.start_client = self.create_client(Trigger, 'sim_rig_node/start')
@@ -74,6 +78,15 @@ class Recorder(Node):
 
     def _arrived(self, stage: str, stamp) -> None:
         self.stage_s[stage].append(self._now() - stamp_to_sec(stamp))
+
+    @staticmethod
+    def _keep_joints(into: dict[float, tuple[float, float]], msg: JointState) -> None:
+        if len(msg.position) >= 2:
+            into[stamp_to_sec(msg.header.stamp)] = (float(msg.position[0]), float(msg.position[1]))
+
+    def _on_joints(self, side: str, msg: JointState) -> None:
+        self._arrived(f'joint_state_{side}', msg.header.stamp)
+        self._keep_joints(self.joints[side], msg)
 
     def _on_fixation(self, side: str, msg: PointStamped) -> None:
         """Counts valid fixations only (the demo waits for both); the arrival time of every message, the "no valid
@@ -138,5 +151,7 @@ class Recorder(Node):
         for v in self.stage_s.values():
             v.clear()
         self.truth.clear()
+        for d in (*self.joints.values(), *self.true_joints.values()):
+            d.clear()
         self._paths = dict.fromkeys(PATHS)
         self._parsed.clear()

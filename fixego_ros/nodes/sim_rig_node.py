@@ -5,11 +5,12 @@ each camera's view from the rig pose and the *true* pan/tilt of that camera's VI
 real ``camera_node``s driving the emulators over serial close the fixation loop exactly as on a rig.
 It publishes images and camera_info for both cameras, the true pose on ``ground_truth/pose`` (relative
 names, namespace ``/fixego`` by default; ``base_link`` in ``odom``, ``odom`` = base_link at the first frame),
-and ``/diagnostics``. The pty paths are logged and written as JSON ``{"right": ..., "left": ...}`` to
-``pty_file``; with ``pty_link_dir`` the node also makes ``<pty_link_dir>/right`` and ``.../left`` symlinks to
-them, so camera nodes started at the same time can be given those paths as ports (``sim.launch.py``: a fresh
-directory per launch, so a link left by a killed run can never send VISCA bytes to an unrelated terminal; the
-camera nodes retry until it appears).
+each head's true pan/tilt at the image stamp on ``ground_truth/<side>/joint_states`` (what the camera nodes'
+``<side>/joint_states`` estimate from the VISCA readings), and ``/diagnostics``. The pty paths are logged
+and written as JSON ``{"right": ..., "left": ...}`` to ``pty_file``; with ``pty_link_dir`` the node also
+makes ``<pty_link_dir>/right`` and ``.../left`` symlinks to them, so camera nodes started at the same time
+can be given those paths as ports (``sim.launch.py``: a fresh directory per launch, so a link left by a killed
+run can never send VISCA bytes to an unrelated terminal; the camera nodes retry until it appears).
 
 When the trajectory ends it publishes a final diagnostics status and, with ``exit_at_end``, stops
 (``main`` returns); otherwise it keeps rendering the final pose (or loops, with ``loop``).
@@ -30,7 +31,7 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from rclpy.node import Node
-from sensor_msgs.msg import CameraInfo, Image
+from sensor_msgs.msg import CameraInfo, Image, JointState
 from std_srvs.srv import Trigger
 
 from fixego_ros.geometry.rig import default_rig_path, load_rig
@@ -107,6 +108,9 @@ class SimRigNode(Node):
                          for s in SIDES}
         self._info = {s: camera_info_msg(self.rig, s, 0.0) for s in SIDES}   # constant but for the stamp
         self.pub_gt = self.create_publisher(PoseStamped, 'ground_truth/pose', RELIABLE_QOS)
+        # each head's true angles at the image stamp: what the camera nodes' joint_states estimate
+        self.pub_gt_joints = {s: self.create_publisher(JointState, f'ground_truth/{s}/joint_states', RELIABLE_QOS)
+                              for s in SIDES}
         self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', RELIABLE_QOS)
 
         self.frames = 0
@@ -190,6 +194,9 @@ class SimRigNode(Node):
             self.pub_image[side].publish(array_to_image(img, stamp, f'{side}_optical_frame', self.p['encoding']))
             self._info[side].header.stamp = stamp
             self.pub_info[side].publish(self._info[side])
+            js = JointState(name=[f'{side}_pan', f'{side}_tilt'], position=[float(pan), float(tilt)])
+            js.header.stamp = stamp
+            self.pub_gt_joints[side].publish(js)
         self._render_ms.append((time.perf_counter() - t_render) * 1e3 / 2)
         if self._inv0 is None:
             self._inv0 = pose.inverse()
