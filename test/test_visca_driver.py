@@ -22,11 +22,13 @@ def test_real_9600_timing_and_round_trips():
     try:
         cam = ViscaCamera(emu.start(), baud=9600).open()
         t0 = time.monotonic()
-        pan, tilt, t_sample = cam.position_timed()
+        r = cam.position_timed()
         rtt = time.monotonic() - t0
-        assert (pan, tilt) == (PROFILES['evi_d30'].pan_units(-3.0), 24)
+        assert (r.pan, r.tilt) == (PROFILES['evi_d30'].pan_units(-3.0), 24)
         assert rtt >= 16 * 10 / 9600 * 0.95          # 5 + 11 bytes at 9600 baud cannot be faster
-        assert t0 < t_sample < time.monotonic()
+        # sampled after the inquiry's 5 bytes were in and before the reply's 11 went out
+        assert t0 + 5 * 10 / 9600 <= r.earliest <= r.latest <= time.monotonic() - 11 * 10 / 9600
+        assert r.window_s == r.latest - r.earliest
         assert cam.address_set() == 1
         assert cam.version() == {'vendor': 1, 'model': 0x0402, 'rom': 0x0100, 'max_socket': 2}
         # short absolute move at speed 0x18 (80 deg/s): 5 deg -> ~60 ms of motion, completion after it
@@ -220,3 +222,22 @@ def test_ptz_cli_against_emulator(tmp_path, capsys):
         assert json.loads(capsys.readouterr().out)['ok'] is False
     assert main(['ptz', '--port', '/nonexistent/tty', 'query']) == 1
     assert 'ViscaDisconnectedError' in json.loads(capsys.readouterr().out)['error']
+
+
+def test_an_event_the_emulator_reaches_late_happens_when_it_is_handled():
+    """The emulator's thread shares the CPU (and the GIL) with whatever hosts it. An event it reaches late - an
+    inquiry to answer, a motion to start - happens then, as on a busy camera: dated back to when it was due, a
+    late reply would look sampled earlier than the host can tell, and a motion would rewrite what the renderer
+    already showed."""
+    emu = ViscaEmulator('evi_d30', baud=9600)
+    try:
+        emu.start()
+        got: list[float] = []
+        t_post = time.monotonic()
+        emu._post(lambda now: emu._schedule(now - 1.0, got.append))      # due a second ago
+        deadline = time.monotonic() + 2.0
+        while not got and time.monotonic() < deadline:
+            time.sleep(0.005)
+        assert got and t_post <= got[0] <= time.monotonic()
+    finally:
+        emu.stop()

@@ -21,7 +21,7 @@ import numpy as np
 from fixego_ros.geometry.rig import CameraModel, PanTiltCalibration, pan_tilt_for_direction, pan_tilt_rotation
 from fixego_ros.tracking.joint_prediction import JointHistory, JointPredictor, PredictionParams
 from fixego_ros.visca import protocol as vp
-from fixego_ros.visca.driver import ViscaCamera
+from fixego_ros.visca.driver import PositionReading, ViscaCamera
 from fixego_ros.visca.profiles import CameraProfile
 
 
@@ -35,6 +35,8 @@ class ServoParams:
     feedforward: bool = True           # lead a drifting fixation point by its estimated angular rate
     rate_window_s: float = 0.4         # history used to estimate that rate
     lead_extra_s: float = 0.04         # lead beyond the image age and one command period (command + motion start)
+    reading_window_s: float = 0.003    # a reading whose sample window is this much wider than the narrowest ...
+    reading_max_gap_s: float = 0.05    # ... is left out of the joint history, unless none has come for this long
 
 
 @dataclass(frozen=True)
@@ -150,9 +152,10 @@ class ServoLoop:
         self._running = False
         self._thread: threading.Thread | None = None
         self._last_cmd = -math.inf
-        self.stats = {'cycles': 0, 'commands': 0, 'errors': 0, 'disconnected_cycles': 0}
+        self.stats = {'cycles': 0, 'commands': 0, 'errors': 0, 'disconnected_cycles': 0, 'late_readings': 0}
         self.last_error = ''
         self._t_start = 0.0
+        self._windows: deque[float] = deque(maxlen=64)     # recent readings' sample windows (s)
 
     def set_target(self, target: Target | None) -> None:
         with self._lock:
@@ -199,9 +202,10 @@ class ServoLoop:
 
     def step(self) -> None:
         """One cycle: read the joints, then send the newest target if due. Public for tests/benchmarks."""
-        pan_u, tilt_u, t_mono = self.cam.position_timed()
+        reading = self.cam.position_timed()
+        pan_u, tilt_u = reading.pan, reading.tilt
         pr = self.cam.profile
-        self.history.add(self._to_clock(t_mono), pr.pan_rad(pan_u), pr.tilt_rad(tilt_u))
+        self._keep_reading(reading)
         self.stats['cycles'] += 1
         with self._lock:
             home, self._home = self._home, False
@@ -234,6 +238,23 @@ class ServoLoop:
         self._last_cmd = now
         self._sent = target
         self.stats['commands'] += 1
+
+    def _keep_reading(self, r: PositionReading) -> None:
+        """Add a reading to the joint history at its sample time. The narrowest sample window of the recent
+        readings is the camera's own answering delay; a wider one means the host read the reply late, so the time
+        is uncertain by the difference (at 30 deg/s, 8 ms is 0.24 deg). The reading is dated in the middle of what
+        is left and, when more than :attr:`ServoParams.reading_window_s` is left, kept out of the history (the
+        commanded motion bridges the gap) unless the history would go :attr:`ServoParams.reading_max_gap_s`
+        without one."""
+        self._windows.append(r.window_s)
+        excess = max(0.0, r.window_s - min(self._windows))
+        t = self._to_clock(r.latest - 0.5 * excess)
+        last = self.history.latest()
+        if excess > self.params.reading_window_s and last is not None and t - last[0] < self.params.reading_max_gap_s:
+            self.stats['late_readings'] += 1
+            return
+        pr = self.cam.profile
+        self.history.add(t, pr.pan_rad(r.pan), pr.tilt_rad(r.tilt))
 
     def _to_clock(self, t_mono: float) -> float:
         """A driver (monotonic) time on :attr:`clock`'s time base."""

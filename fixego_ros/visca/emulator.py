@@ -292,7 +292,12 @@ class ViscaEmulator:
             while self._events and self._events[0][0] <= now:
                 t, _, fn = heapq.heappop(self._events)
                 try:
-                    fn(t)
+                    # An event this thread reaches late (it shares a CPU, and a GIL, with whatever hosts it) happens
+                    # when it is handled, as on a camera whose processor is busy: an inquiry samples the head then
+                    # and its reply leaves after that, a motion starts then. Dating it back to when it was due would
+                    # make a late reply look sampled later than it was, and rewrite a motion the renderer has
+                    # already shown.
+                    fn(max(t, time.monotonic()))
                 except Exception as e:
                     self.stats['internal_errors'] = self.stats.get('internal_errors', 0) + 1
                     self.last_internal_error = repr(e)
