@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import time
 
 import numpy as np
 import pytest
@@ -148,3 +149,67 @@ def test_history_bracket_and_before():
     assert h.bracket(2.0) == ((2.0, 0.2, -0.2), (2.0, 0.2, -0.2))
     assert h.bracket(2.5) == ((2.0, 0.2, -0.2), (3.0, 0.3, -0.3))
     assert h.before(2.0) == (1.0, 0.1, -0.1) and h.before(1.0) is None
+
+
+def test_interpolation_follows_a_command_that_arrives_between_two_readings():
+    """A straight line between readings cuts the commanded path's corners: the head rests, gets a command and runs,
+    or reaches its target and stops, between two readings. The commanded path is replayed instead, and what it
+    misses at the second reading is spread over the interval."""
+    cmds = [(0.01, 1.0, 2.0), (0.1, 0.12, 3.0)]       # runs at 2 rad/s from 0.01 s, then stops at 0.12 rad
+    jp = _predictor(cmds, [0.0, 0.03, 0.06, 0.09, 0.12])
+    line = jp.history
+    for t in np.arange(0.0, 0.12, 0.0025):
+        e = jp.estimate(float(t))
+        assert e.source == 'interpolated'
+        assert e.pan == pytest.approx(_truth(cmds, t), abs=1e-12), t
+    # the straight line is 10 mrad off just after the start, and 20 mrad where the head stopped
+    assert abs(line.at(0.01, 0.0)[0] - _truth(cmds, 0.01)) == pytest.approx(0.04 / 3, abs=1e-9)
+    assert abs(line.at(0.1, 0.0)[0] - _truth(cmds, 0.1)) > 0.01
+    # a head slower than commanded: the replay overshoots the second reading; the miss is spread and counted
+    slow = JointPredictor()
+    slow.add_command(0.0, 1.0, 0.0, 2.0, 0.0)
+    slow.add_reading(0.0, 0.0, 0.0)
+    slow.add_reading(0.03, 0.05, 0.0)                 # 0.06 commanded
+    e = slow.estimate(0.015)
+    assert e.pan == pytest.approx(0.025) and e.pan_sigma > 0.0025
+    # no command known (moved by hand): the straight line
+    hand = JointPredictor()
+    hand.add_reading(0.0, 0.0, 0.0)
+    hand.add_reading(0.03, 0.03, 0.0)
+    assert hand.estimate(0.01).pan == pytest.approx(0.01)
+
+
+class _Camera:
+    """Just what ServoLoop.step reads: PositionReadings from a list, the EVI-D30 profile."""
+
+    def __init__(self, readings) -> None:
+        from fixego_ros.visca.profiles import PROFILES
+        self.profile = PROFILES['evi_d30']
+        self.byte_time = 10 / 9600
+        self.readings = list(readings)
+
+    def position_timed(self):
+        return self.readings.pop(0)
+
+
+def test_a_reading_the_host_took_late_stays_out_of_the_history():
+    """The narrowest sample window is the camera's answering delay; a reading whose window is wider by more than
+    reading_window_s was read late by the host, so its time is uncertain: it is left out (counted), unless the
+    history would go reading_max_gap_s without one; kept ones are dated in the middle of what is left."""
+    from fixego_ros.tracking.servo import ServoLoop, ServoParams
+    from fixego_ros.visca.driver import PositionReading
+    base = 1000.0
+    spec = [(0.000, 0.0010), (0.024, 0.0012), (0.048, 0.0110),   # the third: read 10 ms late
+            (0.072, 0.0011), (0.096, 0.0150), (0.120, 0.0160),   # two late in a row: the second bridges 48 ms
+            (0.144, 0.0150)]
+    cam = _Camera([PositionReading(10 * i, 0, base + t, base + t + w) for i, (t, w) in enumerate(spec)])
+    loop = ServoLoop(cam, ServoParams(reading_window_s=0.003, reading_max_gap_s=0.04), clock=time.monotonic)
+    for _ in spec:
+        loop.step()
+    ts = [t - base for t in loop.history._t]        # the loop's clock is the driver's (monotonic)
+    units = [round(math.degrees(p[0]) * cam.profile.pan_units_per_deg) for p in loop.history._q]
+    assert units == [0, 10, 30, 50]
+    assert loop.stats['late_readings'] == 3
+    # dated at the middle of [earliest + narrowest window, latest]
+    assert ts[0] == pytest.approx(0.001, abs=1e-6) and ts[1] == pytest.approx(0.024 + 0.0012 - 0.0001, abs=1e-6)
+    assert ts[3] == pytest.approx(0.120 + 0.016 - 0.5 * (0.016 - 0.001), abs=1e-6)

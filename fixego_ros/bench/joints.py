@@ -83,14 +83,19 @@ def run_moves(duration_s: float = 8.0, baud: int = 9600, fps: float = 30.0, seed
         driver.close()
         emu.stop()
     hist = loop.history
-    err_pred, err_wait, err_hold, waits, within, horizons = [], [], [], [], [], []
+    err_pred, err_wait, err_hold, err_line, waits, within, horizons = [], [], [], [], [], [], []
     predicted = 0
     for f in frames:
         tp, tt = f['truth']
         e = f['est']
-        q = hist.at(f['t'], max_extrapolation_s=0.0)
-        if e is None or q is None:
+        # wait mode: what the node publishes once the reading after the stamp is in (the commanded path between
+        # the readings), and the straight line between them for comparison
+        w = pred.estimate(f['t'])
+        line = hist.at(f['t'], max_extrapolation_s=0.0)
+        if e is None or w is None or w.source is not JointSource.INTERPOLATED or line is None:
             continue
+        q = (w.pan, w.tilt)
+        err_line.append(math.degrees(max(abs(line[0] - tp), abs(line[1] - tt))))
         err_pred.append(math.degrees(max(abs(e.pan - tp), abs(e.tilt - tt))))
         err_wait.append(math.degrees(max(abs(q[0] - tp), abs(q[1] - tt))))
         if e.source is JointSource.PREDICTED:
@@ -109,6 +114,7 @@ def run_moves(duration_s: float = 8.0, baud: int = 9600, fps: float = 30.0, seed
     out.update(_stats('predict_err_deg', err_pred))
     out.update(_stats('wait_err_deg', err_wait))
     out.update(_stats('hold_err_deg', err_hold))
+    out.update(_stats('line_err_deg', err_line))
     out.update(_stats('wait_saved_ms', waits))
     out.update(_stats('horizon_ms', horizons))
     out['commands'] = float(len(pred.commands()))

@@ -138,6 +138,26 @@ def _advance(pos: float, target: float, rate: float, dt: float) -> tuple[float, 
     return pos + math.copysign(step, target - pos), step
 
 
+def _replay(reading: tuple[float, float, float], active: Command | None, later: list[Command],
+            t: float) -> tuple[float, float, float, float, float, float]:
+    """The commanded motion from ``reading`` (t, pan, tilt) to ``t``: ``active`` runs from the reading, each of
+    ``later`` (in time order) from its arrival; before the first command the head rests. Returns pan, tilt, the
+    distance each axis travelled and the fastest rate each moved at."""
+    seg_start, cur = reading[0], active
+    pan, tilt = reading[1], reading[2]
+    moved_p = moved_t = rate_p = rate_t = 0.0
+    for c in [*(c for c in later if c.t < t), None]:
+        seg_end = c.t if c is not None else t
+        if cur is not None:
+            pan, dp = _advance(pan, cur.pan, cur.pan_rate, seg_end - seg_start)
+            tilt, dq = _advance(tilt, cur.tilt, cur.tilt_rate, seg_end - seg_start)
+            moved_p, moved_t = moved_p + dp, moved_t + dq
+            rate_p = max(rate_p, cur.pan_rate if dp > 0 else 0.0)
+            rate_t = max(rate_t, cur.tilt_rate if dq > 0 else 0.0)
+        cur, seg_start = c, seg_end
+    return pan, tilt, moved_p, moved_t, rate_p, rate_t
+
+
 class JointPredictor:
     """Readings (a :class:`JointHistory`, shared with whoever adds to it) plus the
     commands sent to the head; :meth:`estimate` interpolates or predicts. Thread-safe (the servo loop adds from
@@ -184,6 +204,11 @@ class JointPredictor:
         return self._predict(t, (t_r, pan_r, tilt_r))
 
     def _interpolate(self, t: float) -> JointEstimate | None:
+        """Between two readings. A straight line between them cuts the corners of the commanded path: the head
+        that reaches its target and stops, or gets a command in between and starts or turns back, is off the line
+        by up to its rate times the reading period. So the commanded motion is replayed from the first reading and
+        what it misses at the second (timing, the speed being nominal) is spread linearly over the interval. With
+        no command known (a head moved by someone else), the straight line."""
         pair = self.history.bracket(t)
         if pair is None:
             return None
@@ -192,35 +217,32 @@ class JointPredictor:
         # a head at rest reads exactly; a moving one to within a unit (uniform: unit / sqrt 12)
         sp = _sigma(qp, 0.0, 0.0, 0.0) if r0[1] != r1[1] else 0.0
         st = _sigma(qt, 0.0, 0.0, 0.0) if r0[2] != r1[2] else 0.0
-        return JointEstimate(t, *_lerp(r0, r1, t), sp, st, JointSource.INTERPOLATED)
+        cmds = self.commands()
+        i = bisect.bisect_right([c.t for c in cmds], r0[0])
+        active = cmds[i - 1] if i > 0 else None
+        if r1[0] <= r0[0] or (active is None and not any(c.t < r1[0] for c in cmds[i:])):
+            return JointEstimate(t, *_lerp(r0, r1, t), sp, st, JointSource.INTERPOLATED)
+        at_t = _replay(r0, active, cmds[i:], t)
+        at_1 = _replay(r0, active, cmds[i:], r1[0])
+        a = (t - r0[0]) / (r1[0] - r0[0])
+        miss_p, miss_t = r1[1] - at_1[0], r1[2] - at_1[1]
+        # what the replay missed at the second reading is the model's error there (timing, nominal speed): half of
+        # it counts as the uncertainty in between
+        return JointEstimate(t, at_t[0] + a * miss_p, at_t[1] + a * miss_t, math.hypot(sp, 0.5 * a * miss_p),
+                             math.hypot(st, 0.5 * a * miss_t), JointSource.INTERPOLATED)
 
     def _predict(self, t: float, last: tuple[float, float, float]) -> JointEstimate:
         p = self.params
-        t_r, pan, tilt = last
         cmds = self.commands()
-        times = [c.t for c in cmds]
-        i = bisect.bisect_right(times, t_r)          # cmds[:i] reached the head by the reading
+        i = bisect.bisect_right([c.t for c in cmds], last[0])   # cmds[:i] reached the head by the reading
         active = cmds[i - 1] if i > 0 else None
-        later = [c for c in cmds[i:] if c.t < t]
-        if active is None and not later:
+        if active is None and not any(c.t < t for c in cmds[i:]):
             return self._extrapolate(t, last)
-        # replay the commanded motion from the reading, segment by segment between the commands arriving before t
-        # (before the first command the head rests)
-        seg_start, cur = t_r, active
-        moved_p = moved_t = rate_p = rate_t = 0.0
-        for c in [*later, None]:
-            seg_end = c.t if c is not None else t
-            if cur is not None:
-                pan, dp = _advance(pan, cur.pan, cur.pan_rate, seg_end - seg_start)
-                tilt, dq = _advance(tilt, cur.tilt, cur.tilt_rate, seg_end - seg_start)
-                moved_p, moved_t = moved_p + dp, moved_t + dq
-                rate_p = max(rate_p, cur.pan_rate if dp > 0 else 0.0)
-                rate_t = max(rate_t, cur.tilt_rate if dq > 0 else 0.0)
-            cur, seg_start = c, seg_end
+        pan, tilt, moved_p, moved_t, rate_p, rate_t = _replay(last, active, cmds[i:], t)
         qp, qt = p.quantum_rad
         sp = _sigma(qp, rate_p, p.timing_s, p.rate_rel * moved_p)
         st = _sigma(qt, rate_t, p.timing_s, p.rate_rel * moved_t)
-        return JointEstimate(t, pan, tilt, sp, st, JointSource.PREDICTED, t - t_r)
+        return JointEstimate(t, pan, tilt, sp, st, JointSource.PREDICTED, t - last[0])
 
     def _extrapolate(self, t: float, last: tuple[float, float, float]) -> JointEstimate:
         """No command known (passive head, or moved by someone else): the rate of the last two readings."""
