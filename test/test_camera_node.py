@@ -232,6 +232,10 @@ def test_a_failing_vergence_step_is_counted_logged_once_and_retried(ros_context,
         st = _vergence_status(diags)
         assert st['level'] == DiagnosticStatus.WARN and st['successes'] == '0' and 'not settled' in st['last_failure']
         assert int(st['attempts']) >= 3
+        # the servo loop's counters, the late PosInq replies among them, are on the camera's own status
+        main = [{kv.key: kv.value for kv in x.values} for d in diags for x in d.status
+                if x.name == 'fixego camera_node left']
+        assert main and 0 <= int(main[-1]['servo_late_readings']) <= node.loop.stats['late_readings']
         # the retry back-off is a run-time parameter: a long one stops the retries
         assert node.set_parameters([Parameter('vergence_retry_s', value=60.0)])[0].successful
         assert node.scheduler.p.retry_s == 60.0

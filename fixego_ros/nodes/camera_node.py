@@ -675,7 +675,9 @@ class CameraNode(Node):
                            'servo_loop_hz': round(self.loop.loop_rate_hz(), 2), 'joint_mode': self.joint_mode,
                            **(percentile_values('joint_latency_ms', self.joint_latency_ms)
                               if self.joint_latency_ms else {}),
-                           'servo_commands': self.loop.stats['commands']})
+                           'servo_commands': self.loop.stats['commands'],
+                           # PosInq replies the host read too late to date them: kept out of the joint history
+                           'servo_late_readings': self.loop.stats['late_readings']})
             if not self.driver.connected:
                 level, message = ERROR, f'serial port {self.driver.state}: {self.driver.last_error}'
         publish_diagnostics(self, self.pub_diag, [diagnostic_status(
