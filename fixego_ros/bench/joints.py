@@ -94,10 +94,9 @@ def run_moves(duration_s: float = 8.0, baud: int = 9600, fps: float = 30.0, seed
         line = hist.at(f['t'], max_extrapolation_s=0.0)
         if e is None or w is None or w.source is not JointSource.INTERPOLATED or line is None:
             continue
-        q = (w.pan, w.tilt)
         err_line.append(math.degrees(max(abs(line[0] - tp), abs(line[1] - tt))))
         err_pred.append(math.degrees(max(abs(e.pan - tp), abs(e.tilt - tt))))
-        err_wait.append(math.degrees(max(abs(q[0] - tp), abs(q[1] - tt))))
+        err_wait.append(math.degrees(max(abs(w.pan - tp), abs(w.tilt - tt))))
         if e.source is JointSource.PREDICTED:
             predicted += 1
             horizons.append(1e3 * e.horizon_s)

@@ -203,6 +203,13 @@ class JointPredictor:
             return None
         return self._predict(t, (t_r, pan_r, tilt_r))
 
+    def _since(self, t_reading: float) -> tuple[Command | None, list[Command]]:
+        """The command the head was running at a reading (the last one it received by then; None before the
+        first) and those it received after it, in order."""
+        cmds = self.commands()
+        i = bisect.bisect_right([c.t for c in cmds], t_reading)
+        return (cmds[i - 1] if i > 0 else None), cmds[i:]
+
     def _interpolate(self, t: float) -> JointEstimate | None:
         """Between two readings. A straight line between them cuts the corners of the commanded path: the head
         that reaches its target and stops, or gets a command in between and starts or turns back, is off the line
@@ -217,13 +224,11 @@ class JointPredictor:
         # a head at rest reads exactly; a moving one to within a unit (uniform: unit / sqrt 12)
         sp = _sigma(qp, 0.0, 0.0, 0.0) if r0[1] != r1[1] else 0.0
         st = _sigma(qt, 0.0, 0.0, 0.0) if r0[2] != r1[2] else 0.0
-        cmds = self.commands()
-        i = bisect.bisect_right([c.t for c in cmds], r0[0])
-        active = cmds[i - 1] if i > 0 else None
-        if r1[0] <= r0[0] or (active is None and not any(c.t < r1[0] for c in cmds[i:])):
+        active, later = self._since(r0[0])
+        if r1[0] <= r0[0] or (active is None and not any(c.t < r1[0] for c in later)):
             return JointEstimate(t, *_lerp(r0, r1, t), sp, st, JointSource.INTERPOLATED)
-        at_t = _replay(r0, active, cmds[i:], t)
-        at_1 = _replay(r0, active, cmds[i:], r1[0])
+        at_t = _replay(r0, active, later, t)
+        at_1 = _replay(r0, active, later, r1[0])
         a = (t - r0[0]) / (r1[0] - r0[0])
         miss_p, miss_t = r1[1] - at_1[0], r1[2] - at_1[1]
         # what the replay missed at the second reading is the model's error there (timing, nominal speed): half of
@@ -233,12 +238,10 @@ class JointPredictor:
 
     def _predict(self, t: float, last: tuple[float, float, float]) -> JointEstimate:
         p = self.params
-        cmds = self.commands()
-        i = bisect.bisect_right([c.t for c in cmds], last[0])   # cmds[:i] reached the head by the reading
-        active = cmds[i - 1] if i > 0 else None
-        if active is None and not any(c.t < t for c in cmds[i:]):
+        active, later = self._since(last[0])
+        if active is None and not any(c.t < t for c in later):
             return self._extrapolate(t, last)
-        pan, tilt, moved_p, moved_t, rate_p, rate_t = _replay(last, active, cmds[i:], t)
+        pan, tilt, moved_p, moved_t, rate_p, rate_t = _replay(last, active, later, t)
         qp, qt = p.quantum_rad
         sp = _sigma(qp, rate_p, p.timing_s, p.rate_rel * moved_p)
         st = _sigma(qt, rate_t, p.timing_s, p.rate_rel * moved_t)

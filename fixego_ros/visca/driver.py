@@ -584,12 +584,12 @@ class ViscaCamera:
     def position_timed(self, check_range: bool = True) -> PositionReading:
         """The pan/tilt units and the window of monotonic time in which the camera sampled them
         (:class:`PositionReading`): from the inquiry's write plus its serial time to the reply's arrival minus
-        its serial time. A reading
-        outside the profile's range raises :class:`ViscaProtocolError` (a corrupted or foreign reply);
-        ``check_range=False`` (calibration) only refuses angles no pan/tilt head can have.
+        its serial time. A reading outside the profile's range raises :class:`ViscaProtocolError` (a corrupted or
+        foreign reply); ``check_range=False`` (calibration) only refuses angles no pan/tilt head can have.
         """
         with self._lock:
-            data, t = self.inquiry(vp.pan_tilt_pos_inquiry(self.address), 'Pan-tiltPosInq', data_len=8)
+            pkt = vp.pan_tilt_pos_inquiry(self.address)
+            data, t = self.inquiry(pkt, 'Pan-tiltPosInq', data_len=8)
             try:
                 pan, tilt = vp.parse_position_reply(data)
             except vp.ViscaProtocolError as e:
@@ -604,9 +604,8 @@ class ViscaCamera:
                 raise self._bad_reply(f'Pan-tiltPosInq reply pan {pan} units ({pr.pan_deg(pan):.4g} deg), tilt '
                                       f'{tilt} units ({pr.tilt_deg(tilt):.4g} deg) is outside {allowed}: '
                                       f'data {data.hex(" ")}')
-            pkt_len = len(vp.pan_tilt_pos_inquiry(self.address))
             latest = t - 11 * self.byte_time
-            return PositionReading(pan, tilt, min(self.last_write + pkt_len * self.byte_time, latest), latest)
+            return PositionReading(pan, tilt, min(self.last_write + len(pkt) * self.byte_time, latest), latest)
 
     def position(self, check_range: bool = True) -> tuple[int, int]:
         r = self.position_timed(check_range)
