@@ -287,3 +287,44 @@ def test_a_rig_that_starts_from_rest_moves_off_as_one_that_never_stood(loop, mon
     monkeypatch.setattr(Smoother, 'TWIST_MIN_SPEED', 0.1)
     _, crept, _ = _start_from_rest(loop)
     assert crept > 0.45                                 # the old floor: ~0.6 m
+
+
+def _restart_at(loop, k_fail: int, monkeypatch) -> tuple[Smoother, np.ndarray, np.ndarray]:
+    """The loop with vergence measurements up to frame ``k_fail``, whose update fails numerically (the window
+    raises as GTSAM does), so the smoother starts a new graph there; the path as a caller keeps it."""
+    from fixego_ros.estimation import fixed_lag
+
+    sm = Smoother(RIG, _config())
+    rng = np.random.default_rng(3)
+    path: dict[float, np.ndarray] = {}
+    last_fid = None
+    update = fixed_lag.FixedLagWindow.update
+
+    def fail(self, *args, **kwargs):
+        raise RuntimeError('Indeterminant linear system detected while working near variable 1 (test)')
+
+    for k, obs in enumerate(loop.observations):
+        monkeypatch.setattr(fixed_lag.FixedLagWindow, 'update', fail if k == k_fail else update)
+        r = sm.update(obs)
+        if k < k_fail and obs.right.fixation_id != last_fid:
+            sm.add_fixation_point(obs.stamp, 'right', *_vergence(loop, k, 0.005, rng))
+            last_fid = obs.right.fixation_id
+        path[r.stamp] = r.pose.t
+        path.update((s, p.t) for s, p in r.revised)
+    monkeypatch.setattr(fixed_lag.FixedLagWindow, 'update', update)
+    return sm, np.array([path[s] for s in loop.stamps]), np.array([p.t for p in loop.poses])
+
+
+def test_a_restarted_graph_moves_on_at_the_speed_it_had(loop, monkeypatch):
+    """Stop 35. A numerical failure starts a new graph; it used to begin at rest (its first step had a prior of zero
+    motion), no landmark then had the parallax to enter and hold the scale, and the graph stayed at rest while the
+    rig moved on (a recorded live run: 10 s standing still, 114 cm mean). It now starts with the old graph's
+    motion. Here the rig gets no vergence measurement after the failure at frame 30 (6 s in)."""
+    k = 30
+    sm, est, true = _restart_at(loop, k, monkeypatch)
+    after = slice(k + 1, k + 15)
+    ratio = _length(est[after]) / _length(true[after])
+    assert sm.restarts == 1 and 0.6 < ratio < 1.4                  # measured 0.85
+    monkeypatch.setattr(Smoother, '_carried_motion', lambda self: None)    # a restart at rest, as before
+    sm, est, true = _restart_at(loop, k, monkeypatch)
+    assert _length(est[after]) / _length(true[after]) < 0.05      # measured 1e-7: standing still

@@ -21,7 +21,7 @@ from __future__ import annotations
 import itertools
 import math
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import gtsam
 import numpy as np
@@ -124,6 +124,8 @@ class Smoother:
     # sigma and was held near standing for seconds (the loop after 0.4 s at rest: 80 -> 18 cm mean)
     TWIST_MIN_SPEED = 0.4
     CARRY_MAX_S = 0.5         # a vergence measurement is carried at most this far to a frame with its camera
+    CARRY_TWIST_S = 0.3       # a restarted graph moves on with the motion the old one had over at least this long
+    CARRY_SPEED_SIGMA = 0.3   # ... as a prior on its first step, this relative sigma on the length
     AT_REST_M = 0.01          # a landmark whose views' camera centres are all this close was seen from one place
     COLD_START_GAIN = 0.5     # a cold-started step replaces the warm one below this fraction of its cost
 
@@ -158,12 +160,15 @@ class Smoother:
         self._note = ''
         self._scale_measured: tuple[float, float] | None = None
         self._vergence_used = 0
+        self._graph_start = 0
         self.restarts = 0          # numerical failures (each starts a new graph at the last estimate)
         self.repairs = 0           # numerical failures the window repaired in place (FixedLagWindow)
         self._restart()
 
     def _restart(self) -> None:
-        """A new graph (start, or after a numerical failure): later frames start from the last estimate."""
+        """A new graph (start, or after a numerical failure): later frames start from the last estimate, moving on
+        with its motion (:meth:`_carried_motion`)."""
+        self._carry = self._carried_motion()
         self._window = FixedLagWindow(self.settings.lag_s)
         self._estimate = gtsam.Values()
         self._landmarks: dict[LandmarkId, int] = {}
@@ -229,13 +234,29 @@ class Smoother:
         return FrameResult.rejected(self._index, obs.stamp, pose, raw, why, scale_observed=self.scale_observed,
                                     scale_note=self.scale_note())
 
+    def _carried_motion(self) -> tuple[_Frame, _Frame] | None:
+        """Two frames of the graph that ends (the newest, and one at least ``CARRY_TWIST_S`` before it) whose
+        motion the next graph starts with. Without it a restart began at rest: its first step had a prior of zero
+        motion, nothing else held the scale (no landmark had parallax yet, so none entered), and the graph stayed at
+        rest while the rig moved on (a live recording of the paper loop: 10 s standing still, 114 cm mean)."""
+        placed = [f for f in self._frames if f.index >= self._graph_start and f.pose.is_finite()]
+        if len(placed) < 2:
+            return None
+        b = placed[-1]
+        a = next((f for f in reversed(placed[:-1]) if b.stamp - f.stamp >= self.CARRY_TWIST_S), placed[0])
+        return (replace(a), replace(b)) if b.stamp > a.stamp else None
+
     def _recent_frames(self) -> list[_Frame]:
         """The last two frames of this graph (fewer right after a start or restart)."""
         return [f for f in self._frames if f.index >= self._graph_start][-2:]
 
     def _predict(self, stamp: float) -> Pose:
-        """Constant twist from the last two frames of this graph (identity / hold before there are two)."""
+        """Constant twist from the last two frames of this graph; right after a restart, the old graph's (hold at
+        the very start)."""
         recent = self._recent_frames()
+        if len(recent) < 2 and self._carry is not None:
+            a, b = self._carry
+            return constant_twist(a.pose, a.stamp, b.pose, b.stamp, stamp)
         if not recent:
             return self._frames[-1].pose if self._frames else Pose.identity()
         if len(recent) == 1:
@@ -481,12 +502,23 @@ class Smoother:
         self._aids.add('the speed source')
 
     def _add_motion_prior(self, i: int, stamp: float, up: _Update) -> None:
-        """Constant twist over the last three frames of this graph; a loose step prior for the second frame."""
+        """Constant twist over the last three frames of this graph; for its second frame a loose step prior (at rest
+        at the start, the old graph's motion after a restart)."""
         recent = self._recent_frames()
         if len(recent) == 2:
             a, b = recent
             up.graph.add(self.twist.factor((a.index, b.index, i), b.stamp - a.stamp, stamp - b.stamp,
                                            self.scale_observed))
+        elif len(recent) == 1 and self._carry is not None:
+            # a restarted graph: its first step moves on as the old graph moved (the scale comes with it)
+            a, b = self._carry
+            first = recent[0]
+            step = constant_twist(a.pose, a.stamp, b.pose, b.stamp, first.stamp).inverse() @ \
+                constant_twist(a.pose, a.stamp, b.pose, b.stamp, stamp)
+            length = float(np.linalg.norm(step.t))
+            sigmas = np.array([1.0] * 3 + [max(self.CARRY_SPEED_SIGMA * length, 1e-3)] * 3)
+            up.graph.add(gtsam.BetweenFactorPose3(pose_key(first.index), pose_key(i), to_gtsam(step),
+                                                  gtsam.noiseModel.Diagonal.Sigmas(sigmas)))
         elif len(recent) == 1:
             dt = stamp - recent[0].stamp
             sigmas = np.array([1.0] * 3 + [max(self.settings.nominal_speed * dt, 1e-3) * 2] * 3)
