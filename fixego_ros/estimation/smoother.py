@@ -21,7 +21,7 @@ from __future__ import annotations
 import itertools
 import math
 from collections import deque
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import gtsam
 import numpy as np
@@ -238,13 +238,14 @@ class Smoother:
         """Two frames of the graph that ends (the newest, and one at least ``CARRY_TWIST_S`` before it) whose
         motion the next graph starts with. Without it a restart began at rest: its first step had a prior of zero
         motion, nothing else held the scale (no landmark had parallax yet, so none entered), and the graph stayed at
-        rest while the rig moved on (a live recording of the paper loop: 10 s standing still, 114 cm mean)."""
+        rest while the rig moved on (a live recording of the paper loop: 10 s standing still, 114 cm mean). No later
+        solve moves them: they are older than the new graph."""
         placed = [f for f in self._frames if f.index >= self._graph_start and f.pose.is_finite()]
         if len(placed) < 2:
             return None
         b = placed[-1]
         a = next((f for f in reversed(placed[:-1]) if b.stamp - f.stamp >= self.CARRY_TWIST_S), placed[0])
-        return (replace(a), replace(b)) if b.stamp > a.stamp else None
+        return (a, b) if b.stamp > a.stamp else None
 
     def _recent_frames(self) -> list[_Frame]:
         """The last two frames of this graph (fewer right after a start or restart)."""
