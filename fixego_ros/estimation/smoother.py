@@ -512,10 +512,8 @@ class Smoother:
                                            self.scale_observed))
         elif len(recent) == 1 and self._carry is not None:
             # a restarted graph: its first step moves on as the old graph moved (the scale comes with it)
-            a, b = self._carry
             first = recent[0]
-            step = constant_twist(a.pose, a.stamp, b.pose, b.stamp, first.stamp).inverse() @ \
-                constant_twist(a.pose, a.stamp, b.pose, b.stamp, stamp)
+            step = self._predict(first.stamp).inverse() @ self._predict(stamp)
             length = float(np.linalg.norm(step.t))
             sigmas = np.array([1.0] * 3 + [max(self.CARRY_SPEED_SIGMA * length, 1e-3)] * 3)
             up.graph.add(gtsam.BetweenFactorPose3(pose_key(first.index), pose_key(i), to_gtsam(step),
