@@ -6,7 +6,7 @@ import gtsam
 import numpy as np
 import pytest
 
-from fixego_ros.estimation.factors import ConstantTwist, StepDirection, TwoFrameStep
+from fixego_ros.estimation.factors import ConstantTwist, HeldSpeed, StepDirection, TwoFrameStep
 from fixego_ros.estimation.keys import pose_key
 from fixego_ros.geometry.rotation import Pose
 
@@ -122,3 +122,25 @@ def test_step_direction_holds_the_direction_and_leaves_the_length_free():
     assert np.linalg.norm(factor.unwhitenedError(turned)) == pytest.approx(np.sin(0.05), rel=1e-6)
     loose = np.diag([1e-6] * 3 + [4.0] * 3)                       # 1 rad across a 2 m step
     assert direction.sigma(solved, loose) is None and direction.factor(0, 1, solved, loose) is None
+
+
+def test_held_speed_jacobian_matches_central_differences():
+    held = HeldSpeed(relative_sigma=0.3, min_speed=0.08)
+    factor = held.factor(0, 1, speed=0.25, dt=0.2)
+    values = _pair(np.random.default_rng(5), np.array([0.02, -0.01, 0.06]))
+    J = _numeric_jacobian(factor, values, 0.3 * 0.25 * 0.2, poses=2)
+    A, _ = factor.linearize(values).jacobian()
+    np.testing.assert_allclose(A, J, atol=1e-5)
+
+
+def test_held_speed_holds_the_length_in_any_direction():
+    """Only the step's length is held (speed x dt, relative sigma, floored at the minimum speed); its direction and
+    rotation are left to the other factors."""
+    held = HeldSpeed(relative_sigma=0.3, min_speed=0.08)
+    factor = held.factor(0, 1, speed=0.25, dt=0.2)               # 5 cm
+    rng = np.random.default_rng(6)
+    for direction in rng.normal(size=(3, 3)):
+        values = _pair(rng, 0.05 * direction / np.linalg.norm(direction))
+        assert abs(factor.unwhitenedError(values)[0]) < 1e-9
+    assert factor.unwhitenedError(_pair(rng, np.array([0.0, 0.0, 0.08])))[0] == pytest.approx(0.03)
+    assert held.factor(0, 1, speed=0.0, dt=0.2).noiseModel().sigmas()[0] == pytest.approx(0.3 * 0.08 * 0.2)

@@ -2,7 +2,7 @@
 
 Each class holds its noise model and builds GTSAM factors for given keys. GTSAM's own factor types are used
 where one fits (projection, between); the two that have none are :class:`gtsam.CustomFactor` with analytic
-Jacobians (:class:`ConstantTwist`, :class:`StepDirection`, :class:`Vergence`).
+Jacobians (:class:`ConstantTwist`, :class:`StepDirection`, :class:`HeldSpeed`, :class:`Vergence`).
 """
 
 from __future__ import annotations
@@ -231,6 +231,35 @@ class StepDirection:
 
         noise = gtsam.noiseModel.Robust.Create(self.robust, gtsam.noiseModel.Isotropic.Sigma(2, sigma))
         return gtsam.CustomFactor(noise, keys, error)
+
+
+class HeldSpeed:
+    """The length of the step previous frame -> frame at the speed the landmarks last measured, for a frame they do
+    not place. Without it such a frame's length is held only by the relative constant-twist prior, which lets the
+    speed decay step by step at little cost (30 % per step at one sigma, and a head's swing-back brings a keyframe
+    every frame); in recorded live runs both heads swung back together, no landmark was seen for ~1 s, the speed fell
+    to zero and stayed there. The speed comes from frames the landmarks placed, so a gap cannot chain it down."""
+
+    def __init__(self, relative_sigma: float, min_speed: float) -> None:
+        self.relative_sigma = relative_sigma
+        self.min_speed = min_speed
+
+    def factor(self, ref: int, frame: int, speed: float, dt: float) -> gtsam.NonlinearFactor:
+        length = speed * dt
+        keys = [pose_key(ref), pose_key(frame)]
+
+        def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list[np.ndarray] | None) -> np.ndarray:
+            H1, H2, Ht = _jac(6, 6), _jac(6, 6), _jac(3, 6)
+            rel = values.atPose3(keys[0]).between(values.atPose3(keys[1]), H1, H2)
+            t = rel.translation(Ht)
+            n = max(float(np.linalg.norm(t)), 1e-9)
+            if H is not None:
+                J = (t / n).reshape(1, 3) @ Ht                  # d |t| / d rel (1 x 6)
+                H[0], H[1] = J @ H1, J @ H2
+            return np.array([n - length])
+
+        sigma = self.relative_sigma * max(speed, self.min_speed) * dt
+        return gtsam.CustomFactor(gtsam.noiseModel.Isotropic.Sigma(1, max(sigma, 1e-6)), keys, error)
 
 
 class Vergence:

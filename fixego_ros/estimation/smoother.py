@@ -31,6 +31,7 @@ from fixego_ros.estimation.covariance import VAR_MAX, checked_measurement
 from fixego_ros.estimation.factors import (
     CameraMount,
     ConstantTwist,
+    HeldSpeed,
     Projection,
     SpeedStep,
     StepDirection,
@@ -126,6 +127,8 @@ class Smoother:
     CARRY_MAX_S = 0.5         # a vergence measurement is carried at most this far to a frame with its camera
     CARRY_TWIST_S = 0.3       # a restarted graph moves on with the motion the old one had over at least this long
     CARRY_SPEED_SIGMA = 0.3   # ... as a prior on its first step, this relative sigma on the length
+    HOLD_SPAN_S = 0.3         # a frame no landmark places keeps the speed measured over at least this (HeldSpeed)
+    HOLD_SPEED_SIGMA = 0.3    # ... with this relative sigma on its step's length
     AT_REST_M = 0.01          # a landmark whose views' camera centres are all this close was seen from one place
     COLD_START_GAIN = 0.5     # a cold-started step replaces the warm one below this fraction of its cost
 
@@ -142,6 +145,7 @@ class Smoother:
         f = rig.camera('right').fx
         self.steps = TwoFrameStep(c.step_floor_px / f, c.nominal_speed, c.step_cauchy_k)
         self.direction = StepDirection(c.step_cauchy_k)
+        self.held_speed = HeldSpeed(self.HOLD_SPEED_SIGMA, self.TWIST_MIN_SPEED * c.nominal_speed)
         self.vergence = Vergence()
         self.speed_step = SpeedStep()
         self._depth_prior = gtsam.noiseModel.Isotropic.Sigma(3, c.far_guess_m)    # landmarks seen from one place
@@ -175,6 +179,7 @@ class Smoother:
         self._views: dict[LandmarkId, list[_View]] = {}
         self._next_landmark = itertools.count()
         self._graph_start = self._index + 1       # first frame of this graph
+        self._placed: dict[int, float] = {}         # frames of this graph the landmarks placed: index -> stamp
 
     # ------------------------------------------------------------------------------------------- aids
     def add_velocity(self, stamp: float, v_rig: np.ndarray, cov_rig: np.ndarray) -> None:
@@ -298,6 +303,7 @@ class Smoother:
                 up.graph.add(direction)
         self._add_speed(i, obs.stamp, ref, tf, up)
         self._add_motion_prior(i, obs.stamp, up)
+        self._hold_speed(i, obs.stamp, up)
         raw_base = ref.pose_raw if ref is not None else (self._frames[-1].pose_raw if self._frames else Pose.identity())
         frame = _Frame(i, obs.stamp, fix, pose0, (raw_base @ step_raw).normalized())
         self._frames.append(frame)
@@ -523,6 +529,30 @@ class Smoother:
             sigmas = np.array([1.0] * 3 + [max(self.settings.nominal_speed * dt, 1e-3) * 2] * 3)
             up.graph.add(gtsam.BetweenFactorPose3(pose_key(recent[0].index), pose_key(i), gtsam.Pose3(),
                                                   gtsam.noiseModel.Diagonal.Sigmas(sigmas)))
+
+    def _held_speed(self) -> float | None:
+        """The speed (m/s) between the newest frame the landmarks placed and one at least ``HOLD_SPAN_S`` before
+        it, from their current estimates; None without two such frames in this graph."""
+        placed = [f for f in self._frames if f.index in self._placed and self._in_graph(f)]
+        if len(placed) < 2:
+            return None
+        b = placed[-1]
+        a = next((f for f in reversed(placed[:-1]) if b.stamp - f.stamp >= self.HOLD_SPAN_S), None)
+        return None if a is None else float(np.linalg.norm(b.pose.t - a.pose.t)) / (b.stamp - a.stamp)
+
+    def _hold_speed(self, i: int, stamp: float, up: _Update) -> None:
+        """A frame the landmarks place is remembered; one they do not gets its step at their last speed
+        (:class:`.factors.HeldSpeed`) once a scale aid has measured the scale (before, the steps hold the nominal
+        speed)."""
+        if up.observations >= self.settings.min_resection:
+            self._placed[i] = stamp
+            oldest = stamp - self.settings.lag_s - self.HISTORY_S
+            self._placed = {k: s for k, s in self._placed.items() if s >= oldest}
+            return
+        recent = self._recent_frames()
+        speed = self._held_speed() if self.scale_observed and recent else None
+        if speed is not None:
+            up.graph.add(self.held_speed.factor(recent[-1].index, i, speed, stamp - recent[-1].stamp))
 
     def _attach_points(self, up: _Update) -> None:
         """Vergence measurements whose frame is in the graph become factors; later ones wait; others are dropped
