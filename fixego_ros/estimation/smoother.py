@@ -128,7 +128,7 @@ class Smoother:
     CARRY_TWIST_S = 0.3       # a restarted graph moves on with the motion the old one had over at least this long
     CARRY_SPEED_SIGMA = 0.3   # ... as a prior on its first step, this relative sigma on the length
     HOLD_SPAN_S = 0.3         # a frame no landmark places keeps the speed measured over at least this (HeldSpeed)
-    HOLD_SPEED_SIGMA = 0.3    # ... with this relative sigma on its step's length
+    HOLD_SPEED_SIGMA = 0.3    # ... with this relative sigma on its step's length, of at least the nominal speed
     AT_REST_M = 0.01          # a landmark whose views' camera centres are all this close was seen from one place
     COLD_START_GAIN = 0.5     # a cold-started step replaces the warm one below this fraction of its cost
 
@@ -145,7 +145,7 @@ class Smoother:
         f = rig.camera('right').fx
         self.steps = TwoFrameStep(c.step_floor_px / f, c.nominal_speed, c.step_cauchy_k)
         self.direction = StepDirection(c.step_cauchy_k)
-        self.held_speed = HeldSpeed(self.HOLD_SPEED_SIGMA, self.TWIST_MIN_SPEED * c.nominal_speed)
+        self.held_speed = HeldSpeed(self.HOLD_SPEED_SIGMA, c.nominal_speed)
         self.vergence = Vergence()
         self.speed_step = SpeedStep()
         self._depth_prior = gtsam.noiseModel.Isotropic.Sigma(3, c.far_guess_m)    # landmarks seen from one place
