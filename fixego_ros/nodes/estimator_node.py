@@ -176,8 +176,10 @@ class EstimatorNode(Node):
         self.last: FrameResult | None = None
         self.last_error = ''
         self.params.start(self._apply_params, LIVE_CONFIG + LIVE_NODE)
-        self.get_logger().info(f'estimator: local BA n={self.config.window} mode={self.config.mode}, '
-                               f'TF {"on" if self.tf else "off"}, speed aid '
+        back_end = (f'fixed-lag smoother, lag {self.config.smoother.lag_s:g} s'
+                    if self.config.refinement == 'smoother' else
+                    f'local BA n={self.config.window} mode={self.config.mode}')
+        self.get_logger().info(f'estimator: {back_end}, TF {"on" if self.tf else "off"}, speed aid '
                                f'{self.speed_topic or "off"}')
 
     def _make_tf_broadcaster(self, mode: str, speed_topic: str):
