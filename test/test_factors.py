@@ -144,3 +144,12 @@ def test_held_speed_holds_the_length_in_any_direction():
         assert abs(factor.unwhitenedError(values)[0]) < 1e-9
     assert factor.unwhitenedError(_pair(rng, np.array([0.0, 0.0, 0.08])))[0] == pytest.approx(0.03)
     assert held.factor(0, 1, speed=0.0, dt=0.2).noiseModel().sigmas()[0] == pytest.approx(0.3 * 0.08 * 0.2)
+
+
+def test_camera_mount_adds_the_readings_sigma_to_its_own():
+    from fixego_ros.estimation.factors import CameraMount
+
+    mount = CameraMount(4e-4)
+    assert np.allclose(mount.factor(0, 'right', np.eye(3), np.zeros(3)).noiseModel().sigmas()[:3], 4e-4)
+    sigmas = mount.factor(0, 'right', np.eye(3), np.zeros(3), reading_sigma=3e-3).noiseModel().sigmas()
+    np.testing.assert_allclose(sigmas, [np.hypot(4e-4, 3e-3)] * 3 + [1e-4] * 3)

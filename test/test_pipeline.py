@@ -171,7 +171,8 @@ def scene_frames():
 
 def test_rows_round_trip(scene_frames):
     _, _, obs = scene_frames
-    o = obs[2]
+    o = copy.deepcopy(obs[2])
+    o.right.joint_sigma = 0.004          # the camera node's 1-sigma of the readings, carried to the back end
     rows = observation_to_rows(o)
     assert rows.dtype == ROW_DTYPE
     assert np.sum(rows['kind'] == KIND_FLOW) == len(o.right.flow_prev) + len(o.left.flow_prev)
@@ -184,6 +185,10 @@ def test_rows_round_trip(scene_frames):
         np.testing.assert_allclose(b.flow_prev, a.flow_prev, atol=1e-12)
         np.testing.assert_allclose(b.flow_curr, a.flow_curr, atol=1e-12)
         assert b.fixation_id == a.fixation_id
+    assert back.right.joint_sigma == 0.004 and back.left.joint_sigma == 0.0
+    rows['sigma'][rows['kind'] == 0] = -1.0
+    with pytest.raises(ObservationError, match='negative joint sigma'):
+        rows_to_observation(o.stamp, rows)
 
 
 def _with_tracks(o: FrameObservation, seed: int = 0) -> FrameObservation:

@@ -60,3 +60,27 @@ def test_auto_slop_is_bounded_and_robust_to_dropped_frames():
     for t in stamps:
         sync.add_image('right', t, None, t)
     assert sync.slop_s == pytest.approx(1 / 60)                               # the median ignores the gaps
+
+
+def test_the_readings_sigma_given_at_an_image_stamp_reaches_that_frame_only():
+    """camera_node publishes a 1-sigma per image stamp (JointState effort); a frame at that stamp carries it, a frame
+    whose angles are interpolated from readings at other stamps carries none (0: not given)."""
+    from types import SimpleNamespace
+
+    from fixego_ros.pipeline.messages import joint_sigma
+
+    sync = StereoSync(SyncParams(slop_s=0.005))
+    for side in ('right', 'left'):
+        sync.add_joints(side, 1.0, 0.1, 0.0, 0.002)
+        sync.add_joints(side, 1.1, 0.2, 0.0, 0.003)
+    for t in (1.0, 1.05):
+        for side in ('right', 'left'):
+            sync.add_image(side, t, f'{side}@{t}', t)
+            sync.add_fixation(side, t, (320.0, 240.0), 1)
+    frames = sync.pop_ready(2.0, flush=True)
+    assert [f.cameras['right'].joint_sigma for f in frames] == [0.002, 0.0]
+    msg = SimpleNamespace(name=['left_pan', 'left_tilt'], position=[0.1, 0.2], effort=[0.001, 0.004])
+    assert joint_sigma(msg, 'left') == 0.004
+    assert joint_sigma(SimpleNamespace(name=['left_pan', 'left_tilt'], position=[0.1, 0.2], effort=[]), 'left') == 0.0
+    assert joint_sigma(SimpleNamespace(name=['left_pan', 'left_tilt'], position=[0.1, 0.2],
+                                       effort=[float('nan'), 0.1]), 'left') == 0.0

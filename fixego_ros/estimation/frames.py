@@ -29,6 +29,9 @@ class CameraFrame:
     # within a camera, and the rig-frame unit ray of each at this frame
     track_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     track_rays: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    # 1-sigma (rad) of the pan/tilt readings behind cam_to_rig (camera_node's, growing with the head's rate and the
+    # prediction time); 0 = not given: the back end's own mount sigma alone
+    joint_sigma: float = 0.0
 
 
 @dataclass

@@ -414,7 +414,7 @@ class Smoother:
                 continue
             mount = CameraMount.mount(cam.cam_to_rig, self.rig.center(side))
             up.add_value(camera_key(i, side), to_gtsam(pose).compose(mount), stamp)
-            up.graph.add(self.mount.factor(i, side, cam.cam_to_rig, self.rig.center(side)))
+            up.graph.add(self.mount.factor(i, side, cam.cam_to_rig, self.rig.center(side), cam.joint_sigma))
         cfg = self.settings
         for side, lid, ray, cam in self._sightings(obs):
             index = self._landmarks.get(lid)

@@ -51,7 +51,7 @@ from fixego_ros.nodes.common import (
     table_to_cloud,
 )
 from fixego_ros.pipeline.frontend import CameraSample, StereoFrontEnd
-from fixego_ros.pipeline.messages import fixation_from_msg, gray_for_camera, pan_tilt
+from fixego_ros.pipeline.messages import fixation_from_msg, gray_for_camera, joint_sigma, pan_tilt
 from fixego_ros.pipeline.observation import observation_to_rows
 from fixego_ros.pipeline.params import FLOW_NODE_PARAMS, Getter, flow_params, keyframe_policy, sync_params
 from fixego_ros.pipeline.sync import StereoSync
@@ -135,7 +135,7 @@ class FlowNode(Node):
         except ValueError as e:
             self.once.warn(f'joints_{side}', f'{e}: ignored')
             return
-        if not self.sync.add_joints(side, stamp_to_sec(msg.header.stamp), pan, tilt):
+        if not self.sync.add_joints(side, stamp_to_sec(msg.header.stamp), pan, tilt, joint_sigma(msg, side)):
             self.once.warn(f'joints_bad_{side}', f'{side} joint state non-finite or out of order: ignored')
         self._drain()
 
@@ -159,7 +159,8 @@ class FlowNode(Node):
             self.ready_ms.append(1e3 * (now - frame.stamp))
             t = time.perf_counter()
             samples: dict[str, CameraSample | None] = {
-                side: None if c is None else CameraSample(c.image[0], c.pan, c.tilt, c.fixation_px, c.fixation_id)
+                side: None if c is None else CameraSample(c.image[0], c.pan, c.tilt, c.fixation_px, c.fixation_id,
+                                                  c.joint_sigma)
                 for side, c in frame.cameras.items()}
             base = frame.cameras['right'] or frame.cameras['left']     # the frame's stamp is the base camera's
             stamp_msg = base.image[1]

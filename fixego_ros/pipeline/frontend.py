@@ -98,6 +98,7 @@ class CameraSample:
     tilt: float
     fixation_px: tuple[float, float] | None   # None = no valid fixation this frame
     fixation_id: int = -1                     # -1 when none
+    joint_sigma: float = 0.0                  # 1-sigma (rad) of pan/tilt when the source gives one (0: not given)
 
 
 @dataclass(frozen=True)
@@ -434,7 +435,9 @@ class StereoFrontEnd:
             r = self.rig.pixels_to_rig_rays(side, np.array([fix_px]), pan, tilt)[0]
             ray = r if np.all(np.isfinite(r)) else None
         current[side] = CameraSample(img, pan, tilt, fix_px, int(s.fixation_id) if fix_px is not None else -1)
-        return CameraFrame(ray, int(s.fixation_id) if ray is not None else -1, C)
+        sigma = float(getattr(s, 'joint_sigma', 0.0))
+        return CameraFrame(ray, int(s.fixation_id) if ray is not None else -1, C,
+                           joint_sigma=sigma if math.isfinite(sigma) and sigma > 0.0 else 0.0)
 
     def _finish(self, side: str, frame: CameraFrame, now: CameraSample, f: _Follow | None) -> CameraFrame:
         """Region, flow pairs keyframe -> t with the epipolar check, new tracks; fills ``frame``."""

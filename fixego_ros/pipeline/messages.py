@@ -108,6 +108,19 @@ def pan_tilt(msg: Any, side: str) -> tuple[float, float]:
         raise ValueError(f'{side} joint_states without {side}_pan and {side}_tilt positions') from None
 
 
+def joint_sigma(msg: Any, side: str) -> float:
+    """The larger 1-sigma (rad) of ``<side>_pan`` and ``<side>_tilt`` that camera_node puts in a JointState's
+    ``effort`` (it has no covariance field; a pan/tilt head reports no torque). 0.0 = not given (a bag from another
+    recorder, the simulator's exactly timed readings), or anything negative or non-finite there."""
+    names = list(msg.name)
+    effort = list(msg.effort)
+    try:
+        values = [float(effort[names.index(f'{side}_{axis}')]) for axis in ('pan', 'tilt')]
+    except (ValueError, IndexError):
+        return 0.0
+    return max(values) if all(math.isfinite(v) and v >= 0.0 for v in values) else 0.0
+
+
 def fixation_from_msg(msg: Any) -> tuple[tuple[float, float] | None, int]:
     """(pixel, fixation id) of a ``<side>/fixation`` geometry_msgs/PointStamped: x, y = pixel, z = id. A negative
     z is camera_node's explicit "no valid fixation at this stamp" (z = -1, x = y = 0): (None, NO_FIXATION_ID).

@@ -6,11 +6,12 @@ packed). ``header.stamp`` is the frame's stamp t, ``header.frame_id`` is ``rig``
 
 Columns: ``side`` (uint8: 0 right, 1 left), ``kind`` (uint8), ``flags`` (uint8, bit 0: frame t is a
 keyframe, i.e. later flow starts from it), ``fixation_id`` (int32), ``t0`` (float64: stamp of the
-keyframe the flow starts from; 0 when there is none), ``x0 y0 z0``, ``x1 y1 z1`` (float64).
+keyframe the flow starts from; 0 when there is none), ``x0 y0 z0``, ``x1 y1 z1``, ``sigma`` (float64).
 
 - ``kind`` 0, one row per camera present at t: ``x1 y1 z1`` = the fixation ray at t (rig frame at t;
   all zero and ``fixation_id`` = -1 when the camera has no valid fixation), ``x0 y0 z0`` = rotation
-  vector of the camera's optical frame in the rig frame at t (pan/tilt applied).
+  vector of the camera's optical frame in the rig frame at t (pan/tilt applied), ``sigma`` = the 1-sigma (rad) of
+  the pan/tilt readings behind it (``CameraFrame.joint_sigma``; 0 when not given, and in every other row).
 - ``kind`` 1, one row per flow point: ``x0 y0 z0`` = its ray at t0 (rig frame at t0), ``x1 y1 z1`` = the
   ray of the same scene point at t (rig frame at t). ``fixation_id`` repeats the camera row's.
 - ``kind`` 2, one row per live point track of the camera at t (``CameraFrame.track_ids/track_rays``):
@@ -34,7 +35,8 @@ KIND_CAMERA, KIND_FLOW, KIND_TRACK = 0, 1, 2
 MAX_TRACK_ID = 2**53 - 1     # largest id a float64 holds exactly
 FLAG_KEYFRAME = 1
 ROW_DTYPE = np.dtype([('side', '<u1'), ('kind', '<u1'), ('flags', '<u1'), ('fixation_id', '<i4'), ('t0', '<f8'),
-                      ('x0', '<f8'), ('y0', '<f8'), ('z0', '<f8'), ('x1', '<f8'), ('y1', '<f8'), ('z1', '<f8')])
+                      ('x0', '<f8'), ('y0', '<f8'), ('z0', '<f8'), ('x1', '<f8'), ('y1', '<f8'), ('z1', '<f8'),
+                      ('sigma', '<f8')])
 _A = ('x0', 'y0', 'z0')
 _B = ('x1', 'y1', 'z1')
 
@@ -66,6 +68,7 @@ def observation_to_rows(obs: FrameObservation) -> np.ndarray:
         head = np.zeros(1, ROW_DTYPE)
         head['side'], head['kind'], head['fixation_id'], head['t0'], head['flags'] = si, KIND_CAMERA, fid, t0, flags
         _set(head, _A, log_so3(np.asarray(cam.cam_to_rig, float)).reshape(1, 3))
+        head['sigma'] = float(cam.joint_sigma)
         if has_fix:
             _set(head, _B, np.asarray(cam.fixation_ray, float).reshape(1, 3))
         flow = np.zeros(len(cam.flow_prev), ROW_DTYPE)
@@ -114,10 +117,12 @@ def rows_to_observation(stamp: float, rows: np.ndarray) -> FrameObservation:
         raise ObservationError(f'missing columns: {sorted(set(ROW_DTYPE.names) - set(rows.dtype.names or ()))}')
     if not np.isfinite(stamp):
         raise ObservationError('non-finite stamp')
-    floats = np.stack([rows[n].astype(np.float64) for n in ('t0', *_A, *_B)], axis=1) if len(rows) else \
-        np.zeros((0, 7))
+    floats = np.stack([rows[n].astype(np.float64) for n in ('t0', *_A, *_B, 'sigma')], axis=1) if len(rows) else \
+        np.zeros((0, 8))
     if not np.all(np.isfinite(floats)):
         raise ObservationError(f'{int(np.sum(~np.all(np.isfinite(floats), axis=1)))} rows with NaN/inf values')
+    if np.any(rows['sigma'] < 0.0):
+        raise ObservationError('negative joint sigma')
     if np.any(rows['side'] >= len(SIDES)):
         raise ObservationError(f'unknown side index {int(rows["side"].max())} (0 right, 1 left)')
     if np.any(rows['kind'] > KIND_TRACK):
@@ -150,5 +155,6 @@ def rows_to_observation(stamp: float, rows: np.ndarray) -> FrameObservation:
         ray = _unit(_get(head, _B), f'{side} fixation')[0] if fid >= 0 else None
         prev = _unit(_get(flow, _A), f'{side} flow at t0') if len(flow) else np.zeros((0, 3))
         curr = _unit(_get(flow, _B), f'{side} flow at t') if len(flow) else np.zeros((0, 3))
-        cams[side] = CameraFrame(ray, fid, exp_so3(rvec), prev, curr, *_tracks(track, side))
+        cams[side] = CameraFrame(ray, fid, exp_so3(rvec), prev, curr, *_tracks(track, side),
+                                 joint_sigma=float(head['sigma'][0]))
     return FrameObservation(float(stamp), cams['right'], cams['left'], t0 if t0 > 0.0 else None, keyframe)

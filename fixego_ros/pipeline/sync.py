@@ -61,6 +61,7 @@ class SyncedCamera:
     tilt: float
     fixation_px: tuple[float, float] | None
     fixation_id: int
+    joint_sigma: float = 0.0                   # 1-sigma (rad) of the readings given at this stamp; 0 = not given
 
 
 @dataclass
@@ -110,6 +111,7 @@ class StereoSync:
         self._joints: dict[str, JointHistory] = {s: JointHistory(maxlen=2048) for s in SIDES}
         # stamp -> (pixel, id); (None, NO_FIXATION_ID) = the camera said it has no fixation at that stamp
         self._fix: dict[str, dict[float, tuple[tuple[float, float] | None, int]]] = {s: {} for s in SIDES}
+        self._joint_sigma: dict[str, dict[float, float]] = {s: {} for s in SIDES}     # stamp -> 1-sigma (rad)
         self._fix_newest: dict[str, float] = dict.fromkeys(SIDES, -math.inf)    # newest fixation stamp per camera
         self._last_emitted = -math.inf
 
@@ -153,7 +155,9 @@ class StereoSync:
         q.append(_Pending(stamp, image, now))
         return True
 
-    def add_joints(self, side: str, stamp: float, pan: float, tilt: float) -> bool:
+    def add_joints(self, side: str, stamp: float, pan: float, tilt: float, sigma: float = 0.0) -> bool:
+        """Joint readings (rad) at ``stamp``; ``sigma`` their 1-sigma (rad) when the source gives one (camera_node
+        does, per image stamp): a frame at exactly that stamp carries it on."""
         if not all(math.isfinite(v) for v in (stamp, pan, tilt)):
             self.stats.rejected += 1
             return False
@@ -161,6 +165,11 @@ class StereoSync:
         if latest is not None and stamp <= latest[0]:
             return False                        # JointHistory keeps readings in time order
         self._joints[side].add(stamp, pan, tilt)
+        if sigma > 0.0 and math.isfinite(sigma):
+            sig = self._joint_sigma[side]
+            sig[stamp] = float(sigma)
+            if len(sig) > 4 * self.params.max_queue:
+                del sig[next(iter(sig))]        # the oldest (added in time order)
         return True
 
     def add_fixation(self, side: str, stamp: float, pixel: tuple[float, float] | None, fixation_id: int) -> bool:
@@ -258,7 +267,8 @@ class StereoSync:
         px, fid = fix if fix is not None else (None, NO_FIXATION_ID)
         if px is None:
             self.stats.no_fixation += 1
-        return SyncedCamera(m.stamp, m.image, float(joints[0]), float(joints[1]), px, fid)
+        return SyncedCamera(m.stamp, m.image, float(joints[0]), float(joints[1]), px, fid,
+                            self._joint_sigma[side].get(m.stamp, 0.0))
 
     def _fixation_at(self, side: str, stamp: float) -> tuple[tuple[float, float] | None, int] | None:
         fix = self._fix[side]

@@ -55,7 +55,14 @@ from fixego_ros.geometry.rotation import Pose, rig_pose_to_base_link
 from fixego_ros.interrupt import sigint_ignored
 from fixego_ros.pipeline.camera_info import CAMERA_INFO_TYPE, IntrinsicsFromInfo
 from fixego_ros.pipeline.frontend import CameraSample, KeyframePolicy, StereoFrontEnd
-from fixego_ros.pipeline.messages import ImageError, gray_for_camera, msg_to_pose, pan_tilt, stamp_to_sec
+from fixego_ros.pipeline.messages import (
+    ImageError,
+    gray_for_camera,
+    joint_sigma,
+    msg_to_pose,
+    pan_tilt,
+    stamp_to_sec,
+)
 from fixego_ros.pipeline.odometry import (
     ODOMETRY_TYPE,
     VERGENCE_TYPE,
@@ -499,7 +506,8 @@ def replay(bag: Bag, rig: Rig, settings: ReplaySettings, topics: ReplayTopics = 
         t0 = time.perf_counter()
         if verged:
             follow_the_head(frame)
-        samples = {side: None if c is None else CameraSample(c.image, c.pan, c.tilt, c.fixation_px, c.fixation_id)
+        samples = {side: None if c is None else CameraSample(c.image, c.pan, c.tilt, c.fixation_px, c.fixation_id,
+                                                       c.joint_sigma)
                    for side, c in frame.cameras.items()}
         obs = frontend.process(frame.stamp, samples)
         clock('flow', t0)
@@ -570,7 +578,7 @@ def replay(bag: Bag, rig: Rig, settings: ReplaySettings, topics: ReplayTopics = 
                 except ValueError as e:
                     res.note(f'bad_joints:{side}', f'{e}: skipped')
                     continue
-                if not sync.add_joints(side, stamp, pan, tilt):
+                if not sync.add_joints(side, stamp, pan, tilt, joint_sigma(msg, side)):
                     res.note(f'joints_rejected:{side}', f'{side} joint state at {stamp:.3f} s non-finite or out of '
                                                          f'order: such readings are skipped')
                     continue
