@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+from collections import deque
 
 import numpy as np
 import pytest
@@ -122,3 +123,24 @@ def test_the_factory_puts_the_smoother_in_a_child_only_when_live():
     finally:
         backend.close()
     assert not backend.alive
+
+
+def test_a_skipped_frame_between_two_smoothed_ones_lies_between_them():
+    """Stop 36: a frame the child skipped rode on its reference with the fast pose's step, so each keyframe's revision
+    left a jump at the next one and the refined path was a sawtooth (a demo's 6.9 m for the 5.0 m loop). Once the
+    frames on both sides are smoothed it goes on the geodesic between them, and out as a revision."""
+    from fixego_ros.estimation.live_smoother import _Recent
+    from fixego_ros.geometry.rotation import Pose
+
+    live = LiveSmoother.__new__(LiveSmoother)          # the parent's bookkeeping only: no child process
+    live._revised = {}
+    a = _Recent(0.0, Pose(np.eye(3), np.zeros(3)), Pose.identity(), {}, smoothed=True)
+    skipped = _Recent(0.1, Pose(np.eye(3), np.array([0.0, 0.0, 0.5])), Pose.identity(), {}, ref=a,
+                      step=Pose(np.eye(3), np.array([0.0, 0.0, 0.5])))
+    b = _Recent(0.4, Pose(np.eye(3), np.array([0.0, 0.0, 0.4])), Pose.identity(), {}, smoothed=True)
+    later = _Recent(0.5, Pose(np.eye(3), np.array([0.0, 0.0, 0.9])), Pose.identity(), {}, ref=b)
+    live._recent = deque([a, skipped, b, later])
+    live._between_smoothed({id(b)})
+    np.testing.assert_allclose(skipped.pose.t, [0.0, 0.0, 0.1], atol=1e-12)
+    assert set(live._revised) == {0.1}
+    np.testing.assert_allclose(later.pose.t, [0.0, 0.0, 0.9])      # after the newest smoothed frame: unchanged

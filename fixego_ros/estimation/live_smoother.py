@@ -14,6 +14,7 @@ Replay keeps the in-process :class:`Smoother` (every frame in the graph, determi
 from __future__ import annotations
 
 import contextlib
+import itertools
 import multiprocessing as mp
 import os
 import signal
@@ -345,9 +346,27 @@ class LiveSmoother:
             else:
                 continue
             self._revised[r.stamp] = r.pose
+        self._between_smoothed(moved)
         if np.all(np.isfinite(result.pose_covariance)):
             self._pose_cov = result.pose_covariance
         return 1
+
+    def _between_smoothed(self, moved: set[int]) -> None:
+        """A frame the child skipped that now lies between two smoothed frames, one of them just ``moved``, goes on the
+        geodesic between them at its stamp. Riding on its reference alone, it kept the step the fast pose had taken,
+        and each keyframe's revision left a jump at the next one: the path was a sawtooth (a demo run's refined path
+        6.9 m for the 5.0 m loop, its live pose 5.2 m)."""
+        recent = list(self._recent)
+        smoothed = [k for k, r in enumerate(recent) if r.smoothed]
+        for a, b in itertools.pairwise(smoothed):
+            ra, rb = recent[a], recent[b]
+            if b - a < 2 or not (id(ra) in moved or id(rb) in moved):
+                continue
+            for r in recent[a + 1:b]:
+                pose = constant_twist(ra.pose, ra.stamp, rb.pose, rb.stamp, r.stamp)
+                if pose.is_finite():
+                    r.pose = pose
+                    self._revised[r.stamp] = pose
 
     def _speed(self) -> float:
         """m/s: the smoother's motion over its newest ``SPEED_WINDOW_S``; the nominal speed before there is one."""
