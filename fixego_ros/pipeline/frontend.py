@@ -435,7 +435,7 @@ class StereoFrontEnd:
             r = self.rig.pixels_to_rig_rays(side, np.array([fix_px]), pan, tilt)[0]
             ray = r if np.all(np.isfinite(r)) else None
         current[side] = CameraSample(img, pan, tilt, fix_px, int(s.fixation_id) if fix_px is not None else -1)
-        sigma = float(getattr(s, 'joint_sigma', 0.0))
+        sigma = float(s.joint_sigma)
         return CameraFrame(ray, int(s.fixation_id) if ray is not None else -1, C,
                            joint_sigma=sigma if math.isfinite(sigma) and sigma > 0.0 else 0.0)
 
