@@ -86,6 +86,15 @@ def at_stamp(frames: Sequence[_Stamped], stamp: float | None) -> _Stamped | None
     return None
 
 
+def span_start(frames: Sequence[_Stamped], seconds: float) -> _Stamped | None:
+    """The newest of ``frames`` (oldest first) at least ``seconds`` before the last one: the start of a span to
+    measure a speed or a motion over; None when there is none."""
+    if len(frames) < 2:
+        return None
+    last = frames[-1].stamp
+    return next((f for f in reversed(frames[:-1]) if last - f.stamp >= seconds), None)
+
+
 def step_pairs(rig: Rig, prev: dict[str, Fixation | None], obs: FrameObservation,
                fixation_weight: float = 1.0) -> RayPairs:
     """All ray pairs of one step: each camera's flow pairs, and its fixation pair when the fixation

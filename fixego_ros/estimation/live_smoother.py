@@ -35,6 +35,7 @@ from fixego_ros.estimation.frames import (
     FrameResult,
     at_stamp,
     fixations_of,
+    span_start,
     step_pairs,
 )
 from fixego_ros.estimation.status import StepStatus
@@ -372,8 +373,7 @@ class LiveSmoother:
         """m/s: the smoother's motion over its newest ``SPEED_WINDOW_S``; the nominal speed before there is one."""
         smoothed = [r for r in self._recent if r.smoothed]
         if len(smoothed) >= 2:
-            b = smoothed[-1]
-            a = next((r for r in reversed(smoothed[:-1]) if b.stamp - r.stamp >= self.SPEED_WINDOW_S), smoothed[0])
+            a, b = span_start(smoothed, self.SPEED_WINDOW_S) or smoothed[0], smoothed[-1]
             if b.stamp > a.stamp:
                 return float(np.linalg.norm(b.pose.t - a.pose.t)) / (b.stamp - a.stamp)
         return self._config.smoother.nominal_speed

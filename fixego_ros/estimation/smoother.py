@@ -42,7 +42,15 @@ from fixego_ros.estimation.factors import (
     to_gtsam,
 )
 from fixego_ros.estimation.fixed_lag import FixedLagWindow
-from fixego_ros.estimation.frames import Fixation, FrameObservation, FrameResult, at_stamp, fixations_of, step_pairs
+from fixego_ros.estimation.frames import (
+    Fixation,
+    FrameObservation,
+    FrameResult,
+    at_stamp,
+    fixations_of,
+    span_start,
+    step_pairs,
+)
 from fixego_ros.estimation.keys import LandmarkId, LandmarkKind, camera_key, landmark_key, pose_key
 from fixego_ros.estimation.speed_samples import SpeedSamples
 from fixego_ros.estimation.status import StepStatus
@@ -248,8 +256,7 @@ class Smoother:
         placed = [f for f in self._frames if f.index >= self._graph_start and f.pose.is_finite()]
         if len(placed) < 2:
             return None
-        b = placed[-1]
-        a = next((f for f in reversed(placed[:-1]) if b.stamp - f.stamp >= self.CARRY_TWIST_S), placed[0])
+        a, b = span_start(placed, self.CARRY_TWIST_S) or placed[0], placed[-1]
         return (a, b) if b.stamp > a.stamp else None
 
     def _recent_frames(self) -> list[_Frame]:
@@ -534,11 +541,11 @@ class Smoother:
         """The speed (m/s) between the newest frame the landmarks placed and one at least ``HOLD_SPAN_S`` before
         it, from their current estimates; None without two such frames in this graph."""
         placed = [f for f in self._frames if f.index in self._placed and self._in_graph(f)]
-        if len(placed) < 2:
+        a = span_start(placed, self.HOLD_SPAN_S)
+        if a is None:
             return None
         b = placed[-1]
-        a = next((f for f in reversed(placed[:-1]) if b.stamp - f.stamp >= self.HOLD_SPAN_S), None)
-        return None if a is None else float(np.linalg.norm(b.pose.t - a.pose.t)) / (b.stamp - a.stamp)
+        return float(np.linalg.norm(b.pose.t - a.pose.t)) / (b.stamp - a.stamp)
 
     def _hold_speed(self, i: int, stamp: float, up: _Update) -> None:
         """A frame the landmarks place is remembered; one they do not gets its step at their last speed
