@@ -258,3 +258,37 @@ def test_a_window_jump_the_readings_miss_is_followed_by_the_fixation_points_shif
         assert all(kept[s] >= 0.8 * n0[s] for s in SIDES)
     else:
         assert all(fe.last[s].lk != LK_FIXATION and kept[s] < 0.2 * n0[s] for s in SIDES)
+
+
+def test_new_corners_are_detected_once_a_twentieth_of_the_target_is_missing_not_for_each_lost_track(rig,
+                                                                                                   monkeypatch):
+    """A detection costs as much for one corner as for twenty, and a frame usually loses one or two tracks: the
+    region is refilled once it lacks 5 % of its target (the target, 150, here: 8), to the full target."""
+    import fixego_ros.pipeline.frontend as frontend
+
+    asked: list[int] = []
+    detect = frontend.detect_corners
+
+    def counting(gray, box, need, params, exclude=None):
+        asked.append(int(need))
+        return detect(gray, box, need, params, exclude=exclude)
+
+    monkeypatch.setattr(frontend, 'detect_corners', counting)
+    params = FlowParams(preset='full', max_corners=150)
+    fe = StereoFrontEnd(rig, params)
+    batch = max(1, round(frontend.REPLENISH_FRACTION * params.max_corners))
+    assert batch == 8
+    fe.process(0.0, samples(rig, 0.0))
+    assert asked == [150, 150] and all(len(fe._tracks[s]) == 150 for s in SIDES)
+    for k, lose in enumerate((batch - 1, batch), start=1):
+        asked.clear()
+        for side in SIDES:           # these tracks are lost (as if LK had failed on them)
+            keep = np.ones(len(fe._tracks[side]), bool)
+            keep[:lose] = False
+            fe._tracks[side] = fe._tracks[side].select(keep)
+        fe.process(k / 30.0, samples(rig, 0.0))
+        if lose < batch:
+            assert asked == [] and all(len(fe._tracks[s]) == 150 - lose for s in SIDES)
+        else:                        # 7 short from before + 8 now: refilled to the target
+            assert asked == [batch - 1 + lose] * 2
+            assert all(len(fe._tracks[s]) == 150 for s in SIDES)

@@ -1,18 +1,17 @@
 """Stereo front end: synchronised camera samples -> the estimator's :class:`FrameObservation` (ROS-free).
 
-**Persistent tracks.** Per camera the front end keeps a set of point tracks with integer ids (never
-reused within a camera, increasing). Every frame they are tracked from the previous processed frame with
-pyramidal Lucas-Kanade and the forward-backward and correlation checks
-(:func:`~fixego_ros.tracking.flow.track_points`); a track dies when it fails a check, leaves the image
-(border) or its track region (below), or is an epipolar outlier. When fewer than a target number remain
-in the flow region, new corners are detected there (at least ``min_distance_px`` from the live tracks)
-and get new ids; a camera holds at most the target number of tracks (the LK cost is per point). A track
-leaving its region still gives its flow pair at that frame, then ends. Regions follow the fixation
-pixel at t (image centre without one): ``paper``: the papers' ``paper_points`` in the central
-``paper_region_px`` square, tracks die on leaving it; ``window``: up to ``max_corners`` in the
-``window_px`` square, tracks die on leaving that square grown by a quarter of its side each way;
-``full``: ``max_corners`` over the whole image. Each :class:`CameraFrame` carries
-every live track at t (``track_ids``, ``track_rays``).
+**Persistent tracks.** Per camera the front end keeps a set of point tracks with integer ids (never reused
+within a camera, increasing). Every frame they are tracked from the previous processed frame with pyramidal
+Lucas-Kanade and the forward-backward and correlation checks (:func:`~fixego_ros.tracking.flow.track_points`);
+a track dies when it fails a check, leaves the image (border) or its track region (below), or is an epipolar
+outlier. When the flow region lacks at least :data:`REPLENISH_FRACTION` of a target number (one, at least),
+new corners are detected there (at least ``min_distance_px`` from the live tracks) and get new ids; a camera
+holds at most the target number of tracks (the LK cost is per point). A track leaving its region still gives
+its flow pair at that frame, then ends. Regions follow the fixation pixel at t (image centre without one):
+``paper``: the papers' ``paper_points`` in the central ``paper_region_px`` square, tracks die on leaving it;
+``window``: up to ``max_corners`` in the ``window_px`` square, tracks die on leaving that square grown by a
+quarter of its side each way; ``full``: ``max_corners`` over the whole image. Each :class:`CameraFrame`
+carries every live track at t (``track_ids``, ``track_rays``).
 
 **Predicted LK.** Image motion between frames can be large (a head lags its fixation point or swings
 back at a pan limit), so LK starts from a prediction: the pan/tilt of both frames are known, and the
@@ -76,6 +75,10 @@ from fixego_ros.tracking.flow import (
 )
 
 # per-camera outcome of a frame
+# new tracks are detected once the region lacks this share of its target (at least one): a detection costs the
+# same for one corner as for twenty, and a frame usually loses one or two tracks
+REPLENISH_FRACTION = 0.05
+
 OK = 'ok'                        # tracked from the previous frame; flow from the keyframe (it may still have 0 pairs)
 NO_PREVIOUS = 'no_previous'      # first frame, or the camera was not usable at the keyframe
 MISSING = 'missing'              # no sample for this camera
@@ -490,7 +493,8 @@ class StereoFrontEnd:
         # 3. new tracks where the region has fewer than the target (and the camera fewer than that in all)
         need = min(target - int(_in_box(tracks.px, region).sum()), target - len(tracks))
         n_new = 0
-        if need > 0 and region[2] - region[0] >= 1 and region[3] - region[1] >= 1:
+        batch = max(1, round(REPLENISH_FRACTION * target))
+        if need >= batch and region[2] - region[0] >= 1 and region[3] - region[1] >= 1:
             pts = detect_corners(now.gray, region, need, p, exclude=tracks.px)
             rays = self.rig.pixels_to_rig_rays(side, pts, now.pan, now.tilt)
             fin = np.all(np.isfinite(rays), axis=1)
