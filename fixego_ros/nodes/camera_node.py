@@ -46,6 +46,7 @@ from collections import deque
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PointStamped, PoseWithCovarianceStamped
 from rclpy.node import Node
+from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import Image, JointState
 from std_msgs.msg import Empty
 from std_srvs.srv import Trigger
@@ -511,7 +512,8 @@ class CameraNode(Node):
         self.scheduler = VergenceScheduler(self._vergence_schedule(g), self._now())
         self.vergence_state = 'idle'
         self.pub_vergence = self.create_publisher(PoseWithCovarianceStamped, 'vergence', LATCHED_QOS)
-        self.create_subscription(Image, 'right/image_raw', self._on_right_image, SENSOR_QOS)
+        # raw: a right image is decoded only while a step wants it (most frames it is not looked at)
+        self.create_subscription(Image, 'right/image_raw', self._on_right_image, SENSOR_QOS, raw=True)
         self.create_subscription(PointStamped, 'right/fixation', self._on_right_fixation, RELIABLE_QOS)
         self.create_subscription(JointState, 'right/joint_states', self._on_right_joints, RELIABLE_QOS)
         self.create_subscription(Empty, 'vergence_request', self._on_vergence_request, RELIABLE_QOS)
@@ -521,12 +523,13 @@ class CameraNode(Node):
                                'vergence_request' + (f', every {period:g} s' if period > 0 else '')
                                + f'; at least {float(g("vergence_min_interval_s")):g} s apart')
 
-    def _on_right_image(self, msg: Image) -> None:
+    def _on_right_image(self, data: bytes) -> None:
         if self.vergence is None or not self.vergence.wants_right_images:
             return
         try:
+            msg = deserialize_message(data, Image)
             gray = image_to_gray(msg)
-        except ImageError:
+        except (ImageError, RuntimeError):     # RuntimeError: bytes that do not deserialize as an Image
             return
         if gray.shape == (self.rig.right.height, self.rig.right.width):
             self.vergence.add_right_image(stamp_to_sec(msg.header.stamp), gray)
