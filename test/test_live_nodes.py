@@ -384,5 +384,12 @@ def test_demo_runs_every_node_as_a_process_and_writes_a_report(tmp_path):
         je = report['joint_error_deg'][side]
         assert je['frames'] >= 10 and 0.0 <= je['p50_deg'] <= je['p95_deg'] <= je['max_deg'] < 5.0, (side, je)
     assert 'joint states against the true angles' in (out / 'report.txt').read_text()
+    # where the cores went: every node process (and the estimator's smoother child) measured, and the sum
+    cpu = report['cpu_percent_of_one_core']
+    nodes = ('sim_rig_node', 'right_camera_node', 'left_camera_node', 'flow_node', 'estimator_node')
+    assert all(cpu[n] > 0 for n in nodes), cpu
+    assert any(v > 0 for k, v in cpu.items() if k.startswith('estimator_node/child')), cpu     # the smoother
+    assert cpu['total'] == pytest.approx(sum(v for k, v in cpu.items() if k not in ('total', 'cores')), abs=0.5)
+    assert 'CPU, % of one core' in (out / 'report.txt').read_text()
     for name in ('sim_rig_node', 'right_camera_node', 'left_camera_node', 'flow_node', 'estimator_node'):
         assert (out / 'logs' / f'{name}.log').exists()

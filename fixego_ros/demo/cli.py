@@ -128,8 +128,9 @@ def _say(args: argparse.Namespace, text: str) -> None:
 def _run(args: argparse.Namespace, out: Path, rig_path: Path, launcher) -> int:
     import rclpy
     from geometry_msgs.msg import PoseWithCovarianceStamped
-    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.experimental import EventsExecutor
 
+    from fixego_ros.demo.cpu import CpuSampler
     from fixego_ros.demo.launcher import NodeSpec, wait_for
     from fixego_ros.nodes.common import LATCHED_QOS, stamp_to_sec
     from fixego_ros.nodes.demo_recorder import Recorder
@@ -171,7 +172,7 @@ def _run(args: argparse.Namespace, out: Path, rig_path: Path, launcher) -> int:
     vergence_stamps: list[float] = []
     node.create_subscription(PoseWithCovarianceStamped, 'vergence',
                              lambda m: vergence_stamps.append(stamp_to_sec(m.header.stamp)), LATCHED_QOS)
-    ex = SingleThreadedExecutor()
+    ex = EventsExecutor()
     ex.add_node(node)
     spin = lambda s: ex.spin_once(timeout_sec=s)  # noqa: E731
     try:
@@ -196,8 +197,12 @@ def _run(args: argparse.Namespace, out: Path, rig_path: Path, launcher) -> int:
                 node.clear()
                 t_reset = node.get_clock().now().nanoseconds * 1e-9
         t_run = time.monotonic()
-        last_print = 0.0
+        last_print = last_cpu = 0.0
+        cpu = CpuSampler({n: p.pid for n, p in launcher.procs.items()}, {'fixego demo (recorder)': os.getpid()})
         while 'sim_rig_node' not in launcher.exited():
+            if time.monotonic() - last_cpu >= 1.0:
+                last_cpu = time.monotonic()
+                cpu.sample(last_cpu)
             spin(0.05)
             if (why := failed()) is not None:
                 print(f'fixego demo: {why}', file=sys.stderr)
@@ -214,9 +219,10 @@ def _run(args: argparse.Namespace, out: Path, rig_path: Path, launcher) -> int:
             last = node.poses[-1][0]
             wait_for(lambda: all((node.path_stamp(name) or -math.inf) >= last for name in ('path', 'path_raw')),
                      2 * _path_period() + 3.0, spin=spin)
+        cpu.sample(time.monotonic())
         launcher.stop_all()
         from fixego_ros.demo.report import write_report
-        report = write_report(out, node, t_reset, vars(args), vergence_stamps)
+        report = write_report(out, node, t_reset, vars(args), vergence_stamps, cpu.shares())
     finally:
         ex.shutdown()
         node.destroy_node()

@@ -4,6 +4,7 @@ vergence steps, latency (image -> pose, and by stage) and drops."""
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 from typing import Any
 
@@ -124,11 +125,12 @@ def joint_errors(estimated: dict[float, tuple[float, float]], true: dict[float, 
 
 
 def write_report(out: Path, rec, t_start: float, run_args: dict[str, Any],
-                 vergence_stamps: list[float] | None = None) -> dict[str, Any]:
+                 vergence_stamps: list[float] | None = None, cpu: dict[str, float] | None = None) -> dict[str, Any]:
     """Write ``estimate.live.tum`` (each pose as published), ``estimate.tum`` (the last path: the smoother's
     refined trajectory), ``estimate.raw.tum`` (the last path_raw), ``ground_truth.tum``, ``report.json``,
     ``trajectory.png`` under ``out`` from what the recorder saw at or after ``t_start``; returns the report (with a
-    ``console`` summary). ``vergence_stamps``: stamps of the /fixego/vergence measurements seen."""
+    ``console`` summary). ``vergence_stamps``: stamps of the /fixego/vergence measurements seen; ``cpu``: % of one
+core per process over the run (:class:`~fixego_ros.demo.cpu.CpuSampler`)."""
     keep = [(i, t, p) for i, (t, p) in enumerate(rec.poses) if t >= t_start]
     live = [(t, p) for _, t, p in keep]
     latency = [rec.latency_s[i] for i, _, _ in keep if i < len(rec.latency_s)]
@@ -149,6 +151,7 @@ def write_report(out: Path, rec, t_start: float, run_args: dict[str, Any],
         'frames': {'rendered': len(truth), 'poses': len(live), 'dropped': dropped},
         'latency_image_to_pose_ms': _ms(latency),
         'latency_stages_ms': latency_stages(rec),
+        'cpu_percent_of_one_core': {**(cpu or {}), 'cores': os.cpu_count()},
         'paper_table1_cm': PAPER_TABLE1,
         'diagnostics': dict(rec.statuses),      # each node's last /diagnostics status
         'vergence': vergence_summary(rec.statuses, list(vergence_stamps or []), t_start),
@@ -185,6 +188,9 @@ def write_report(out: Path, rec, t_start: float, run_args: dict[str, Any],
               for k, v in report['latency_stages_ms'].items() if 'p50' in v]
     if stages:
         lines.append('  latency by stage, ms p50/p95 (see report.json): ' + ', '.join(stages))
+    if cpu:
+        lines.append(f'  CPU, % of one core ({os.cpu_count()} cores): '
+                     + ', '.join(f'{k} {v:.0f}' for k, v in cpu.items()))
     for label in ('raw', 'live', 'refined'):
         s = report.get(label, {})
         if 'error' in s:
