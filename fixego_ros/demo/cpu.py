@@ -15,13 +15,18 @@ from pathlib import Path
 PROC = Path('/proc')
 
 
-def cpu_seconds(pid: int) -> float | None:
-    """User + system CPU time (s) of a process so far, None when it is gone or /proc is not there."""
+def _stat(pid: int | str) -> list[str] | None:
+    """The fields of ``/proc/<pid>/stat`` after the command name (state, ppid, ...), None when it is gone."""
     try:
-        fields = (PROC / str(pid) / 'stat').read_text().rsplit(')', 1)[1].split()
+        return (PROC / str(pid) / 'stat').read_text().rsplit(')', 1)[1].split()
     except (OSError, IndexError):
         return None
-    return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
+
+
+def cpu_seconds(pid: int) -> float | None:
+    """User + system CPU time (s) of a process so far, None when it is gone or /proc is not there."""
+    fields = _stat(pid)
+    return None if fields is None else (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
 
 
 def children(pid: int) -> list[int]:
@@ -32,11 +37,8 @@ def children(pid: int) -> list[int]:
     except OSError:
         return out
     for e in entries:
-        try:
-            ppid = int((PROC / e / 'stat').read_text().rsplit(')', 1)[1].split()[1])
-        except (OSError, IndexError, ValueError):
-            continue
-        if ppid == pid:
+        fields = _stat(e)
+        if fields is not None and fields[1] == str(pid):
             out.append(int(e))
     return out
 

@@ -130,7 +130,7 @@ def write_report(out: Path, rec, t_start: float, run_args: dict[str, Any],
     refined trajectory), ``estimate.raw.tum`` (the last path_raw), ``ground_truth.tum``, ``report.json``,
     ``trajectory.png`` under ``out`` from what the recorder saw at or after ``t_start``; returns the report (with a
     ``console`` summary). ``vergence_stamps``: stamps of the /fixego/vergence measurements seen; ``cpu``: % of one
-core per process over the run (:class:`~fixego_ros.demo.cpu.CpuSampler`)."""
+    core per process over the run (:class:`~fixego_ros.demo.cpu.CpuSampler`)."""
     keep = [(i, t, p) for i, (t, p) in enumerate(rec.poses) if t >= t_start]
     live = [(t, p) for _, t, p in keep]
     latency = [rec.latency_s[i] for i, _, _ in keep if i < len(rec.latency_s)]
