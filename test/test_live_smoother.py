@@ -116,13 +116,38 @@ def test_bad_aids_are_refused_here_and_a_dead_child_leaves_poses_flowing(loop, l
 
 def test_the_factory_puts_the_smoother_in_a_child_only_when_live():
     config = EstimatorConfig()
-    assert isinstance(make_backend(RIG, config), Smoother)
+    inline = make_backend(RIG, config)
+    assert isinstance(inline, LiveSmoother) and inline._process is None and inline.alive
     backend = make_backend(RIG, config, live=True)
     try:
         assert isinstance(backend, LiveSmoother) and backend.alive
     finally:
         backend.close()
     assert not backend.alive
+
+
+def test_inline_the_smoother_takes_the_child_path_on_keyframes_and_is_deterministic(loop):
+    """Replay's back end: the same class with the smoother in this process. With every frame a keyframe its path is
+    the child's when the child answers every frame; with keyframes every 4th frame it takes those and, between
+    them, a frame once ``MIN_GAP_S`` has passed since the last one it took, and two runs give the same bytes (the
+    flow here starts from the previous frame, so the skipped frames break its chain: no accuracy is asserted)."""
+    config = EstimatorConfig(solver=SolverConfig(sigma=1.0 / F))
+    _, expected = _feed(Smoother(RIG, config), loop, wait=False)
+    _, path = _feed(LiveSmoother(RIG, config, inline=True), loop, wait=False)
+    assert np.max(np.abs(path - expected)) < 1e-9
+
+    observations = [dataclasses.replace(o, keyframe=(k % 4 == 0)) for k, o in enumerate(loop.observations)]
+    sparse = dataclasses.replace(loop, observations=observations)
+    runs = []
+    for _ in range(2):
+        inline = LiveSmoother(RIG, config, inline=True)
+        inline._conn.MIN_GAP_S = 0.5           # > the 0.2 s frame period: some non-keyframes stay out
+        results, path = _feed(inline, sparse, wait=False)
+        runs.append(path)
+        assert all(r.placed and r.pose.is_finite() for r in results)
+        assert inline.frames_skipped > 0
+        assert inline.smoothed_results + inline.frames_skipped == len(observations)
+    assert np.array_equal(runs[0], runs[1])
 
 
 def test_a_skipped_frame_between_two_smoothed_ones_lies_between_them():

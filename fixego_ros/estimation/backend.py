@@ -5,16 +5,22 @@ from __future__ import annotations
 from fixego_ros.estimation.config import EstimatorConfig
 from fixego_ros.estimation.estimator import Estimator
 from fixego_ros.estimation.live_smoother import LiveSmoother
-from fixego_ros.estimation.smoother import Smoother
 from fixego_ros.geometry.rig import Rig
+from fixego_ros.geometry.rotation import Pose
 
-Backend = Estimator | Smoother | LiveSmoother
+Backend = Estimator | LiveSmoother
 
 
 def make_backend(rig: Rig, config: EstimatorConfig, live: bool = False) -> Backend:
-    """``refinement: smoother`` (the default): the metric fixed-lag smoother, in a child process behind a pose for
-    every frame when ``live`` (estimator_node), in this process otherwise (replay: every frame in the graph);
+    """``refinement: smoother`` (the default): a pose for every frame from its keyframe, and the metric fixed-lag
+    smoother over the keyframes revising them; the smoother in a child process when ``live`` (estimator_node: it
+    also takes a non-keyframe when idle), in this process otherwise (replay: every keyframe, deterministic);
     ``local``: the papers' method."""
     if config.refinement != 'smoother':
         return Estimator(rig, config)
-    return LiveSmoother(rig, config) if live else Smoother(rig, config)
+    return LiveSmoother(rig, config, inline=not live)
+
+
+def final_revisions(backend: Backend) -> tuple[tuple[float, Pose], ...]:
+    """The revisions a back end still holds after its last frame (the smoother's answer to that frame)."""
+    return backend.drain(0.0) if isinstance(backend, LiveSmoother) else ()

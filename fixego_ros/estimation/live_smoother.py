@@ -8,13 +8,15 @@ smoother's latest estimate of the keyframe. The smoother's results revise the pa
 stays continuous; corrections go to the path). The child takes every keyframe (later flow starts from them, so
 they must be in its graph) and the newest non-keyframe whenever it is idle.
 
-Replay keeps the in-process :class:`Smoother` (every frame in the graph, deterministic); the node uses this.
+Replay runs the same class with the smoother in the caller's process (``inline``): every keyframe goes into the graph,
+no other frame, so the output is deterministic and the replay does what the node does, without its timing.
 """
 
 from __future__ import annotations
 
 import contextlib
 import itertools
+import math
 import multiprocessing as mp
 import os
 import signal
@@ -30,6 +32,7 @@ from fixego_ros.estimation.config import EstimatorConfig
 from fixego_ros.estimation.covariance import VAR_MAX, checked_measurement
 from fixego_ros.estimation.factors import constant_twist, with_length
 from fixego_ros.estimation.frames import (
+    STAMP_TOLERANCE_S,
     Fixation,
     FrameObservation,
     FrameResult,
@@ -77,18 +80,45 @@ def _state(smoother: Any, skipped: int, error: str) -> SmootherState:
                          smoother.speed_source_used, skipped, error, smoother.restarts, smoother.repairs)
 
 
+class _Server:
+    """What the smoother side does with each message (the child process's loop and :class:`_Inline` share it)."""
+
+    def __init__(self, rig: Rig, config: EstimatorConfig) -> None:
+        from fixego_ros.estimation.smoother import Smoother
+        self.smoother = Smoother(rig, config)
+        self.skipped, self.error = 0, ''
+
+    def skip(self) -> None:
+        self.skipped += 1
+
+    def handle(self, kind: Message, payload: Any) -> tuple[FrameResult, SmootherState] | None:
+        """Apply one message; a frame's reply (result and state), else None."""
+        smoother = self.smoother
+        if kind is Message.RESET:
+            smoother.reset()
+            self.skipped, self.error = 0, ''
+        elif kind is Message.CONFIG:
+            smoother.config = payload
+        elif kind is Message.VELOCITY or kind is Message.POINT:
+            try:
+                (smoother.add_velocity if kind is Message.VELOCITY else smoother.add_fixation_point)(*payload)
+            except ValueError as e:
+                self.error = str(e)
+        elif kind is Message.FRAME:
+            result = smoother.update(payload)
+            return replace(result, twoframe=None, ba=None), _state(smoother, self.skipped, self.error)
+        return None
+
+
 def serve(conn: Any, rig: Rig, config: EstimatorConfig) -> None:
     """The child's loop: drain what the parent sent, then handle the oldest message; a non-keyframe is skipped
     when a later frame is already waiting. Ends on STOP or when the parent's end closes (the parent exited). Ctrl-C
     is the parent's (the terminal sends it to the whole process group; the parent stops us)."""
-    from fixego_ros.estimation.smoother import Smoother
-
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     with contextlib.suppress(OSError):      # the camera and flow nodes' frames come first on a busy machine
         os.nice(CHILD_NICENESS)
-    smoother = Smoother(rig, config)
+    server = _Server(rig, config)
     queue: deque[tuple[Message, Any]] = deque()
-    skipped, error = 0, ''
     while True:
         try:
             while conn.poll(0.0 if queue else 1.0):
@@ -100,25 +130,60 @@ def serve(conn: Any, rig: Rig, config: EstimatorConfig) -> None:
         kind, payload = queue.popleft()
         if kind is Message.STOP:
             return
-        if kind is Message.RESET:
-            smoother.reset()
-            skipped, error = 0, ''
-        elif kind is Message.CONFIG:
-            smoother.config = payload
-        elif kind is Message.VELOCITY or kind is Message.POINT:
+        if kind is Message.FRAME and not payload.keyframe and any(k is Message.FRAME for k, _ in queue):
+            server.skip()
+            continue
+        reply = server.handle(kind, payload)
+        if reply is not None:
             try:
-                (smoother.add_velocity if kind is Message.VELOCITY else smoother.add_fixation_point)(*payload)
-            except ValueError as e:
-                error = str(e)
-        elif kind is Message.FRAME:
-            if not payload.keyframe and any(k is Message.FRAME for k, _ in queue):
-                skipped += 1
-                continue
-            result = smoother.update(payload)
-            try:
-                conn.send((replace(result, twoframe=None, ba=None), _state(smoother, skipped, error)))
+                conn.send(reply)
             except (BrokenPipeError, OSError):
                 return
+
+
+class _Inline:
+    """The smoother in this process behind the child's pipe interface, deterministic (replay: the node's back end
+    without its timing). Every keyframe goes into the graph when it is sent, and another frame once ``MIN_GAP_S``
+    has passed since the last one that went in: a bag of 10 Hz or less has every frame in the graph, a 30 Hz one
+    its keyframes and about every third frame, as the node's child when it keeps up. Measured on 30 Hz bags (mean /
+    terminal cm, wall s; README "Stop 38"): every frame -> this, a simulated loop 3.9 / 6.3 in 272 s -> 3.4 / 6.1 in
+    54 s, a simulated walk 2.9 / 4.0 in 107 s -> 4.0 / 5.2 in 41 s, a recorded demo 6.9 / 18.2 in 247 s -> 7.0 / 10.4
+    in 42 s. Keyframes only was faster still (22-35 s) but lost the walk's scale in its first second (34 cm mean), as
+    did a gap of 0.2 s."""
+
+    MIN_GAP_S = 0.1
+
+    def __init__(self, rig: Rig, config: EstimatorConfig) -> None:
+        self._server = _Server(rig, config)
+        self._replies: deque[tuple[FrameResult, SmootherState]] = deque()
+        self.closed = False
+        self._last = -math.inf
+
+    def send(self, message: tuple[Message, Any]) -> None:
+        kind, payload = message
+        if kind is Message.STOP:
+            self.closed = True
+            return
+        if kind is Message.RESET:
+            self._last = -math.inf
+        if kind is Message.FRAME:
+            if not payload.keyframe and payload.stamp < self._last + self.MIN_GAP_S - STAMP_TOLERANCE_S:
+                self._server.skip()
+                return
+            self._last = payload.stamp
+        if (reply := self._server.handle(kind, payload)) is not None:
+            self._replies.append(reply)
+
+    def poll(self, timeout: float = 0.0) -> bool:
+        return bool(self._replies)
+
+    def recv(self) -> tuple[FrameResult, SmootherState]:
+        if not self._replies:
+            raise EOFError('no reply waiting')
+        return self._replies.popleft()
+
+    def close(self) -> None:
+        self.closed = True
 
 
 @dataclass
@@ -142,17 +207,23 @@ class LiveSmoother:
     SPEED_WINDOW_S = 0.5   # the speed of the fast poses: the smoother's motion over about this long
     JOIN_S = 2.0           # bound on waiting for the child to stop
 
-    def __init__(self, rig: Rig, config: EstimatorConfig | None = None) -> None:
+    def __init__(self, rig: Rig, config: EstimatorConfig | None = None, inline: bool = False) -> None:
+        """``inline``: the smoother in this process on every keyframe, deterministic (replay); else in a child
+        process on every keyframe and the newest other frame whenever it is idle (the node)."""
         self.rig = rig
         self._config = config or EstimatorConfig()
         self.solver = TwoFrameSolver(self._config.solver)
-        ctx = mp.get_context('spawn')      # fork would copy the node's DDS threads and locks into the child
-        self._conn, child = ctx.Pipe()
-        self._process = ctx.Process(target=serve, args=(child, rig, self._config), daemon=True,
-                                    name='fixego-smoother')
-        with sigint_ignored():
-            self._process.start()
-        child.close()
+        self._process: Any = None
+        if inline:
+            self._conn: Any = _Inline(rig, self._config)
+        else:
+            ctx = mp.get_context('spawn')      # fork would copy the node's DDS threads and locks into the child
+            self._conn, child = ctx.Pipe()
+            self._process = ctx.Process(target=serve, args=(child, rig, self._config), daemon=True,
+                                        name='fixego-smoother')
+            with sigint_ignored():
+                self._process.start()
+            child.close()
         self.smoothed_results = 0
         self._local_reset()
 
@@ -200,7 +271,7 @@ class LiveSmoother:
 
     @property
     def alive(self) -> bool:
-        return self._process.is_alive()
+        return self._process is None or self._process.is_alive()
 
     @property
     def last_stamp(self) -> float | None:
@@ -227,6 +298,8 @@ class LiveSmoother:
         if self._conn.closed:
             return
         self._send(Message.STOP, None)
+        if self._process is None:
+            return
         self._process.join(self.JOIN_S)
         if self._process.is_alive():
             self._process.terminate()

@@ -47,7 +47,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fixego_ros.bags.reader import Bag, DecodeError
-from fixego_ros.estimation.backend import Backend, make_backend
+from fixego_ros.estimation.backend import Backend, final_revisions, make_backend
 from fixego_ros.estimation.config import EstimatorConfig
 from fixego_ros.estimation.frames import STAMP_TOLERANCE_S
 from fixego_ros.geometry.rig import SIDES, Rig
@@ -221,6 +221,18 @@ def _update(estimator: Backend, stamp: float, obs) -> _Estimate:
 
 
 @dataclass
+class _Tail:
+    """The revisions the back end still held after the last frame (base_link poses by stamp)."""
+
+    revised: tuple[tuple[float, Pose], ...]
+
+
+def _tail(estimator: Backend) -> _Tail:
+    mount = estimator.rig.mount
+    return _Tail(tuple((s, rig_pose_to_base_link(p, mount)) for s, p in final_revisions(estimator)))
+
+
+@dataclass
 class _Failed:
     """The estimator process failed (an exception in the estimator): the one line the parent reports."""
 
@@ -263,6 +275,7 @@ def _estimator_worker(factory: Callable[[Rig, EstimatorConfig], Backend], rig: R
             if len(batch) >= 16:
                 outbox.send(batch)
                 batch = []
+        batch.append(_tail(estimator))
         outbox.send(batch)
         outbox.send(None)
     except (EOFError, BrokenPipeError, ConnectionResetError):     # the parent's ends closed: it has gone or
@@ -277,6 +290,7 @@ class _InProcess:
         self.estimator = make_backend(rig, config)
         self.done: list[_Estimate] = []
         self.refused: list[_Refused] = []     # fixation points the estimator did not take
+        self.tail = _Tail(())
 
     def submit(self, stamp: float, obs) -> None:
         self.done.append(_update(self.estimator, stamp, obs))
@@ -289,6 +303,7 @@ class _InProcess:
             self.refused.append(refused)
 
     def finish(self) -> list[_Estimate]:
+        self.tail = _tail(self.estimator)
         return self.done
 
     def abort(self) -> None:
@@ -321,6 +336,7 @@ class _Subprocess:
         self.timeout_s = timeout_s
         self.done: list[_Estimate] = []
         self.refused: list[_Refused] = []     # known once finished
+        self.tail = _Tail(())                 # likewise
 
     def _send_in_order(self) -> None:
         """The sender thread: everything queued, in order, up to and including the end (None)."""
@@ -366,6 +382,7 @@ class _Subprocess:
             quiet_since = time.monotonic()
             self.done.extend(e for e in batch if isinstance(e, _Estimate))
             self.refused.extend(e for e in batch if isinstance(e, _Refused))
+            self.tail = next((e for e in batch if isinstance(e, _Tail)), self.tail)
         self.proc.join(timeout=5.0)
         self.abort()                       # no-op when it has exited, as it should have
         return self.done
@@ -631,6 +648,10 @@ def replay(bag: Bag, rig: Rig, settings: ReplaySettings, topics: ReplayTopics = 
         res.stamps.append(e.stamp)
         res.poses.append(e.pose)
         res.poses_raw.append(e.pose_raw)
+    for s_, p_ in estimator.tail.revised:     # the smoother's answer to the last frames
+        k = index_of.get(s_)
+        if k is not None and p_.is_finite():
+            res.poses[k] = p_
 
     res.wall_s = time.perf_counter() - wall0
     res.notes = bag.report.lines() + res.notes
