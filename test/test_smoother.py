@@ -381,3 +381,23 @@ def test_frames_no_landmark_places_keep_the_speed_the_landmarks_measured(loop, m
     assert 0.6 < _gap_length_ratio(loop, gap) < 1.4                        # measured 0.86
     monkeypatch.setattr(Smoother, '_hold_speed', lambda self, i, stamp, up: None)
     assert _gap_length_ratio(loop, gap) < 0.5                               # measured 0.21: the speed decays
+
+
+def test_a_measurement_whose_frame_a_restart_dropped_moves_to_the_new_graph(loop):
+    """A live demo: the smoother restarted at rest just before the start-up vergence measurement arrived; its frame
+    was in the failed graph, so it was ignored ("left the lag") and the whole run had no scale (31 cm mean). It is
+    moved to the new graph's next frame with the camera's fixation (both graphs share one world frame)."""
+    obs = loop.observations
+    sm = Smoother(RIG, _config())
+    for o in obs[:6]:
+        sm.update(o)
+    sm._restart()                                   # as a numerical failure does
+    for o in obs[6:8]:
+        sm.update(o)
+    assert obs[6].right.fixation_id == obs[5].right.fixation_id
+    rng = np.random.default_rng(0)
+    sm.add_fixation_point(obs[5].stamp, 'right', *_vergence(loop, 5, 0.0, rng))
+    assert sm.scale_observed and 'ignored' not in sm.scale_note(), sm.scale_note()
+    assert sm._vergence_used == 1
+    stamp, rel_std = sm.scale_measurement
+    assert stamp == obs[6].stamp and 0.0 < rel_std < 0.05     # carried one frame (0.2 s at rest-like speed)

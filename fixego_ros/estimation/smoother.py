@@ -584,8 +584,11 @@ class Smoother:
                                   'fixates): ignored')
                 continue
             if not (up.values.exists(pose_key(frame.index)) or self._in_graph(frame)):
-                self._note = f'vergence measurement at {p.stamp:.3f} s arrived after its frame left the lag: ignored'
-                continue
+                frame, p = self._into_new_graph(frame, p, up)
+                if frame is None:
+                    self._note = (f'vergence measurement at {p.stamp:.3f} s arrived after its frame left the lag: '
+                                  'ignored')
+                    continue
             lid = LandmarkId(LandmarkKind.FIXATION, p.side, frame.fixation[p.side][1])
             index = self._landmarks.get(lid)
             if index is None:
@@ -616,16 +619,37 @@ class Smoother:
         if after is None or before is None:
             return None, p
         at_stamp = constant_twist(before.pose, before.stamp, after.pose, after.stamp, p.stamp)
-        moved = []
         nearer_before = p.stamp - before.stamp <= after.stamp - p.stamp
-        for frame in ((before, after) if nearer_before else (after, before)):
-            motion = frame.pose.inverse() @ at_stamp
-            point = motion.apply(p.point)
-            spread = (0.5 * float(np.linalg.norm(motion.t))) ** 2 + \
-                (0.1 * float(np.linalg.norm(motion.rvec())) * float(np.linalg.norm(p.point))) ** 2
-            moved.append((frame, _PendingPoint(frame.stamp, p.side, point,
-                                               motion.R @ p.cov @ motion.R.T + np.eye(3) * spread)))
+        moved = [(frame, self._moved(p, frame, at_stamp)) for frame in ((before, after) if nearer_before
+                                                                         else (after, before))]
         return next(((frame, q) for frame, q in moved if self._fits(frame, q)), moved[0])
+
+    def _into_new_graph(self, frame: _Frame, p: _PendingPoint, up: _Update) -> tuple[_Frame | None, _PendingPoint]:
+        """A measurement whose frame belongs to a graph that failed since (a live demo: the smoother restarted at rest
+        just before the start-up measurement arrived, and the whole run went without a scale, 31 cm mean), moved to
+        the first frame of this graph within ``CARRY_MAX_S`` after it that fixates the same point (same fixation id: the
+        ray test of :meth:`_fits` would refuse it when the motion between them is still at the nominal speed). A new
+        graph starts at the old one's estimate, so both poses are in one world frame. (None, p) when there is no
+        such frame."""
+        fix = frame.fixation.get(p.side)
+        if frame.index >= self._graph_start or fix is None or not frame.pose.is_finite():
+            return None, p
+        target = next((f for f in self._frames if f.index >= self._graph_start and p.stamp < f.stamp
+                       <= p.stamp + self.CARRY_MAX_S and f.fixation.get(p.side) is not None
+                       and f.fixation[p.side][1] == fix[1]
+                       and (up.values.exists(pose_key(f.index)) or self._in_graph(f))), None)
+        if target is None:
+            return None, p
+        return target, self._moved(p, target, frame.pose)
+
+    def _moved(self, p: _PendingPoint, frame: _Frame, at_stamp: Pose) -> _PendingPoint:
+        """``p`` (measured with the rig at ``at_stamp``) in ``frame``'s rig frame, the motion's uncertainty added to the
+        covariance (half the translation, a tenth of the rotation at the point's distance)."""
+        motion = frame.pose.inverse() @ at_stamp
+        point = motion.apply(p.point)
+        spread = (0.5 * float(np.linalg.norm(motion.t))) ** 2 + \
+            (0.1 * float(np.linalg.norm(motion.rvec())) * float(np.linalg.norm(p.point))) ** 2
+        return _PendingPoint(frame.stamp, p.side, point, motion.R @ p.cov @ motion.R.T + np.eye(3) * spread)
 
     def _fits(self, frame: _Frame | None, p: _PendingPoint) -> bool:
         """The frame has the measured camera's fixation, and the point lies on its ray (within ``gate_px``)."""
