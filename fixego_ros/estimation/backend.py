@@ -14,8 +14,8 @@ Backend = Estimator | LiveSmoother
 def make_backend(rig: Rig, config: EstimatorConfig, live: bool = False) -> Backend:
     """``refinement: smoother`` (the default): a pose for every frame from its keyframe, and the metric fixed-lag
     smoother over the keyframes revising them; the smoother in a child process when ``live`` (estimator_node: it
-    also takes a non-keyframe when idle), in this process otherwise (replay: every keyframe, deterministic);
-    ``local``: the papers' method."""
+    also takes a non-keyframe when idle), in this process otherwise (replay: every keyframe and one other frame per
+    0.1 s, deterministic); ``local``: the papers' method."""
     if config.refinement != 'smoother':
         return Estimator(rig, config)
     return LiveSmoother(rig, config, inline=not live)

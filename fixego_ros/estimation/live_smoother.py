@@ -9,7 +9,8 @@ stays continuous; corrections go to the path). The child takes every keyframe (l
 they must be in its graph) and the newest non-keyframe whenever it is idle.
 
 Replay runs the same class with the smoother in the caller's process (``inline``): every keyframe goes into the graph,
-no other frame, so the output is deterministic and the replay does what the node does, without its timing.
+and another frame once 0.1 s has passed since the last one (:class:`_Inline`), so the output is deterministic and
+the replay does what the node does, without its timing.
 """
 
 from __future__ import annotations
@@ -208,8 +209,9 @@ class LiveSmoother:
     JOIN_S = 2.0           # bound on waiting for the child to stop
 
     def __init__(self, rig: Rig, config: EstimatorConfig | None = None, inline: bool = False) -> None:
-        """``inline``: the smoother in this process on every keyframe, deterministic (replay); else in a child
-        process on every keyframe and the newest other frame whenever it is idle (the node)."""
+        """``inline``: the smoother in this process on every keyframe and one other frame per ``_Inline.MIN_GAP_S``,
+        deterministic (replay); else in a child process on every keyframe and the newest other frame whenever it is
+        idle (the node)."""
         self.rig = rig
         self._config = config or EstimatorConfig()
         self.solver = TwoFrameSolver(self._config.solver)

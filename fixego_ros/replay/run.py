@@ -412,6 +412,14 @@ class _Timer:
         return t1
 
 
+def _revise(res: ReplayResult, index_of: dict[float, int], revised: tuple[tuple[float, Pose], ...]) -> None:
+    """The smoother revised earlier frames: the path takes its newer estimates."""
+    for stamp, pose in revised:
+        k = index_of.get(stamp)
+        if k is not None and pose.is_finite():
+            res.poses[k] = pose
+
+
 def check_topics(bag: Bag, topics: ReplayTopics, speed_topic: str = '', vergence_topic: str = '') -> None:
     """Fail early when the bag lists its topics and a required one is missing or of the wrong type."""
     if not bag.topics:
@@ -640,18 +648,12 @@ def replay(bag: Bag, rig: Rig, settings: ReplaySettings, topics: ReplayTopics = 
         if not (e.pose.is_finite() and e.pose_raw.is_finite()):
             res.note('non_finite_pose', f'frame at {e.stamp:.3f} s: non-finite pose left out')
             continue
-        for s_, p_ in e.revised:          # the smoother revised earlier frames: the path takes its newer estimate
-            k = index_of.get(s_)
-            if k is not None and p_.is_finite():
-                res.poses[k] = p_
+        _revise(res, index_of, e.revised)
         index_of[e.stamp] = len(res.stamps)
         res.stamps.append(e.stamp)
         res.poses.append(e.pose)
         res.poses_raw.append(e.pose_raw)
-    for s_, p_ in estimator.tail.revised:     # the smoother's answer to the last frames
-        k = index_of.get(s_)
-        if k is not None and p_.is_finite():
-            res.poses[k] = p_
+    _revise(res, index_of, estimator.tail.revised)     # the smoother's answer to the last frames
 
     res.wall_s = time.perf_counter() - wall0
     res.notes = bag.report.lines() + res.notes
