@@ -74,11 +74,11 @@ from fixego_ros.tracking.flow import (
     valid_box,
 )
 
-# per-camera outcome of a frame
 # new tracks are detected once the region lacks this share of its target (at least one): a detection costs the
 # same for one corner as for twenty, and a frame usually loses one or two tracks
 REPLENISH_FRACTION = 0.05
 
+# per-camera outcome of a frame
 OK = 'ok'                        # tracked from the previous frame; flow from the keyframe (it may still have 0 pairs)
 NO_PREVIOUS = 'no_previous'      # first frame, or the camera was not usable at the keyframe
 MISSING = 'missing'              # no sample for this camera
@@ -490,7 +490,8 @@ class StereoFrontEnd:
             counts = replace(counts, outside=counts.outside + n_out, kept=counts.kept - n_out)
             tracks = tracks.select(keep)
 
-        # 3. new tracks where the region has fewer than the target (and the camera fewer than that in all)
+        # 3. new tracks once the region lacks REPLENISH_FRACTION of the target (and the camera holds fewer than the
+        #    target in all)
         need = min(target - int(_in_box(tracks.px, region).sum()), target - len(tracks))
         n_new = 0
         batch = max(1, round(REPLENISH_FRACTION * target))
