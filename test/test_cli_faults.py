@@ -82,7 +82,6 @@ DEMO_NUMBERS = [
     *_numeric('--ready-timeout', 'nan inf -1 0 1e308'),
     *_numeric('--fps', '0 nan inf -1 1e308'),
     *_numeric('--duration', 'nan -1 inf 1e308'),
-    *_numeric('--window', '2 -1 11'),
     *_numeric('--width', '-1 0 100000'),
     *_numeric('--height', '-1 0'),
     *_numeric('--domain-id', '233 -1'),

@@ -50,9 +50,6 @@ def register(subparsers) -> None:
                                              'default: the rig file\'s)')
     p.add_argument('--height', type=int, help=f'image height, {SIZE_RANGE[0]}..{SIZE_RANGE[1]} px')
     p.add_argument('--preset', choices=('paper', 'window', 'full'), help="flow points (default: flow_node's)")
-    p.add_argument('--window', type=int, help="local BA frames n: 3..10, or 0 (disabled) or 1 (default: "
-                                              "estimator_node's)")
-    p.add_argument('--mode', choices=('paper', 'joint'), help="local BA mode (default: estimator_node's)")
     p.add_argument('--joint-mode', choices=JOINT_MODES,
                    help="camera nodes' joint states: predict (at once) or wait (for the next reading) (default: "
                         "camera_node's)")
@@ -69,21 +66,12 @@ def register(subparsers) -> None:
 def check_args(args: argparse.Namespace):
     """Every option, before any process is started: the rig (resized when asked); raises OptionError (one line).
     ``--out`` is checked (and created) afterwards, by :func:`run`, once everything else is known to be usable."""
-    from fixego_ros.pipeline.params import ESTIMATOR_PARAMS, ParamsError
-
     check_float(args.duration, '--duration', 0.0, DURATION_MAX, unit='s', note=' (0: the whole trajectory)')
     check_float(args.fps, '--fps', *FPS_RANGE, unit='frames per second')
     check_int(args.seed, '--seed', 0, SEED_MAX)
     check_float(args.ready_timeout, '--ready-timeout', 0.0, READY_TIMEOUT_MAX, lo_open=True, unit='s')
     if args.domain_id is not None:
         check_int(args.domain_id, "--domain-id", *ROS_DOMAIN_IDS, note=' (ROS 2 domain ids)')
-    spec = ESTIMATOR_PARAMS['window']
-    try:
-        if args.window is not None:
-            spec.check(args.window)
-    except ParamsError:
-        raise OptionError(f'--window must be an {spec.allowed()} (estimator_node window), got {args.window!r}') \
-            from None
     if not args.out or not args.out.strip():
         raise OptionError('--out must name an output directory, got an empty path')
     rig = read_rig(args.rig)
@@ -163,8 +151,7 @@ def _run(args: argparse.Namespace, out: Path, rig_path: Path, launcher) -> int:
                                 {**common, 'side': side, 'port': ptys[side], **given(joint_mode=args.joint_mode)}))
     launcher.start(NodeSpec('flow_node', 'fixego_ros.nodes.flow_node', {**common, **given(preset=args.preset)}))
     launcher.start(NodeSpec('estimator_node', 'fixego_ros.nodes.estimator_node',
-                            {**common, **given(window=args.window, mode=args.mode),
-                             'path_max_length': _path_length(args)}))
+                            {**common, 'path_max_length': _path_length(args)}))
 
     rclpy.init()
     node = Recorder()

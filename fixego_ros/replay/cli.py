@@ -49,8 +49,9 @@ def register(subparsers) -> None:
                    help='ROS 2 parameter file(s) with camera_node/flow_node/estimator_node blocks (e.g. '
                         'config/*.yaml); later files and the options below override')
     p.add_argument('--preset', choices=('paper', 'window', 'full'), help='flow points (flow_node preset)')
-    p.add_argument('--window', type=int, help='local BA window n (3..10; 0 = two-frame only)')
-    p.add_argument('--mode', choices=('paper', 'joint'), help='local BA mode')
+    p.add_argument('--window', type=int, help='local BA window n (3..10; 0 = two-frame only), with '
+                                              '-p refinement:=local only')
+    p.add_argument('--mode', choices=('paper', 'joint'), help='local BA mode, with -p refinement:=local only')
     p.add_argument('--keyframe-max-frames', type=int, metavar='K', help='frames tracked from one keyframe at most')
     p.add_argument('-p', '--param', action='append', default=[], metavar='NAME:=VALUE',
                    help='any camera_node/flow_node/estimator_node parameter, YAML value (repeatable)')
