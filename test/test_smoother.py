@@ -328,8 +328,7 @@ def test_a_restarted_graph_moves_on_at_the_speed_it_had(loop, monkeypatch):
     assert sm.restarts == 1 and 0.6 < ratio < 1.4                  # measured 0.85
     monkeypatch.setattr(Smoother, '_carried_motion', lambda self: None)    # a restart at rest, as before
     sm, est, true = _restart_at(loop, k, monkeypatch)
-    ratio = _length(est[after]) / _length(true[after])
-    assert not 0.6 < ratio < 1.4      # measured 2.25 (with Gauss-Newton steps 1e-7: standing still)
+    assert _length(est[after]) / _length(true[after]) < 0.05      # measured 1e-7: standing still
 
 
 def _swung(obs: FrameObservation, k: int, rng: np.random.Generator, prev: dict[str, np.ndarray],
@@ -381,7 +380,7 @@ def test_frames_no_landmark_places_keep_the_speed_the_landmarks_measured(loop, m
     gap = range(25, 45)
     assert 0.6 < _gap_length_ratio(loop, gap) < 1.4                        # measured 0.86
     monkeypatch.setattr(Smoother, '_hold_speed', lambda self, i, stamp, up: None)
-    assert not 0.6 < _gap_length_ratio(loop, gap) < 1.4    # measured 2.61 (with Gauss-Newton steps 0.21: it decayed)
+    assert _gap_length_ratio(loop, gap) < 0.5                               # measured 0.21: the speed decays
 
 
 def test_a_measurement_whose_frame_a_restart_dropped_moves_to_the_new_graph(loop):

@@ -10,36 +10,21 @@ unaided landmark scene (scale set only by the weak nominal-speed prior, a nearly
 grew into a path of 5.6 m instead of the prior's ~10.6 m. Constrained on the last pass, the window agrees with
 ``IncrementalFixedLagSmoother`` on that scene to within 8 % and gives the same paper-bag trajectory (to 1e-9 m).
 
-The steps are Powell's dogleg within a trust region, not plain Gauss-Newton. A Gauss-Newton step moved five
-landmarks that had just entered at 1.3 m (right camera only, five views) 1.3 m at once, through the cameras'
-path; the update failed, and the window went on moving its poses 10-55 cm per update (a recorded demo bag with
-frames 0.2 s apart: 14.9 / 118 cm mean / terminal). With dogleg: no failure, 5.4 / 5.5 cm; with the shipped
-0.1 s rule 7.05 / 10.58 -> 5.94 / 9.19 cm; the shipped paper bag and the 30 Hz simulated loop unchanged (1.64 /
-2.56 and 3.44 / 6.08 cm), the simulated walk 3.99 / 5.16 -> 4.16 / 5.30 cm.
-
 Every variable is relinearised and re-eliminated at each update (``relinearizeThreshold`` 0). A threshold is a
 decision that rounding flips: measured 13 cm RMS between OpenBLAS code paths on the paper bag with 0.01, 3e-10 m
 with 0.
 
 A numerical failure (GTSAM's "indeterminate linear system near variable v") is repaired in place rather than
-handed up. Most are not singular systems but ill-conditioned ones that Cholesky (which squares the condition
-number) cannot factor: on a recorded demo bag the window's Hessian was positive definite at every failure, with
-a condition number of 5e12-4e14 (a landmark pulled to within millimetres of a camera centre, the 1e-6 anchor of a
-graph's first pose, next to the 0.01 of a landmark's weak prior), and the variable GTSAM named was often a healthy
-landmark. So the window is first rebuilt from its own factors and linearisation point with QR factorisation (no
-squaring; about 5x slower), kept for one lag (until every variable of the failure has left), then rebuilt with
-Cholesky again. Measured on that bag replayed with frames 0.2 s apart: 2 restarts (each losing every landmark,
-after 6 landmarks dropped in a row) became none. A system QR cannot factor either is singular: the window is
-rebuilt without the variable when it is a landmark (a point whose views' robust kernels have given up on it), or
-with a weak prior on it otherwise (10x firmer each time the same pose fails again within one update: on a live
-demo's frames a 1 rad / 10 m prior often did not make the system determinate). Only when that fails too does the
-smoother start a whole new graph, losing every landmark and the measured scale (a live demo doing so at rest:
-45 cm mean instead of 3-5).
+handed up: the window is rebuilt from its own factors and linearisation point without that variable when it is
+a landmark (a point whose views' robust kernels have given up on it), or with a weak prior on it otherwise (10x
+firmer each time the same pose fails again within one update: on a live demo's frames a 1 rad / 10 m prior often
+did not make the system determinate). Before, the smoother started a whole new graph, losing every landmark and
+the measured scale; on a 30 Hz simulated loop that happened 35 times in 25 s and froze the trajectory for its
+last 4 s.
 """
 
 from __future__ import annotations
 
-import math
 import re
 from collections import Counter
 
@@ -69,29 +54,19 @@ class FixedLagWindow:
 
     MAX_REPAIRS = 5                     # per update; then the failure is raised (and the smoother restarts)
     REPAIR_SIGMAS = (1.0, 10.0)         # the weak prior on a pose or camera it failed near (rad, m)
-    DOGLEG_DELTA = 1.0                  # initial trust region of the steps (Powell's dogleg; it adapts)
 
     def __init__(self, lag_s: float) -> None:
         self.lag_s = lag_s
-        self._qr_until: float | None = None     # QR factorisation until this stamp (after an ill-conditioned update)
         self._isam = self._new_isam()
         self._stamps: dict[int, float] = {}
         self.repairs: list[str] = []    # what each repair did (the caller reports them)
 
-    def _new_isam(self) -> gtsam.ISAM2:
+    @staticmethod
+    def _new_isam() -> gtsam.ISAM2:
         params = gtsam.ISAM2Params()
         params.setRelinearizeThreshold(0.0)
         params.relinearizeSkip = 1
-        trust = gtsam.ISAM2DoglegParams()
-        trust.setInitialDelta(self.DOGLEG_DELTA)
-        params.setOptimizationParams(trust)
-        if self._qr_until is not None:
-            params.setFactorization('QR')
         return gtsam.ISAM2(params)
-
-    @property
-    def factorization(self) -> str:
-        return 'QR' if self._qr_until is not None else 'Cholesky'
 
     def update(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, stamps: dict[int, float],
                newest: tuple[int, ...] = (), iterations: int = 0) -> None:
@@ -100,64 +75,27 @@ class FixedLagWindow:
         docstring); RuntimeError when that does not work."""
         try:
             self._update(graph, values, stamps, newest, iterations)
-            if self._qr_until is not None and max(self._stamps.values(), default=-math.inf) > self._qr_until:
-                self._qr_until = None           # the failure's variables have left (marginalised): Cholesky again
-                self._rebuild(gtsam.NonlinearFactorGraph(), gtsam.Values(), self._isam.calculateEstimate(), {},
-                              newest, iterations)
         except RuntimeError as error:
             self._repair(error, newest, iterations)
 
-    def _rebuild(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, theta: gtsam.Values,
-                 stamps: dict[int, float], newest: tuple[int, ...], iterations: int,
-                 without: int | None = None) -> None:
-        """A new ISAM2 (with the current factorisation) from this window's factors at ``theta``, the variable
-        ``without`` and its factors left out, plus ``graph``/``values``/``stamps`` (an update not yet added)."""
-        factors = self._isam.getFactorsUnsafe()
-        all_factors = gtsam.NonlinearFactorGraph()
-        for i in range(factors.size()):
-            factor = factors.at(i)
-            if factor is not None and not (without is not None and without in list(factor.keys())):
-                all_factors.add(factor)
-        all_factors.push_back(graph)
-        theta = gtsam.Values(theta)
-        if without is not None and theta.exists(without):
-            theta.erase(without)
-            self._stamps.pop(without, None)
-        theta.insert(values)
-        kept = {k: s for k, s in self._stamps.items() if theta.exists(k)}
-        kept.update(stamps)
-        self._stamps = {}
-        self._isam = self._new_isam()
-        self._update(all_factors, theta, kept, newest, iterations)
-
     def _repair(self, error: RuntimeError, newest: tuple[int, ...], iterations: int) -> None:
         """Rebuild the window from the failed ISAM2's factors and linearisation point (they hold this update's
-        additions): with QR first; then without or anchoring the variable it failed near, repeatedly while it
-        fails near another one."""
-        key = failed_variable(error)
-        if key is None or not (is_landmark(key) or is_pose(key)):
-            raise error
-        if self._qr_until is None:
-            now = max(self._stamps.values(), default=0.0)
-            self._qr_until = now + self.lag_s
-            try:
-                self._rebuild(gtsam.NonlinearFactorGraph(), gtsam.Values(), self._isam.getLinearizationPoint(), {},
-                              newest, iterations)
-                self.repairs.append(f'QR factorisation for {self.lag_s:g} s (Cholesky failed near '
-                                    f'{gtsam.Symbol(key).string()})')
-                return
-            except RuntimeError as failure:
-                error = failure                 # singular, not ill-conditioned: Cholesky and the repairs below
-                self._qr_until = None
+        additions), without or anchoring the variable it failed near; repeat while it fails near another one."""
         anchored: Counter[int] = Counter()     # poses anchored in this update, and how often
         for _ in range(self.MAX_REPAIRS):
             key = failed_variable(error)
             if key is None or not (is_landmark(key) or is_pose(key)):
                 raise error
             drop, name = is_landmark(key), gtsam.Symbol(key).string()
-            theta = self._isam.getLinearizationPoint()
+            factors, theta = self._isam.getFactorsUnsafe(), self._isam.getLinearizationPoint()
             graph = gtsam.NonlinearFactorGraph()
+            for i in range(factors.size()):
+                factor = factors.at(i)
+                if factor is not None and not (drop and key in list(factor.keys())):
+                    graph.add(factor)
             if drop:
+                theta.erase(key)
+                self._stamps.pop(key, None)
                 self.repairs.append(f'dropped {name}')
             else:
                 rotation, position = self.REPAIR_SIGMAS       # 10x firmer each time the same variable fails again
@@ -165,8 +103,11 @@ class FixedLagWindow:
                 anchored[key] += 1
                 graph.add(gtsam.PriorFactorPose3(key, theta.atPose3(key), gtsam.noiseModel.Diagonal.Sigmas(sigmas)))
                 self.repairs.append(f'anchored {name}')
+            stamps = {k: s for k, s in self._stamps.items() if theta.exists(k)}
+            self._stamps = {}
+            self._isam = self._new_isam()
             try:
-                self._rebuild(graph, gtsam.Values(), theta, {}, newest, iterations, without=key if drop else None)
+                self._update(graph, theta, stamps, newest, iterations)
                 return
             except RuntimeError as failure:
                 error = failure
