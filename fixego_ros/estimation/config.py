@@ -32,7 +32,7 @@ class SmootherConfig:
     step_floor_px: float = 3.0          # two-frame step rotation sigma floor (px of rotation)
     step_cauchy_k: float = 1.0          # two-frame step factors: Cauchy threshold in sigmas
     nominal_speed: float = 0.5          # m/s: the two-frame steps' length gauge until a scale aid measures it
-    iterations: int = 4                 # extra ISAM2 updates per frame (relinearisation; README "Stop 39")
+    iterations: int = 2                 # extra ISAM2 updates per frame (relinearisation)
     min_resection: int = 6              # observations of existing landmarks needed to place a frame by them
 
     def __post_init__(self) -> None:
