@@ -126,3 +126,44 @@ def test_a_pose_nothing_holds_is_anchored_where_it_is():
     gap = estimate.atPose3(X(6)).translation() - estimate.atPose3(X(5)).translation()
     np.testing.assert_allclose(gap, [0.0, 0.0, 0.5], atol=1e-6)
     assert abs(estimate.atPose3(X(5)).translation()[2] - 3.0) < 0.3
+
+
+def _projection(pixel: tuple[float, float], pose: int, landmark: int) -> gtsam.GenericProjectionFactorCal3_S2:
+    K = gtsam.Cal3_S2(500.0, 500.0, 0.0, 0.0, 0.0)
+    return gtsam.GenericProjectionFactorCal3_S2(np.array(pixel), gtsam.noiseModel.Isotropic.Sigma(2, 1.0), pose,
+                                                landmark, K, False, False)
+
+
+def _projections_on(window: FixedLagWindow, landmark: int) -> int:
+    factors = window._isam.getFactorsUnsafe()
+    found = (factors.at(i) for i in range(factors.size()))
+    return sum(1 for f in found if isinstance(f, gtsam.GenericProjectionFactorCal3_S2) and landmark in list(f.keys()))
+
+
+def test_a_landmark_behind_a_camera_that_sees_it_is_dropped_and_the_one_in_front_kept():
+    """Behind a camera a projection factor has no Jacobian: the point would be held by its prior alone and the next
+    factorisation can fail. Its views are removed, it leaves at the next update; a point in front stays."""
+    window = FixedLagWindow(lag_s=10.0)
+    _pose_chain(window, 3)                       # cameras at z = 0, 0.1, 0.2 looking along +z
+    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    held = gtsam.noiseModel.Isotropic.Sigma(3, 1e-3)
+    graph.add(gtsam.PriorFactorPoint3(L(1), np.array([0.0, 0.0, -2.0]), held))      # held behind the cameras
+    graph.add(gtsam.PriorFactorPoint3(L(2), np.array([0.5, 0.0, 5.0]), gtsam.noiseModel.Isotropic.Sigma(3, 10.0)))
+    for k in (1, 2):
+        graph.add(_projection((0.0, 0.0), X(k), L(1)))
+        graph.add(_projection((500.0 * 0.5 / (5.0 - 0.1 * k), 0.0), X(k), L(2)))
+    values.insert(L(1), np.array([0.0, 0.0, -2.0]))
+    values.insert(L(2), np.array([0.5, 0.0, 5.0]))
+    window.update(graph, values, {L(1): 2.0, L(2): 2.0}, newest=(X(2),), iterations=1)
+    assert window.dropped == [L(1)] and window.repairs == []
+    assert _projections_on(window, L(1)) == 0 and _projections_on(window, L(2)) == 2
+    graph = gtsam.NonlinearFactorGraph()
+    graph.add(gtsam.BetweenFactorPose3(X(2), X(3), gtsam.Pose3(gtsam.Rot3(), np.array([0.0, 0.0, 0.1])),
+                                       gtsam.noiseModel.Isotropic.Sigma(6, 1e-2)))
+    values = gtsam.Values()
+    values.insert(X(3), gtsam.Pose3(gtsam.Rot3(), np.array([0.0, 0.0, 0.3])))
+    window.update(graph, values, {X(3): 3.0}, newest=(X(3),))
+    estimate = window.estimate()
+    assert not estimate.exists(L(1)) and estimate.exists(L(2))
+    np.testing.assert_allclose(estimate.atPoint3(L(2)), [0.5, 0.0, 5.0], atol=1e-6)
+    np.testing.assert_allclose(estimate.atPose3(X(3)).translation(), [0.0, 0.0, 0.3], atol=1e-6)

@@ -21,19 +21,32 @@ firmer each time the same pose fails again within one update: on a live demo's f
 did not make the system determinate). Before, the smoother started a whole new graph, losing every landmark and
 the measured scale; on a 30 Hz simulated loop that happened 35 times in 25 s and froze the trajectory for its
 last 4 s.
+
+A landmark that a Gauss-Newton pass leaves behind (or within ``MIN_DEPTH_M`` of) a camera that sees it is dropped
+before the next pass: its projection factors are removed, its own prior keeps it determined until it is
+marginalised at the next update, and the caller forgets it (``dropped``). A point with a short baseline has its depth
+along a nearly flat direction, and one full step can throw it through the cameras' path (seen on a recorded demo:
+eleven new landmarks 1.3-1.7 m ahead thrown behind the cameras in one pass). Behind a camera its projection factor
+gives no Jacobian, the point is held by its 10 m prior alone against views of millimetres, and the next
+factorisation fails as "indeterminate" (the recorded demo at 0.2 s frames: two restarts, 11.8 / 78.8 cm). The
+decision is a threshold on a depth, not on a cost, so rounding does not flip it.
 """
 
 from __future__ import annotations
 
+import math
 import re
 from collections import Counter
 
 import gtsam
 import numpy as np
 
-from fixego_ros.estimation.keys import is_landmark, is_pose
+from fixego_ros.estimation.keys import camera_key, is_landmark, is_pose, landmark_key, pose_key
 
 OLD, INSIDE, NEWEST = 0, 1, 2       # elimination groups: marginalised first, the window, the newest frame last
+_CHR_POSE, _CHR_CAMERA, _CHR_LANDMARK = (np.uint64(gtsam.Symbol(k).chr())
+                                         for k in (pose_key(0), camera_key(0, 'left'), landmark_key(0)))
+_NO_VIEWS = np.zeros((0, 3), np.uint64)
 
 
 def _key_list(keys) -> gtsam.KeyList:
@@ -53,6 +66,8 @@ class FixedLagWindow:
     """Variables older than ``lag_s`` (by the stamp of their latest use) are marginalised out at each update."""
 
     MAX_REPAIRS = 5                     # per update; then the failure is raised (and the smoother restarts)
+    MIN_DEPTH_M = 0.3                   # a landmark this close to (or behind) a camera that sees it is dropped
+    MAX_DROP_PASSES = 2                 # extra passes per update after the last one dropped landmarks
     REPAIR_SIGMAS = (1.0, 10.0)         # the weak prior on a pose or camera it failed near (rad, m)
 
     def __init__(self, lag_s: float) -> None:
@@ -60,6 +75,9 @@ class FixedLagWindow:
         self._isam = self._new_isam()
         self._stamps: dict[int, float] = {}
         self.repairs: list[str] = []    # what each repair did (the caller reports them)
+        self.dropped: list[int] = []    # landmarks dropped behind a camera (the caller forgets them)
+        self._views = _NO_VIEWS         # projection factors: rows (index in ISAM2, camera key, landmark key)
+        self._pending: list[int] = []                   # projection factors to remove at the next update
 
     @staticmethod
     def _new_isam() -> gtsam.ISAM2:
@@ -88,10 +106,10 @@ class FixedLagWindow:
                 raise error
             drop, name = is_landmark(key), gtsam.Symbol(key).string()
             factors, theta = self._isam.getFactorsUnsafe(), self._isam.getLinearizationPoint()
-            graph = gtsam.NonlinearFactorGraph()
+            graph, pending = gtsam.NonlinearFactorGraph(), set(self._pending)
             for i in range(factors.size()):
                 factor = factors.at(i)
-                if factor is not None and not (drop and key in list(factor.keys())):
+                if factor is not None and i not in pending and not (drop and key in list(factor.keys())):
                     graph.add(factor)
             if drop:
                 theta.erase(key)
@@ -104,7 +122,7 @@ class FixedLagWindow:
                 graph.add(gtsam.PriorFactorPose3(key, theta.atPose3(key), gtsam.noiseModel.Diagonal.Sigmas(sigmas)))
                 self.repairs.append(f'anchored {name}')
             stamps = {k: s for k, s in self._stamps.items() if theta.exists(k)}
-            self._stamps = {}
+            self._stamps, self._views, self._pending = {}, _NO_VIEWS, []
             self._isam = self._new_isam()
             try:
                 self._update(graph, theta, stamps, newest, iterations)
@@ -120,22 +138,68 @@ class FixedLagWindow:
         now = max(self._stamps.values(), default=0.0)
         old = [k for k, s in self._stamps.items() if s < now - self.lag_s]
         gone = set(old)
-        for step in range(1 + iterations):
-            group = {k: OLD if k in gone and step == 0 else
-                     NEWEST if k in newest and step == iterations else INSIDE for k in self._stamps}
+        remove, self._pending = self._pending, []
+        passes = 1 + iterations
+        step = 0
+        while step < passes:
+            last = step == passes - 1
+            group = {k: OLD if k in gone and step == 0 else NEWEST if k in newest and last else INSIDE
+                     for k in self._stamps}
             rank = {g: r for r, g in enumerate(sorted(set(group.values())))}     # CCOLAMD wants groups 0..n-1
             groups = gtsam.KeyGroupMap()
             for k, g in group.items():
                 groups.insert2(k, rank[g])
+            new = graph if step == 0 else gtsam.NonlinearFactorGraph()
+            result = self._isam.update(new, values if step == 0 else gtsam.Values(), remove, groups, None, keys, True)
+            if remove:
+                self._views = self._views[~np.isin(self._views[:, 0], np.array(remove, np.uint64))]
             if step == 0:
-                self._isam.update(graph, values, [], groups, None, keys, True)
-            else:
-                self._isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), [], groups, None, keys, True)
-            if step == 0 and old:
-                self._isam.marginalizeLeaves(_key_list(old))
-                for k in old:
-                    del self._stamps[k]
-                keys = _key_list(self._stamps)
+                self._record(graph, result.getNewFactorsIndices())
+                if old:
+                    self._isam.marginalizeLeaves(_key_list(old))
+                    for k in old:
+                        del self._stamps[k]
+                    keys = _key_list(self._stamps)
+            remove = self._drop_behind()
+            if last and remove:
+                if passes < 1 + iterations + self.MAX_DROP_PASSES:
+                    passes += 1
+                else:
+                    self._pending = remove      # removed by the next update's first pass
+            step += 1
+
+    def _record(self, graph: gtsam.NonlinearFactorGraph, indices) -> None:
+        """Remember which new factors are projections (camera, landmark), by their index in ISAM2."""
+        rows = [(indices[j], *graph.at(j).keys()) for j in range(graph.size())
+                if isinstance(graph.at(j), gtsam.GenericProjectionFactorCal3_S2)]
+        if rows:
+            self._views = np.concatenate([self._views, np.array(rows, np.uint64)])
+
+    def _drop_behind(self) -> list[int]:
+        """Indices of the projection factors of every landmark now within ``MIN_DEPTH_M`` of, or behind, a camera
+        that sees it (module docstring). Those landmarks leave the window at the next update."""
+        if not len(self._views):
+            return []
+        theta = self._isam.calculateEstimate()      # all at once: a call per key cost ~40 ms a frame
+        keys = np.asarray(theta.keys(), np.uint64)  # sorted
+        found = [keys[np.minimum(np.searchsorted(keys, self._views[:, c]), len(keys) - 1)] == self._views[:, c]
+                 for c in (1, 2)]
+        self._views = self._views[found[0] & found[1]]     # the rest were marginalised with their variables
+        kind = keys >> np.uint64(56)                # the symbol's character
+        pose_keys = keys[(kind == _CHR_POSE) | (kind == _CHR_CAMERA)]
+        point_keys = keys[kind == _CHR_LANDMARK]
+        poses, points = gtsam.utilities.extractPose3(theta), gtsam.utilities.extractPoint3(theta)
+        camera = poses[np.searchsorted(pose_keys, self._views[:, 1])]     # rows: R row-major (9), t (3)
+        point = points[np.searchsorted(point_keys, self._views[:, 2])]
+        depth = np.einsum('ij,ij->i', camera[:, [2, 5, 8]], point - camera[:, 9:])
+        bad = ~(depth >= self.MIN_DEPTH_M)
+        if not bad.any():
+            return []
+        dropped = np.unique(self._views[bad, 2])
+        for m in dropped:
+            self._stamps[int(m)] = -math.inf    # held by its own prior until then
+        self.dropped.extend(int(m) for m in dropped)
+        return [int(i) for i in self._views[np.isin(self._views[:, 2], dropped), 0]]
 
     def estimate(self) -> gtsam.Values:
         return self._isam.calculateEstimate()

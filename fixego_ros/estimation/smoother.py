@@ -468,7 +468,7 @@ class Smoother:
         centers = [p.apply(self.rig.center(v.side)) for p, v in zip(poses, views, strict=True)]
         parallax = math.degrees(math.acos(float(np.clip(rays[0] @ rays[-1], -1.0, 1.0))))
         point = triangulate(rays, centers) if parallax >= cfg.min_parallax_deg else None
-        behind = point is None or (point - centers[0]) @ rays[0] < 0.3
+        behind = point is None or (point - centers[0]) @ rays[0] < FixedLagWindow.MIN_DEPTH_M
         unplaced = behind or np.linalg.norm(point - centers[0]) > cfg.max_range_m
         baseline = max(float(np.linalg.norm(c - centers[0])) for c in centers)
         if unplaced:
@@ -667,7 +667,7 @@ class Smoother:
         try:
             newest = tuple(k for k in (pose_key(self._index), *(camera_key(self._index, s) for s in SIDES))
                            if up.values.exists(k))
-            before = len(self._window.repairs)
+            before, dropped = len(self._window.repairs), len(self._window.dropped)
             self._window.update(up.graph, up.values, up.stamps, newest, self.settings.iterations)
             self._estimate = self._window.estimate()
             for what in self._window.repairs[before:]:
@@ -677,7 +677,9 @@ class Smoother:
             self.restarts += 1
             self._restart()
             return False
-        for lid in [lid for lid, k in self._landmarks.items() if not self._estimate.exists(landmark_key(k))]:
+        gone = set(self._window.dropped[dropped:])      # behind a camera: its track may enter again, triangulated anew
+        for lid in [lid for lid, k in self._landmarks.items()
+                    if landmark_key(k) in gone or not self._estimate.exists(landmark_key(k))]:
             del self._landmarks[lid]
         for f in self._frames:
             if f.index >= self._graph_start and self._estimate.exists(pose_key(f.index)):
