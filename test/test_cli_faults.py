@@ -47,6 +47,7 @@ SIM_NUMBERS = [
     *_numeric('--seed', '-1 4294967296'),
     *_numeric('--noise', 'nan inf -inf 1e308 -1 256'),
     *_numeric('--wheel-odom-std', '1e308 nan inf -1 11'),
+    *_numeric('--rest', 'nan inf -1 601'),
 ]
 # id -> (argv without --out, option the error names, refused value as typed or None, prog): one case each
 CASES: dict[str, tuple[list[str], str, str | None, str]] = {}

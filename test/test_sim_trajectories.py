@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from fixego_ros.geometry.rotation import Pose, rig_pose_to_base_link, rotation_angle
+from fixego_ros.sim.run import SimSettings, build_trajectory
 from fixego_ros.sim.trajectories import NAMES, make_trajectory, paper, relative_poses, steps_duration
 from fixego_ros.sim.world import RoomSpec
 
@@ -85,3 +86,17 @@ def test_truncation_and_interpolation():
         p, q = traj.pose_at(t), full.pose_at(t)
         assert np.allclose(p.t, q.t) and np.allclose(p.R, q.R)
     assert isinstance(traj.pose_at(10.0), Pose)  # clamped, not an error
+
+
+def test_a_rest_holds_the_first_pose_then_the_trajectory_follows_shifted():
+    plain = build_trajectory(SimSettings(steps=20))
+    rested = build_trajectory(SimSettings(steps=20, rest_s=2.5))
+    assert rested.duration == pytest.approx(plain.duration + 2.5, abs=1e-9)
+    np.testing.assert_allclose(rested.marks, plain.marks + 2.5, atol=1e-9)
+    start = plain.pose_at(0.0)
+    for t in (0.0, 1.3, 2.5):
+        np.testing.assert_allclose(rested.pose_at(t).matrix(), start.matrix(), atol=1e-12)
+    for t in (0.4, 3.7, plain.duration):
+        np.testing.assert_allclose(rested.pose_at(t + 2.5).matrix(), plain.pose_at(t).matrix(), atol=1e-9)
+    assert rested.path_length() == pytest.approx(plain.path_length(), abs=1e-9)
+    assert 'rest_s' not in SimSettings().to_dict() and SimSettings(rest_s=2.5).to_dict()['rest_s'] == 2.5

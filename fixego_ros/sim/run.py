@@ -45,6 +45,7 @@ SIZE_RANGE = (24, 8192)          # px, image width and height
 HFOV_RANGE = (1.0, 170.0)        # deg, horizontal angle of view
 NOISE_RANGE = (0.0, NOISE_MAX)   # grey levels
 STEPS_RANGE = (0, PAPER_STEPS)   # paper loop step marks
+REST_RANGE = (0.0, 600.0)        # s standing still before the trajectory
 MAX_FRAMES = 1_000_000           # frames of one run (every pose is held in memory; 1000 fps x 3600 s would not fit)
 
 
@@ -69,6 +70,7 @@ class SimSettings:
     texel: float = 0.002
     epoch: float = EPOCH
     vergence: str = 'off'
+    rest_s: float = 0.0               # standing still before the trajectory
 
     def __post_init__(self) -> None:
         problems = self.problems()
@@ -102,6 +104,7 @@ class SimSettings:
             within('speed', self.speed, *SPEED_RANGE)
         if self.duration is not None:
             within('duration', self.duration, 0.0, DURATION_MAX, lo_open=True)
+        within('rest_s', self.rest_s, *REST_RANGE)
         if self.steps is not None and not (isinstance(self.steps, numbers.Integral) and STEPS_RANGE[0] <= self.steps
                                            <= STEPS_RANGE[1]):
             out.append(f'steps must be an integer in {STEPS_RANGE[0]}..{STEPS_RANGE[1]}, got {self.steps!r}')
@@ -109,10 +112,12 @@ class SimSettings:
 
     def to_dict(self) -> dict:
         """The fields (``sim.yaml``, the bag's ``fixego_sim`` custom data); ``vergence`` only when it is not
-        ``off``, so a bag without vergence keeps the record it had before the option (and reads back as off)."""
+        ``off`` and ``rest_s`` only when not 0, so a bag without them keeps the record it had before the options."""
         out = dataclasses.asdict(self)
         if out['vergence'] == 'off':
             del out['vergence']
+        if not out['rest_s']:
+            del out['rest_s']
         return out
 
 
@@ -141,7 +146,7 @@ def build_trajectory(s: SimSettings) -> Trajectory:
     traj = make_trajectory(s.trajectory, speed=s.speed, seed=s.seed, duration=s.duration)
     if s.steps is not None:
         traj = traj.truncated(steps_duration(traj, s.steps))
-    return traj
+    return traj.after_rest(s.rest_s)
 
 
 @dataclass

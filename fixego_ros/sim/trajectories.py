@@ -87,6 +87,19 @@ class Trajectory:
     def path_length(self) -> float:
         return float(np.sum(np.linalg.norm(np.diff(self.xyz, axis=0), axis=1)))
 
+    def after_rest(self, seconds: float) -> Trajectory:
+        """The rig standing at the first pose for ``seconds`` (rounded to the grid), then this trajectory: a user
+        who waits before walking, or a robot that starts late (the live demo's rig waited ~7 s in some runs)."""
+        n = round(seconds / DT)
+        if n <= 0:
+            return self
+
+        def held(v: np.ndarray) -> np.ndarray:
+            return np.concatenate([np.repeat(v[:1], n, axis=0), v])
+        marks = None if self.marks is None else self.marks + n * DT
+        return replace(self, t=np.arange(len(self.t) + n) * DT, xyz=held(self.xyz), yaw=held(self.yaw),
+                       pitch=held(self.pitch), roll=held(self.roll), marks=marks)
+
 
 def _grid(duration: float) -> np.ndarray:
     if not (math.isfinite(duration) and 0.0 <= duration <= MAX_GRID_POINTS * DT):
