@@ -287,7 +287,8 @@ def test_a_rig_that_starts_from_rest_moves_off_as_one_that_never_stood(loop, mon
     assert mean < 0.3 and sm.restarts == 0              # as without the rest (test above: ~0.19 m)
     monkeypatch.setattr(Smoother, 'TWIST_MIN_SPEED', 0.1)
     _, crept, _ = _start_from_rest(loop)
-    assert crept > 0.45                                 # the old floor: ~0.6 m
+    assert crept > 0.3                                  # the old floor: ~0.36 m (~0.6 m before stationary steps
+                                                        # held the rig still, stop 40)
 
 
 def _restart_at(loop, k_fail: int, monkeypatch) -> tuple[Smoother, np.ndarray, np.ndarray]:

@@ -163,6 +163,7 @@ class TwoFrameStep:
     against 2.5 / 21 cm with this one.)"""
 
     AIDED_LENGTH_SIGMA = 10.0
+    STATIONARY_LENGTH_SIGMA = 0.1
 
     def __init__(self, rotation_floor: float, nominal_speed: float, cauchy_k: float) -> None:
         self.rotation_floor = rotation_floor
@@ -180,6 +181,8 @@ class TwoFrameStep:
         cov = np.zeros((6, 6))
         cov[:3, :3] = self.rotation_covariance(covariance)
         length_sigma = self.nominal_speed * dt * (self.AIDED_LENGTH_SIGMA if measured else 1.0)
+        if not np.any(step.t):          # stationary: the rays saw no parallax at all
+            length_sigma *= self.STATIONARY_LENGTH_SIGMA
         cov[3:, 3:] = np.eye(3) * max(length_sigma, 1e-6) ** 2
         return gtsam.BetweenFactorPose3(pose_key(ref), pose_key(frame), to_gtsam(self.scaled(step, dt)),
                                         gtsam.noiseModel.Robust.Create(self.robust,
