@@ -208,6 +208,10 @@ def write_report(out: Path, rec, t_start: float, run_args: dict[str, Any],
                  f'camera steps {v.get("successes", "?")}/{v.get("attempts", "?")} done, interrupted at most '
                  f'{v.get("max_interrupted_s", "?")} s' + (f'; last failure: {v["last_failure"]}'
                                                           if v.get('last_failure') else ''))
+    est = report['diagnostics'].get('fixego estimator_node', {})
+    if 'smoother_restarts' in est:      # numerical health of the back end (its last /diagnostics status)
+        lines.append(f'  smoother: {est["smoother_restarts"]} restarts, {est.get("smoother_repairs", "?")} repairs, '
+                     f'{est.get("smoother_dropped_landmarks", "?")} landmarks dropped behind a camera')
     je = [f'{side} p50 {e["p50_deg"]:.3f}, p95 {e["p95_deg"]:.3f}, max {e["max_deg"]:.3f}'
           + (f', p95 {e["moving_p95_deg"]:.3f} while turning' if 'moving_p95_deg' in e else '')
           for side, e in report['joint_error_deg'].items() if e]

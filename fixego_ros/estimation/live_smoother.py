@@ -74,11 +74,13 @@ class SmootherState:
     last_error: str = ''
     restarts: int = 0
     repairs: int = 0
+    dropped: int = 0
 
 
 def _state(smoother: Any, skipped: int, error: str) -> SmootherState:
     return SmootherState(smoother.scale_observed, smoother.scale_note(), smoother.scale_measurement,
-                         smoother.speed_source_used, skipped, error, smoother.restarts, smoother.repairs)
+                         smoother.speed_source_used, skipped, error, smoother.restarts, smoother.repairs,
+                         smoother.dropped)
 
 
 class _Server:
@@ -270,6 +272,11 @@ class LiveSmoother:
     def repairs(self) -> int:
         """The smoother's numerical failures repaired in place (a landmark dropped or a pose held)."""
         return self._state.repairs
+
+    @property
+    def dropped(self) -> int:
+        """Landmarks the smoother dropped because a pass left them behind a camera that sees them."""
+        return self._state.dropped
 
     @property
     def alive(self) -> bool:

@@ -139,6 +139,7 @@ class Smoother:
     HOLD_SPEED_SIGMA = 0.3    # ... with this relative sigma on its step's length, of at least the nominal speed
     AT_REST_M = 0.01          # a landmark whose views' camera centres are all this close was seen from one place
     COLD_START_GAIN = 0.5     # a cold-started step replaces the warm one below this fraction of its cost
+    MIN_DEPTH_M = 0.3         # a point triangulated closer than this to its first view waits or enters far
 
     def __init__(self, rig: Rig, config: EstimatorConfig | None = None) -> None:
         self.rig = rig
@@ -175,6 +176,7 @@ class Smoother:
         self._graph_start = 0
         self.restarts = 0          # numerical failures (each starts a new graph at the last estimate)
         self.repairs = 0           # numerical failures the window repaired in place (FixedLagWindow)
+        self.dropped = 0           # landmarks a pass left behind a camera that sees them (FixedLagWindow)
         self._restart()
 
     def _restart(self) -> None:
@@ -468,7 +470,7 @@ class Smoother:
         centers = [p.apply(self.rig.center(v.side)) for p, v in zip(poses, views, strict=True)]
         parallax = math.degrees(math.acos(float(np.clip(rays[0] @ rays[-1], -1.0, 1.0))))
         point = triangulate(rays, centers) if parallax >= cfg.min_parallax_deg else None
-        behind = point is None or (point - centers[0]) @ rays[0] < FixedLagWindow.MIN_DEPTH_M
+        behind = point is None or (point - centers[0]) @ rays[0] < self.MIN_DEPTH_M
         unplaced = behind or np.linalg.norm(point - centers[0]) > cfg.max_range_m
         baseline = max(float(np.linalg.norm(c - centers[0])) for c in centers)
         if unplaced:
@@ -673,11 +675,14 @@ class Smoother:
             for what in self._window.repairs[before:]:
                 self.repairs += 1
                 self._note = f'numerically indeterminate: {what} (repair {self.repairs})'
-        except RuntimeError:
+        except RuntimeError as error:
             self.restarts += 1
+            why = str(error).strip().splitlines()[0][:160] if str(error).strip() else type(error).__name__
+            self._note = f'numerical failure, new graph (restart {self.restarts}): {why}'
             self._restart()
             return False
         gone = set(self._window.dropped[dropped:])      # behind a camera: its track may enter again, triangulated anew
+        self.dropped += len(gone)
         for lid in [lid for lid, k in self._landmarks.items()
                     if landmark_key(k) in gone or not self._estimate.exists(landmark_key(k))]:
             del self._landmarks[lid]

@@ -506,7 +506,8 @@ class EstimatorNode(Node):
             values.update({'smoother_results': self.estimator.smoothed_results,
                            'smoother_skipped_frames': self.estimator.frames_skipped,
                            'smoother_restarts': self.estimator.restarts,
-                           'smoother_repairs': self.estimator.repairs})
+                           'smoother_repairs': self.estimator.repairs,
+                           'smoother_dropped_landmarks': self.estimator.dropped})
         if self.last is None:
             level, message = WARN, 'no observation yet'
         else:
