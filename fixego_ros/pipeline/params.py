@@ -386,7 +386,7 @@ CAMERA_NODE_PARAMS: Table = _table(
          gt=0.0, le=3600.0),
     _num('vergence_settle_px', 10.0, 'vergence: both fixations this close to their principal points (3 frames in a '
                                      'row, then every averaged frame)', gt=0.0),
-    _num('vergence_max_rate_deg_s', 5.0, 'vergence: and both heads turning at most this fast (a moving head\'s '
+    _num('vergence_max_rate_deg_s', 10.0, 'vergence: and both heads turning at most this fast (a moving head\'s '
                                          'reading is quantised and its time uncertain)', gt=0.0, le=1000.0),
     _num('vergence_min_depth_m', 0.8, 'nearest depth searched along the right fixation ray', gt=0.0),
     _num('vergence_max_depth_m', 10.0, 'farthest depth searched along the right fixation ray', gt=0.0),

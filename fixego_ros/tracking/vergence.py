@@ -52,7 +52,7 @@ class VergenceParams:
     select_px: float = 60.0          # a match this close to the centre is fixated directly (no centring move)
     max_turn_deg: float = 60.0       # no step when the left head would have to turn further (interruption bound)
     settle_px: float = 10.0          # both fixations this close to their principal points ...
-    max_rate_deg_s: float = 5.0      # ... and both heads turning at most this fast (readings of fast heads are off)
+    max_rate_deg_s: float = 10.0     # ... and both heads turning at most this fast (readings of fast heads are off)
     motion_window_s: float = 0.05    # head speed at a stamp: from its readings this long before and after
     settle_frames: int = 3           # ... for this many consecutive frames, then
     frames: int = 20                 # this many settled frames are averaged into one measurement
