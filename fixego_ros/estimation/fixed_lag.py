@@ -189,6 +189,8 @@ class FixedLagWindow:
         pose_keys = keys[(kind == _CHR_POSE) | (kind == _CHR_CAMERA)]
         point_keys = keys[kind == _CHR_LANDMARK]
         poses, points = gtsam.utilities.extractPose3(theta), gtsam.utilities.extractPoint3(theta)
+        if len(poses) != len(pose_keys) or len(points) != len(point_keys):
+            return []                               # a variable of another kind: the rows would not match the keys
         camera = poses[np.searchsorted(pose_keys, self._views[:, 1])]     # rows: R row-major (9), t (3)
         point = points[np.searchsorted(point_keys, self._views[:, 2])]
         depth = np.einsum('ij,ij->i', camera[:, [2, 5, 8]], point - camera[:, 9:])
