@@ -291,6 +291,22 @@ def test_a_rig_that_starts_from_rest_moves_off_as_one_that_never_stood(loop, mon
                                                         # held the rig still, stop 40)
 
 
+def test_landmarks_the_window_drops_are_forgotten_and_the_smoother_goes_on(loop, monkeypatch):
+    """Stop 40. With every landmark counted as behind its cameras the window drops each one the pass after it
+    enters: the smoother forgets their tracks (a later sighting must not attach to a landmark without views), keeps
+    going on its steps and priors without a numerical failure, and counts the drops."""
+    from fixego_ros.estimation import fixed_lag
+
+    monkeypatch.setattr(fixed_lag.FixedLagWindow, 'MIN_DEPTH_M', 1e3)
+    sm = Smoother(RIG, _config())
+    kept = []
+    for obs in loop.observations:
+        r = sm.update(obs)
+        kept.append(len(sm._landmarks))
+        assert r.pose.is_finite()
+    assert sm.dropped > 50 and sm.restarts == 0 and max(kept) == 0
+
+
 def _restart_at(loop, k_fail: int, monkeypatch) -> tuple[Smoother, np.ndarray, np.ndarray]:
     """The loop with vergence measurements up to frame ``k_fail``, whose update fails numerically (the window
     raises as GTSAM does), so the smoother starts a new graph there; the path as a caller keeps it."""
