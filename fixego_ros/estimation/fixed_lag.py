@@ -78,6 +78,7 @@ class FixedLagWindow:
         self.dropped: list[int] = []    # landmarks dropped behind a camera (the caller forgets them)
         self._views = _NO_VIEWS         # projection factors: rows (index in ISAM2, camera key, landmark key)
         self._pending: list[int] = []                   # projection factors to remove at the next update
+        self._theta: gtsam.Values | None = None         # the estimate, once computed after the last change
 
     @staticmethod
     def _new_isam() -> gtsam.ISAM2:
@@ -150,6 +151,7 @@ class FixedLagWindow:
             for k, g in group.items():
                 groups.insert2(k, rank[g])
             new = graph if step == 0 else gtsam.NonlinearFactorGraph()
+            self._theta = None
             result = self._isam.update(new, values if step == 0 else gtsam.Values(), remove, groups, None, keys, True)
             if remove:
                 self._views = self._views[~np.isin(self._views[:, 0], np.array(remove, np.uint64))]
@@ -180,7 +182,7 @@ class FixedLagWindow:
         that sees it (module docstring). Those landmarks leave the window at the next update."""
         if not len(self._views):
             return []
-        theta = self._isam.calculateEstimate()      # all at once: a call per key cost ~40 ms a frame
+        theta = self._theta = self._isam.calculateEstimate()     # all at once: a call per key cost ~40 ms a frame
         keys = np.asarray(theta.keys(), np.uint64)  # sorted
         found = [keys[np.minimum(np.searchsorted(keys, self._views[:, c]), len(keys) - 1)] == self._views[:, c]
                  for c in (1, 2)]
@@ -204,7 +206,10 @@ class FixedLagWindow:
         return [int(i) for i in self._views[np.isin(self._views[:, 2], dropped), 0]]
 
     def estimate(self) -> gtsam.Values:
-        return self._isam.calculateEstimate()
+        """The current estimate (the behind-camera check's, when nothing has changed since)."""
+        if self._theta is None:
+            self._theta = self._isam.calculateEstimate()
+        return self._theta
 
     def marginal_covariance(self, key: int) -> np.ndarray:
         """Marginal covariance in the variable's tangent space (cheap for the newest frame's keys)."""
