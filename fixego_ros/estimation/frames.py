@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Protocol, TypeVar
 
 import numpy as np
@@ -68,6 +68,42 @@ def fixations_of(obs: FrameObservation) -> dict[str, Fixation | None]:
               and bool(np.all(np.isfinite(cam.fixation_ray))) and bool(np.all(np.isfinite(cam.cam_to_rig))))
         out[side] = (np.asarray(cam.fixation_ray, float), int(cam.fixation_id), cam.cam_to_rig) if ok else None
     return out
+
+
+Tracks = dict[str, tuple[np.ndarray, np.ndarray]]   # side -> (track ids, rig-frame rays) of one frame
+
+
+def tracks_of(obs: FrameObservation) -> Tracks:
+    """Each camera's persistent tracks at this frame (ids and finite rig-frame rays)."""
+    out: Tracks = {}
+    for side in SIDES:
+        cam = obs.camera(side)
+        if cam is None:
+            continue
+        ids = np.asarray(cam.track_ids, np.int64).reshape(-1)
+        rays = np.asarray(cam.track_rays, float).reshape(-1, 3)
+        if len(ids) == len(rays):
+            ok = np.all(np.isfinite(rays), axis=1)
+            out[side] = (ids[ok], rays[ok])
+    return out
+
+
+def with_track_flow(obs: FrameObservation, earlier: Tracks) -> FrameObservation:
+    """``obs`` with each camera's flow pairs replaced by the tracks it shares with an ``earlier`` frame: a step from
+    that frame when the front end's own flow starts from a frame the estimator does not have."""
+    now = tracks_of(obs)
+    cams = {}
+    for side in SIDES:
+        cam = obs.camera(side)
+        if cam is None:
+            cams[side] = None
+            continue
+        prev, curr = np.zeros((0, 3)), np.zeros((0, 3))
+        if side in earlier and side in now:
+            _, ia, ib = np.intersect1d(earlier[side][0], now[side][0], assume_unique=True, return_indices=True)
+            prev, curr = earlier[side][1][ia], now[side][1][ib]
+        cams[side] = replace(cam, flow_prev=prev, flow_curr=curr)
+    return replace(obs, right=cams['right'], left=cams['left'])
 
 
 STAMP_TOLERANCE_S = 1e-6   # two stamps this close name the same frame

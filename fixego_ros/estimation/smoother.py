@@ -46,10 +46,13 @@ from fixego_ros.estimation.frames import (
     Fixation,
     FrameObservation,
     FrameResult,
+    Tracks,
     at_stamp,
     fixations_of,
     span_start,
     step_pairs,
+    tracks_of,
+    with_track_flow,
 )
 from fixego_ros.estimation.keys import LandmarkId, LandmarkKind, camera_key, landmark_key, pose_key
 from fixego_ros.estimation.speed_samples import SpeedSamples
@@ -68,6 +71,7 @@ class _Frame:
     fixation: dict[str, Fixation | None]
     pose: Pose
     pose_raw: Pose
+    tracks: Tracks = field(default_factory=dict)   # what a later frame steps from when its keyframe is not here
 
 
 @dataclass
@@ -140,6 +144,7 @@ class Smoother:
     AT_REST_M = 0.01          # a landmark whose views' camera centres are all this close was seen from one place
     COLD_START_GAIN = 0.5     # a cold-started step replaces the warm one below this fraction of its cost
     MIN_DEPTH_M = 0.3         # a point triangulated closer than this to its first view waits or enters far
+    ANCHOR_SIGMA = 1e-6       # rad, m: the prior holding a graph's first pose
 
     def __init__(self, rig: Rig, config: EstimatorConfig | None = None) -> None:
         self.rig = rig
@@ -292,29 +297,42 @@ class Smoother:
         ref = at_stamp(self._frames, ref_stamp)
         ref = ref if ref is not None and self._in_graph(ref) else None
         messages: list[str] = []
-        if last is not None and ref is None:
+        stepped = obs
+        if ref is None and self._frames and self._in_graph(self._frames[-1]):
+            # the front end's keyframe predates this graph (a reset while it kept its keyframe, or a restart):
+            # step from the newest frame over the tracks both saw. Without a step the first frames of a graph had
+            # only a few landmarks and the motion prior, and the demo's rig at rest turned 6-33 deg in its first
+            # second (7 of 57 runs, README "Stop 41")
+            ref = self._frames[-1]
+            stepped = with_track_flow(obs, ref.tracks)
+            messages.append('flow reference not in the graph: stepped from the last frame over shared tracks')
+        elif last is not None and ref is None:
             messages.append('flow reference not in the graph: placed by landmarks and the motion prior')
         pose0 = self._resect(i, obs, self._predict(obs.stamp))
-        tf, step_raw = self._two_frame(obs, ref, pose0)
+        tf, step_raw = self._two_frame(stepped, ref, pose0)
         up = _Update()
         up.add_value(pose_key(i), to_gtsam(pose0), obs.stamp)
         if i == self._graph_start:
-            anchor = gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)      # the graph's origin: this frame's pose
+            anchor = gtsam.noiseModel.Isotropic.Sigma(6, self.ANCHOR_SIGMA)     # the graph's origin: this pose
             up.graph.add(gtsam.PriorFactorPose3(pose_key(i), to_gtsam(pose0), anchor))
         self._observe(i, obs, pose0, up)
         if self._good(tf) and ref is not None:
             up.graph.add(self.steps.factor(ref.index, i, tf.pose, tf.covariance, obs.stamp - ref.stamp,
                                             self.scale_observed))
             # keyframe -> keyframe only: a frame the front end does not keep has a short baseline (at 30 Hz a few
-            # mm) whose solved direction is biased, and it reuses its keyframe's rays (README "Stop 32")
-            direction = self.direction.factor(ref.index, i, tf.pose, tf.covariance) if obs.keyframe else None
+            # mm) whose solved direction is biased, and it reuses its keyframe's rays (README "Stop 32"); so has a
+            # step over shared tracks from the newest frame
+            keyframe_step = obs.keyframe and stepped is obs
+            direction = self.direction.factor(ref.index, i, tf.pose, tf.covariance) if keyframe_step else None
             if direction is not None:
                 up.graph.add(direction)
         self._add_speed(i, obs.stamp, ref, tf, up)
         self._add_motion_prior(i, obs.stamp, up)
         self._hold_speed(i, obs.stamp, up)
         raw_base = ref.pose_raw if ref is not None else (self._frames[-1].pose_raw if self._frames else Pose.identity())
-        frame = _Frame(i, obs.stamp, fix, pose0, (raw_base @ step_raw).normalized())
+        frame = _Frame(i, obs.stamp, fix, pose0, (raw_base @ step_raw).normalized(), tracks_of(obs))
+        if self._frames:
+            self._frames[-1].tracks = {}        # only the newest frame's are stepped from
         self._frames.append(frame)
         self._attach_points(up)
         ok = self._solve(up)
@@ -469,15 +487,22 @@ class Smoother:
         rays = [p.R @ v.ray for p, v in zip(poses, views, strict=True)]
         centers = [p.apply(self.rig.center(v.side)) for p, v in zip(poses, views, strict=True)]
         parallax = math.degrees(math.acos(float(np.clip(rays[0] @ rays[-1], -1.0, 1.0))))
-        point = triangulate(rays, centers) if parallax >= cfg.min_parallax_deg else None
+        baseline = max(float(np.linalg.norm(c - centers[0])) for c in centers)
+        # the baseline at which a landmark at the far guess shows the parallax: below it, a track's parallax is
+        # more likely a rotation error than depth. The demo's rig starting off while the left head came back from
+        # its vergence step, the graph 0.3-0.4 deg off in rotation: tracks entered with 0.5-0.75 deg over 10-16 mm,
+        # at 0.4-1.7 m for 3-4 m, and the window became indeterminate. Only once the baseline is metric (before,
+        # the gauge may well be short: a walk's first second, 3 -> 29 cm mean), and not for a fixation point (it
+        # enters anyway, and at the far guess a near one pulls the rotation)
+        far_baseline = cfg.far_guess_m * math.tan(math.radians(cfg.min_parallax_deg))
+        short = baseline < far_baseline and self.scale_observed and lid.kind is not LandmarkKind.FIXATION
+        point = triangulate(rays, centers) if parallax >= cfg.min_parallax_deg and not short else None
         behind = point is None or (point - centers[0]) @ rays[0] < self.MIN_DEPTH_M
         unplaced = behind or np.linalg.norm(point - centers[0]) > cfg.max_range_m
-        baseline = max(float(np.linalg.norm(c - centers[0])) for c in centers)
         if unplaced:
             # a fixation point, or a track seen often without parallax, enters anyway (its rays hold the rotation);
-            # a track only once the views span the baseline at which a landmark at the far guess would show the
-            # parallax: seen from one place (the rig at rest) its views say nothing about its depth
-            far_baseline = cfg.far_guess_m * math.tan(math.radians(cfg.min_parallax_deg))
+            # a track only once the views span that baseline: seen from one place (the rig at rest) its views say
+            # nothing about its depth
             if lid.kind is not LandmarkKind.FIXATION and (len(views) < cfg.patient_views or baseline < far_baseline):
                 return
             if behind:
