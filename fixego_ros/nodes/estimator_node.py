@@ -499,10 +499,11 @@ class EstimatorNode(Node):
             std = self.scale_requests.rel_std(self.last.stamp, self.estimator.scale_measurement)
             values['scale_rel_std'] = f'{std:.4f}' if math.isfinite(std) else 'unmeasured'
         values.update({f'steps_{k}': v for k, v in sorted(self.status_counts.items())})
-        values.update({**percentile_values('solve_ms', self.solve_ms or (0.0,)),
-                       'window': self.config.window, 'mode': self.config.mode})
+        values.update(percentile_values('solve_ms', self.solve_ms or (0.0,)))
         level, message = OK, 'estimating'
-        if isinstance(self.estimator, LiveSmoother):
+        if not isinstance(self.estimator, LiveSmoother):     # the papers' local BA: its window and cost
+            values.update({'window': self.config.window, 'mode': self.config.mode})
+        else:
             values.update({'smoother_results': self.estimator.smoothed_results,
                            'smoother_skipped_frames': self.estimator.frames_skipped,
                            'smoother_restarts': self.estimator.restarts,
