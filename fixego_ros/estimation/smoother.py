@@ -144,7 +144,6 @@ class Smoother:
     AT_REST_M = 0.01          # a landmark whose views' camera centres are all this close was seen from one place
     COLD_START_GAIN = 0.5     # a cold-started step replaces the warm one below this fraction of its cost
     MIN_DEPTH_M = 0.3         # a point triangulated closer than this to its first view waits or enters far
-    ANCHOR_SIGMA = 1e-6       # rad, m: the prior holding a graph's first pose
 
     def __init__(self, rig: Rig, config: EstimatorConfig | None = None) -> None:
         self.rig = rig
@@ -179,6 +178,7 @@ class Smoother:
         self._scale_measured: tuple[float, float] | None = None
         self._vergence_used = 0
         self._graph_start = 0
+        self._stood = -math.inf    # stamp of the newest stationary step (the rig at rest)
         self.restarts = 0          # numerical failures (each starts a new graph at the last estimate)
         self.repairs = 0           # numerical failures the window repaired in place (FixedLagWindow)
         self.dropped = 0           # landmarks a pass left behind a camera that sees them (FixedLagWindow)
@@ -310,10 +310,12 @@ class Smoother:
             messages.append('flow reference not in the graph: placed by landmarks and the motion prior')
         pose0 = self._resect(i, obs, self._predict(obs.stamp))
         tf, step_raw = self._two_frame(stepped, ref, pose0)
+        if tf is not None and tf.status is StepStatus.STATIONARY:
+            self._stood = obs.stamp
         up = _Update()
         up.add_value(pose_key(i), to_gtsam(pose0), obs.stamp)
         if i == self._graph_start:
-            anchor = gtsam.noiseModel.Isotropic.Sigma(6, self.ANCHOR_SIGMA)     # the graph's origin: this pose
+            anchor = gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)      # the graph's origin: this frame's pose
             up.graph.add(gtsam.PriorFactorPose3(pose_key(i), to_gtsam(pose0), anchor))
         self._observe(i, obs, pose0, up)
         if self._good(tf) and ref is not None:
@@ -488,21 +490,16 @@ class Smoother:
         centers = [p.apply(self.rig.center(v.side)) for p, v in zip(poses, views, strict=True)]
         parallax = math.degrees(math.acos(float(np.clip(rays[0] @ rays[-1], -1.0, 1.0))))
         baseline = max(float(np.linalg.norm(c - centers[0])) for c in centers)
-        # the baseline at which a landmark at the far guess shows the parallax: below it, a track's parallax is
-        # more likely a rotation error than depth. The demo's rig starting off while the left head came back from
-        # its vergence step, the graph 0.3-0.4 deg off in rotation: tracks entered with 0.5-0.75 deg over 10-16 mm,
-        # at 0.4-1.7 m for 3-4 m, and the window became indeterminate. Only once the baseline is metric (before,
-        # the gauge may well be short: a walk's first second, 3 -> 29 cm mean), and not for a fixation point (it
-        # enters anyway, and at the far guess a near one pulls the rotation)
         far_baseline = cfg.far_guess_m * math.tan(math.radians(cfg.min_parallax_deg))
-        short = baseline < far_baseline and self.scale_observed and lid.kind is not LandmarkKind.FIXATION
-        point = triangulate(rays, centers) if parallax >= cfg.min_parallax_deg and not short else None
+        point = triangulate(rays, centers) if parallax >= cfg.min_parallax_deg else None
+        if point is not None and lid.kind is LandmarkKind.TRACK and baseline < far_baseline and self._starting(stamp):
+            return
         behind = point is None or (point - centers[0]) @ rays[0] < self.MIN_DEPTH_M
         unplaced = behind or np.linalg.norm(point - centers[0]) > cfg.max_range_m
         if unplaced:
             # a fixation point, or a track seen often without parallax, enters anyway (its rays hold the rotation);
-            # a track only once the views span that baseline: seen from one place (the rig at rest) its views say
-            # nothing about its depth
+            # a track only once the views span the baseline at which a landmark at the far guess would show the
+            # parallax: seen from one place (the rig at rest) its views say nothing about its depth
             if lid.kind is not LandmarkKind.FIXATION and (len(views) < cfg.patient_views or baseline < far_baseline):
                 return
             if behind:
@@ -516,6 +513,16 @@ class Smoother:
             # whole graph restarts, losing the scale. Only then: a prior this firm moves the paper bag's blind last
             # frames (terminal 5.1 -> 11.1 cm) when every no-parallax landmark gets it
             up.graph.add(gtsam.PriorFactorPoint3(landmark_key(index), point, self._depth_prior))
+
+    def _starting(self, stamp: float) -> bool:
+        """The rig starts off from a standstill with its scale measured: within the lag of a stationary step, after a
+        scale aid. Then the graph's baseline is metric, and a track's parallax over less than the far-guess baseline
+        is more likely a rotation error than depth: the demo's heads settle after the start-up vergence step, the
+        graph drifts 0.2-0.4 deg, and tracks entered with 0.5-0.75 deg over 10-16 mm at 0.4-1.7 m for 3-4 m; the
+        window went indeterminate and the smoother restarted without its scale (README "Stop 41"). Not for a rig
+        that never stood: a graph whose scale was just measured may still believe it creeps (the bench's walk with
+        vergence: the rule kept every track out, 2.3 -> 197 cm)."""
+        return self.scale_observed and stamp - self._stood <= self.settings.lag_s
 
     def _add_landmark(self, lid: LandmarkId, point: np.ndarray, up: _Update, stamp: float) -> int:
         index = next(self._next_landmark)
