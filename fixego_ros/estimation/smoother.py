@@ -418,16 +418,13 @@ class Smoother:
     @staticmethod
     def _sightings(obs: FrameObservation):
         """(side, landmark id, rig ray, camera) of everything the frame saw: tracks and valid fixation points."""
+        tracks = tracks_of(obs)
         for side in SIDES:
             cam = obs.camera(side)
             if cam is None or not np.all(np.isfinite(cam.cam_to_rig)):
                 continue
-            ids = np.asarray(cam.track_ids, np.int64).reshape(-1)
-            rays = np.asarray(cam.track_rays, float).reshape(-1, 3)
-            if len(ids) == len(rays):
-                for t, ray in zip(ids, rays, strict=True):
-                    if np.all(np.isfinite(ray)):
-                        yield side, LandmarkId(LandmarkKind.TRACK, side, int(t)), ray, cam
+            for t, ray in zip(*tracks.get(side, ((), ())), strict=True):
+                yield side, LandmarkId(LandmarkKind.TRACK, side, int(t)), ray, cam
             ray = cam.fixation_ray
             if ray is not None and cam.fixation_id >= 0 and np.all(np.isfinite(ray)):
                 yield side, LandmarkId(LandmarkKind.FIXATION, side, int(cam.fixation_id)), np.asarray(ray, float), cam
