@@ -20,6 +20,7 @@ from fixego_ros.estimation.smoother import Smoother
 from fixego_ros.evaluation.metrics import evaluate
 from fixego_ros.evaluation.tum import read_tum
 from fixego_ros.geometry.rig import load_rig
+from fixego_ros.pipeline.frontend import StereoFrontEnd
 from fixego_ros.replay.run import ReplayError, ReplaySettings, ReplayTopics, replay
 
 BAGS = Path(__file__).resolve().parents[1] / 'bags'
@@ -248,6 +249,75 @@ def test_foreign_topic_names_with_remapping_and_unknown_types(tmp_path):
     assert p.returncode == 0, p.stderr
     stamps, _ = read_tum(tmp_path / 'est.tum')
     assert len(stamps) == 20
+
+
+class FixationSpyFrontEnd(StereoFrontEnd):
+    """The replay's front end, recording the fixation each camera's sample carries."""
+
+    seen: ClassVar[dict[tuple[str, float], tuple[tuple[float, float] | None, int]]] = {}
+
+    def process(self, stamp, samples):
+        for side, s in samples.items():
+            if s is not None:
+                FixationSpyFrontEnd.seen[side, round(stamp, 6)] = (s.fixation_px, s.fixation_id)
+        return super().process(stamp, samples)
+
+
+def test_recorded_fixations_are_what_the_front_end_gets(tmp_path, monkeypatch, capsys):
+    """A bag recorded on the rig carries camera_node's <side>/fixation: replay uses those, as the live flow_node does,
+    instead of re-tracking. Here they are the simulator's true fixations, the right one moved 7 px (so a tracker
+    could not have found them), one right message has a NaN id (noted, skipped) and one says "no valid fixation"."""
+    from fixego_ros.cli import main as fixego
+    from fixego_ros.replay import run as replay_run
+    from fixego_ros.replay.run import FixationSource, fixations_in
+
+    recorded: dict[tuple[str, float], tuple[tuple[float, float] | None, int]] = {}
+    count = {'right': 0, 'left': 0}
+
+    def with_fixations(topic, msgtype, msg, t):
+        out = [(topic, msgtype, msg, t)]
+        for side in ('right', 'left'):
+            if topic == f'/fixego/ground_truth/{side}/fixation':
+                copy = Bag(WALK)._store().types[msgtype](msg.header, type(msg.point)(
+                    msg.point.x + (7.0 if side == 'right' else 0.0), msg.point.y, msg.point.z))
+                count[side] += 1
+                stamp = round(msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9, 6)
+                if side == 'right' and count[side] == 5:
+                    copy.point.z = np.nan
+                elif side == 'right' and count[side] == 8:
+                    copy.point.x, copy.point.y, copy.point.z = 0.0, 0.0, -1.0
+                    recorded[side, stamp] = (None, -1)
+                else:
+                    recorded[side, stamp] = ((copy.point.x, copy.point.y), int(copy.point.z))
+                out.append((f'/fixego/{side}/fixation', msgtype, copy, t))
+        return out
+
+    src = rewrite(WALK, tmp_path / 'recorded', with_fixations, frames=15)
+    assert fixations_in(Bag(src), ReplayTopics()) is FixationSource.RECORDED
+    assert fixations_in(Bag(WALK), ReplayTopics()) is FixationSource.TRACKED
+    monkeypatch.setattr(replay_run, 'StereoFrontEnd', FixationSpyFrontEnd)
+    FixationSpyFrontEnd.seen = {}
+    assert fixego(['replay', str(src), '--out', str(tmp_path / 'rec' / 'est.tum'), '--workers', '1',
+                   '--no-progress']) == 0
+    printed = capsys.readouterr()
+    assert "fixations: the bag's messages" in printed.out
+    assert 'right fixation unusable (non-finite fixation id nan)' in printed.err
+    seen = FixationSpyFrontEnd.seen
+    assert len(seen) >= 25
+    for key, fix in seen.items():
+        if key in recorded:
+            assert fix == recorded[key], key
+        else:                   # the NaN one was skipped: that frame went on without a right fixation
+            assert key[0] == 'right' and fix == (None, -1), key
+    assert sum(1 for k in seen if k[0] == 'right' and k not in recorded) == 1
+    # --fixations tracked: a passive tracker finds them again (near the true pixels, not 7 px off)
+    FixationSpyFrontEnd.seen = {}
+    assert fixego(['replay', str(src), '--out', str(tmp_path / 'trk' / 'est.tum'), '--workers', '1',
+                   '--no-progress', '--fixations', 'tracked']) == 0
+    assert 'fixations: tracked on the images' in capsys.readouterr().out
+    right = [(fix, recorded[k]) for k, fix in FixationSpyFrontEnd.seen.items()
+             if k[0] == 'right' and k in recorded and fix[0] is not None and recorded[k][0] is not None]
+    assert len(right) >= 10 and all(abs(f[0][0] - r[0][0]) > 3.0 for f, r in right)
 
 
 def test_reader_decodes_custom_types_from_the_bag_schema(tmp_path):

@@ -6,7 +6,9 @@ against real time, and the ATE when the bag holds ``ground_truth/pose``. ``--spe
 default) feeds a nav_msgs/Odometry speed source recorded in the bag (e.g. ``fixego sim --wheel-odom-std``)
 to the estimator as a scale aid; the vergence measurements (``<namespace>/vergence``, any number, written by
 the rig's repeated vergence step and by ``fixego sim``) are used when the bag has them (``--vergence-topic``
-names another topic, ``''`` turns them off).
+names another topic, ``''`` turns them off). The fixations are the bag's ``<side>/fixation`` messages when it has
+both (a bag recorded on the rig: the points the heads fixated), else a passive tracker finds them in the images
+(``--fixations tracked`` forces that).
 
 Exit codes: 0 done (possibly with documented degradations, printed); 2 the bag or the options cannot be
 used, or the bag is corrupt: then what precedes the first damaged record has been replayed and written
@@ -30,6 +32,7 @@ from fixego_ros.cli_options import OptionError, check_out_file
 from fixego_ros.interrupt import signals_interrupt
 
 PROG = 'fixego replay'
+FIXATION_CHOICES = ('recorded', 'tracked')    # replay.run.FixationSource's values (not imported: quick --help)
 # node parameters that replay takes as options instead
 REPLAY_OPTION = {'vergence_topic': 'use --vergence-topic', 'rig_file': 'use --rig',
                  'observation_topic': 'replay reads the image topics; see --remap and --namespace'}
@@ -69,6 +72,10 @@ def register(subparsers) -> None:
                         'topic of the bag (the right fixation point in the rig frame at each stamp) to the '
                         "estimator (estimator_node vergence_topic). Default: <namespace>/vergence when the bag has "
                         "it; '' = off")
+    p.add_argument('--fixations', choices=FIXATION_CHOICES,
+                   help="recorded = the bag's <namespace>/<side>/fixation messages (camera_node's); tracked = a "
+                        'passive tracker on the images (for bags without them). Default: recorded when the bag has '
+                        'both, else tracked')
     p.add_argument('--eval-out', type=Path, metavar='DIR',
                    help='with ground truth: also write DIR/ground_truth.tum, DIR/eval.json and DIR/eval.png')
     p.add_argument('--workers', type=int, choices=(1, 2), default=2 if (os.cpu_count() or 1) > 1 else 1,
@@ -102,7 +109,7 @@ def settings_from_args(args: argparse.Namespace, rig):
         params_getter,
         parse_value,
     )
-    from fixego_ros.replay.run import ReplaySettings
+    from fixego_ros.replay.run import FixationSource, ReplaySettings
 
     nodes = {'camera_node': FIXATION_PARAMS, 'flow_node': FLOW_PARAMS,
              'estimator_node': {**ESTIMATOR_PARAMS, **SPEED_PARAMS}}
@@ -130,7 +137,8 @@ def settings_from_args(args: argparse.Namespace, rig):
     getters = {n: params_getter(table, values[n]) for n, table in nodes.items()}
     return ReplaySettings.from_getters(rig, getters['camera_node'], getters['flow_node'], getters['estimator_node'],
                                        SpeedSettings.from_getter(getters['estimator_node']),
-                                       vergence_topic=args.vergence_topic or '')
+                                       vergence_topic=args.vergence_topic or '',
+                                       fixations=FixationSource(args.fixations or FixationSource.TRACKED.value))
 
 
 def vergence_topic_in(bag, topics) -> str:
@@ -164,7 +172,14 @@ def _run(args: argparse.Namespace, bars: list) -> int:
     from fixego_ros.geometry.rig import SIDES, RigError, load_rig
     from fixego_ros.pipeline.params import ParamsError
     from fixego_ros.progress import Progress
-    from fixego_ros.replay.run import ReplayError, ReplayTopics, intrinsics_from_bag, replay
+    from fixego_ros.replay.run import (
+        FixationSource,
+        ReplayError,
+        ReplayTopics,
+        fixations_in,
+        intrinsics_from_bag,
+        replay,
+    )
 
     def fail(msg: str) -> int:
         print(f'{PROG}: {msg}', file=sys.stderr)
@@ -190,6 +205,8 @@ def _run(args: argparse.Namespace, bars: list) -> int:
             print(f'{PROG}: error: {problem}', file=sys.stderr)
         if args.vergence_topic is None:      # default: the bag's vergence measurements when it has them
             args.vergence_topic = vergence_topic_in(bag, topics)
+        if args.fixations is None:           # default: the bag's fixations when it has them
+            args.fixations = fixations_in(bag, topics).value
         settings = settings_from_args(args, rig)
         if settings.speed.topic and not settings.speed.topic.startswith('/'):
             # a relative speed_topic (as the node takes it, in its namespace) names the bag topic under --namespace
@@ -223,7 +240,9 @@ def _run(args: argparse.Namespace, bars: list) -> int:
         f'({res.realtime_factor:.1f}x real time); steps: '
         + ', '.join(f'{k} {v}' for k, v in sorted(res.steps.items())))
     stages = ', '.join(f'{k} {np.median(v):.2f}' for k, v in res.stage_ms.items() if v)
-    say(f'median ms per call: {stages}; fixation re-selections right {c["reselections:right"]}, '
+    fixations = ("the bag's messages" if settings.fixations is FixationSource.RECORDED
+                 else 'tracked on the images')
+    say(f'median ms per call: {stages}; fixations: {fixations}, re-selections right {c["reselections:right"]}, '
         f'left {c["reselections:left"]}')
     if settings.speed.topic:
         say(f'speed aid {settings.speed.topic}: {c["speed_samples"]} samples given to the estimator')

@@ -1,10 +1,18 @@
 """The offline pipeline behind ``fixego replay`` (ROS-free, single-threaded, deterministic).
 
 Reads an image-level bag (DESIGN.md §3) in recording order and runs what the live nodes run, in one
-process: a passive :class:`~fixego_ros.tracking.fixation.FixationTracker` per camera (the recorded
-heads moved on their own; we only find the point each keeps near the centre), the stamp synchroniser
-with the bag's clock, the stereo flow front end and the estimator, with the parameters of the nodes
-(:mod:`fixego_ros.pipeline.params`). Same bag and settings give the same output, byte for byte.
+process: the fixations, the stamp synchroniser with the bag's clock, the stereo flow front end and the
+estimator, with the parameters of the nodes (:mod:`fixego_ros.pipeline.params`). Same bag and settings give
+the same output, byte for byte.
+
+Fixations (:class:`FixationSource`): a bag recorded on the rig (``fixego record``) has the camera nodes'
+``<side>/fixation`` messages, the points the heads really fixated, and those are used as the live ``flow_node``
+uses them (``RECORDED``). A bag with only images and joint states (another simulator, DESIGN.md §3) gets a
+passive :class:`~fixego_ros.tracking.fixation.FixationTracker` per camera (``TRACKED``: the recorded heads moved
+on their own; it finds the point each keeps near the centre). Re-tracking a rig's bag does not give the run
+back: that tracker carries its point across the head's limit swings by template search, so after a swing it
+follows another point than the head, 40-90 px off the centre, and the vergence steps measured a point it does
+not follow.
 
 With ``workers=2`` the estimator runs in a second process fed through a queue (front end and
 estimator overlap on two cores); the estimator sees the same observations in the same order, so
@@ -36,6 +44,7 @@ A message that cannot be converted or that the estimator refuses is skipped and 
 from __future__ import annotations
 
 import contextlib
+import enum
 import math
 import queue
 import threading
@@ -57,6 +66,7 @@ from fixego_ros.pipeline.camera_info import CAMERA_INFO_TYPE, IntrinsicsFromInfo
 from fixego_ros.pipeline.frontend import CameraSample, KeyframePolicy, StereoFrontEnd
 from fixego_ros.pipeline.messages import (
     ImageError,
+    fixation_from_msg,
     gray_for_camera,
     joint_sigma,
     msg_to_pose,
@@ -91,6 +101,14 @@ from fixego_ros.tracking.flow import FlowParams
 IMAGE_TYPES = ('sensor_msgs/msg/Image', 'sensor_msgs/msg/CompressedImage')
 JOINTS_TYPE = 'sensor_msgs/msg/JointState'
 POSE_TYPE = 'geometry_msgs/msg/PoseStamped'
+FIXATION_TYPE = 'geometry_msgs/msg/PointStamped'
+
+
+class FixationSource(enum.Enum):
+    """Where a replay's fixations come from (see the module docstring)."""
+
+    RECORDED = 'recorded'    # the bag's <side>/fixation messages (camera_node's, as the live flow_node takes them)
+    TRACKED = 'tracked'      # a passive tracker per camera on the images (bags without fixation messages)
 
 
 class ReplayError(Exception):
@@ -108,10 +126,12 @@ class ReplayTopics:
         default = f'{self.namespace.rstrip("/")}/{suffix}'
         return dict(self.remap).get(default, default)
 
-    def routes(self) -> dict[str, tuple[str, str]]:
+    def routes(self, fixations: FixationSource = FixationSource.TRACKED) -> dict[str, tuple[str, str]]:
         """bag topic -> (kind, side)."""
         out = {self.name(f'{side}/image_raw'): ('image', side) for side in SIDES}
         out.update({self.name(f'{side}/joint_states'): ('joints', side) for side in SIDES})
+        if fixations is FixationSource.RECORDED:
+            out.update({self.name(f'{side}/fixation'): ('fixation', side) for side in SIDES})
         out[self.name('ground_truth/pose')] = ('ground_truth', '')
         return out
 
@@ -125,17 +145,18 @@ class ReplaySettings:
     estimator: EstimatorConfig
     speed: SpeedSettings = field(default_factory=SpeedSettings)      # scale aid; topic '' = off
     vergence_topic: str = ''                                          # vergence measurements; '' = off
+    fixations: FixationSource = FixationSource.TRACKED
 
     @classmethod
     def from_getters(cls, rig: Rig, camera: Getter | None = None, flow: Getter | None = None,
                      estimator: Getter | None = None, speed: SpeedSettings | None = None,
-                     vergence_topic: str = '') -> ReplaySettings:
+                     vergence_topic: str = '', fixations: FixationSource = FixationSource.TRACKED) -> ReplaySettings:
         """The nodes' parameters (defaults of :mod:`~fixego_ros.pipeline.params` unless a getter is given)."""
         camera = camera or params_getter(FIXATION_PARAMS)
         flow = flow or params_getter(FLOW_PARAMS)
         estimator = estimator or params_getter(ESTIMATOR_PARAMS)
         return cls(fixation_params(camera), flow_params(flow), keyframe_policy(flow), sync_params(flow),
-                   estimator_config(estimator, rig), speed or SpeedSettings(), vergence_topic)
+                   estimator_config(estimator, rig), speed or SpeedSettings(), vergence_topic, fixations)
 
 
 @dataclass
@@ -420,7 +441,15 @@ def _revise(res: ReplayResult, index_of: dict[float, int], revised: tuple[tuple[
             res.poses[k] = pose
 
 
-def check_topics(bag: Bag, topics: ReplayTopics, speed_topic: str = '', vergence_topic: str = '') -> None:
+def fixations_in(bag: Bag, topics: ReplayTopics) -> FixationSource:
+    """RECORDED when the bag lists both cameras' ``<side>/fixation`` with the right type, else TRACKED."""
+    names = [topics.name(f'{side}/fixation') for side in SIDES]
+    ok = all(n in bag.topics and bag.topics[n].msgtype == FIXATION_TYPE for n in names)
+    return FixationSource.RECORDED if ok else FixationSource.TRACKED
+
+
+def check_topics(bag: Bag, topics: ReplayTopics, speed_topic: str = '', vergence_topic: str = '',
+                 fixations: FixationSource = FixationSource.TRACKED) -> None:
     """Fail early when the bag lists its topics and a required one is missing or of the wrong type."""
     if not bag.topics:
         return          # a cut file without summary or metadata: topics are only known while reading
@@ -434,8 +463,11 @@ def check_topics(bag: Bag, topics: ReplayTopics, speed_topic: str = '', vergence
         if t.msgtype != msgtype:
             raise ReplayError(f'{bag.path}: {what} topic {name} is {t.msgtype or "of unknown type"}, '
                               f'expected {msgtype}')
+    required = [('image_raw', IMAGE_TYPES), ('joint_states', (JOINTS_TYPE,))]
+    if fixations is FixationSource.RECORDED:
+        required.append(('fixation', (FIXATION_TYPE,)))
     for side in SIDES:
-        for suffix, types in ((f'{side}/image_raw', IMAGE_TYPES), (f'{side}/joint_states', (JOINTS_TYPE,))):
+        for suffix, types in ((f'{side}/{name}', types) for name, types in required):
             name = topics.name(suffix)
             t = bag.topics.get(name)
             if t is None:
@@ -480,8 +512,9 @@ def replay(bag: Bag, rig: Rig, settings: ReplaySettings, topics: ReplayTopics = 
     """Run the pipeline over ``bag``; ``progress(images_done)`` is called as it goes. ``workers=2`` runs
     the estimator in a second process (same output, faster on two cores)."""
     speed_topic = settings.speed.topic
-    check_topics(bag, topics, speed_topic, settings.vergence_topic)
-    routes = topics.routes()
+    recorded = settings.fixations is FixationSource.RECORDED
+    check_topics(bag, topics, speed_topic, settings.vergence_topic, settings.fixations)
+    routes = topics.routes(settings.fixations)
     if speed_topic:
         routes[speed_topic] = ('speed', '')
     if settings.vergence_topic:
@@ -496,6 +529,7 @@ def replay(bag: Bag, rig: Rig, settings: ReplaySettings, topics: ReplayTopics = 
     frontend = StereoFrontEnd(rig, settings.flow, settings.keyframes)
     estimator = (_Subprocess if workers > 1 else _InProcess)(rig, settings.estimator)
     last_image = dict.fromkeys(SIDES, -math.inf)
+    last_fixation_id: dict[str, int | None] = dict.fromkeys(SIDES)     # recorded fixations: re-selections counted
     now = -math.inf
     wall0 = time.perf_counter()
 
@@ -529,7 +563,7 @@ def replay(bag: Bag, rig: Rig, settings: ReplaySettings, topics: ReplayTopics = 
     def process(frame: SyncedFrame) -> None:
         nonlocal last_frame
         t0 = time.perf_counter()
-        if verged:
+        if verged and not recorded:
             follow_the_head(frame)
         samples = {side: None if c is None else CameraSample(c.image, c.pan, c.tilt, c.fixation_px, c.fixation_id,
                                                        c.joint_sigma)
@@ -571,7 +605,8 @@ def replay(bag: Bag, rig: Rig, settings: ReplaySettings, topics: ReplayTopics = 
                     continue
                 estimator.submit_fixation_point(v_stamp, 'right', point, cov)
                 res.counts['vergence'] += 1
-                verged.append((v_stamp, point))
+                if not recorded:
+                    verged.append((v_stamp, point))
 
                 continue
             if kind == 'image':
@@ -588,15 +623,33 @@ def replay(bag: Bag, rig: Rig, settings: ReplaySettings, topics: ReplayTopics = 
                     continue
                 last_image[side] = stamp
                 t0 = clock('decode', t0)
-                fix = trackers[side].update(gray, stamp)
-                clock('fixation', t0)
-                sync.add_image(side, stamp, gray, max(now, stamp))
-                # as camera_node: a fixation or an explicit "none" for every image (the frame need not wait)
-                sync.add_fixation(side, stamp, fix.pixel, fix.fixation_id if fix.valid else NO_FIXATION_ID)
-                if not fix.valid:
-                    res.counts[f'no_fixation:{side}'] += 1
+                if recorded:
+                    sync.add_image(side, stamp, gray, max(now, stamp))
+                else:
+                    fix = trackers[side].update(gray, stamp)
+                    clock('fixation', t0)
+                    sync.add_image(side, stamp, gray, max(now, stamp))
+                    # as camera_node: a fixation or an explicit "none" for every image (the frame need not wait)
+                    sync.add_fixation(side, stamp, fix.pixel, fix.fixation_id if fix.valid else NO_FIXATION_ID)
+                    if not fix.valid:
+                        res.counts[f'no_fixation:{side}'] += 1
                 if progress is not None:
                     progress(res.counts['images'])
+            elif kind == 'fixation':
+                try:
+                    pixel, fid = fixation_from_msg(msg)
+                except ValueError as e:
+                    res.note(f'bad_fixation:{side}', f'{side} fixation unusable ({e}): such messages are skipped')
+                    continue
+                if not sync.add_fixation(side, stamp, pixel, fid):
+                    res.note(f'fixation_rejected:{side}', f'{side} fixation at {stamp:.3f} s late or out of order: '
+                                                           'such messages are skipped')
+                    continue
+                if pixel is None:
+                    res.counts[f'no_fixation:{side}'] += 1
+                elif fid != last_fixation_id[side]:
+                    res.counts[f'reselections:{side}'] += last_fixation_id[side] is not None
+                    last_fixation_id[side] = fid
             elif kind == 'joints':
                 try:
                     pan, tilt = pan_tilt(msg, side)
@@ -663,8 +716,9 @@ def replay(bag: Bag, rig: Rig, settings: ReplaySettings, topics: ReplayTopics = 
     res.counts.update({'sync_frames': s.frames, 'stereo_frames': s.stereo_frames,
                        'single_camera_frames': s.single_camera_frames, 'late_images': s.late_images,
                        'frames_without_joints': s.no_joints})
-    for side in SIDES:
-        res.counts[f'reselections:{side}'] = len(trackers[side].reselections)
+    if not recorded:
+        for side in SIDES:
+            res.counts[f'reselections:{side}'] = len(trackers[side].reselections)
     if res.counts['images'] == 0:
         raise ReplayError(f'{bag.path}: no image on {topics.name("right/image_raw")} or '
                           f'{topics.name("left/image_raw")} could be read{damaged}')
