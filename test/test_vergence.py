@@ -315,6 +315,35 @@ def test_a_whole_step_measures_within_one_percent(room, speed):
     assert end < 150
 
 
+def test_the_measurement_takes_the_left_angles_from_the_callers_estimate(room):
+    """``left_joints`` (camera_node: the servo's commanded motion replayed between readings) gives the left angles of
+    the averaged frames, not the straight line between readings: an estimate 0.05 deg further left moves the
+    distance as the geometry says (the rays converge later: the point comes out further)."""
+    rig, world, renderer = room
+    pose0 = make_trajectory('paper').pose_at(0.0)
+    distances = {}
+    for offset_deg in (0.0, 0.05):
+        heads = _SimHeads(rig, world, renderer, lambda t: pose0, (22.5, 0.0), (-22.5, 0.0))
+        hist = JointHistory()
+        asked = []
+        offset = math.radians(offset_deg)
+
+        def left_joints(t, hist=hist, offset=offset, asked=asked):
+            asked.append(t)
+            q = hist.at(t, max_extrapolation_s=0.0)
+            return None if q is None else (q[0] - offset, q[1])
+
+        step = VergenceStep(rig, hist, VergenceParams(prior_depth_m=3.0), left_range=((-1.7, 1.7), (-0.4, 0.4)),
+                            left_joints=left_joints)
+        heads.run(step, 150)
+        assert step.succeeded, step.status
+        assert {round(t, 6) for t in asked} >= {round(s, 6) for s in step._sample_cache}
+        distances[offset_deg] = step.result.distance_m
+    # d(distance)/d(angle) = d^2 / (baseline sin) at ~3.7 m and 0.2 m: ~0.05 deg -> ~6 cm
+    grew = distances[0.05] - distances[0.0]
+    assert 0.03 < grew < 0.12, distances
+
+
 def test_a_right_reselection_while_averaging_uses_the_frames_before_it_or_fails(room):
     rig, world, renderer = room
     pose0 = make_trajectory('paper').pose_at(0.0)

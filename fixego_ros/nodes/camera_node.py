@@ -597,9 +597,17 @@ class CameraNode(Node):
         s.started(reason, now)
         prior = self.vergence_last.distance_m if self.vergence_last is not None else None
         self.vergence = VergenceStep(self.rig, self.history, self._vergence_params(self.params, prior),
-                                     self.right_history, self._head_range())
+                                     self.right_history, self._head_range(), self._joints_between_readings)
         self._vergence_published = False
         self.vergence_state = f'running: waiting ({reason})'
+
+    def _joints_between_readings(self, t: float) -> tuple[float, float] | None:
+        """The head's angles at ``t`` once a reading after it exists: the servo's commanded motion replayed between
+        the readings (what ``joint_states`` publishes then), not a straight line, which cuts the corners of a
+        head that starts, stops or turns back between two readings."""
+        latest = self.history.latest()
+        est = self.loop.predictor.estimate(t) if latest is not None and latest[0] >= t else None
+        return None if est is None else (float(est.pan), float(est.tilt))
 
     def _end_vergence(self, v: VergenceStep, now: float) -> None:
         self.vergence = None

@@ -26,6 +26,7 @@ from __future__ import annotations
 import itertools
 import math
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
@@ -474,10 +475,14 @@ class VergenceStep:
 
     def __init__(self, rig: Rig, left_history: JointHistory, params: VergenceParams | None = None,
                  right_history: JointHistory | None = None,
-                 left_range: tuple[tuple[float, float], tuple[float, float]] | None = None) -> None:
+                 left_range: tuple[tuple[float, float], tuple[float, float]] | None = None,
+                 left_joints: Callable[[float], tuple[float, float] | None] | None = None) -> None:
         self.rig, self.p = rig, params or VergenceParams()
         self.left_range = left_range   # ((pan min, max), (tilt min, max)) readings the left head can reach
         self.left_history = left_history
+        # the left head's angles at a frame's stamp for the measurement, once readings after it exist; the caller's
+        # best (the servo's commanded motion replayed between readings), else a straight line between readings
+        self.left_joints = left_joints or (lambda t: self.left_history.at(t, max_extrapolation_s=0.0))
         self.right_history = right_history if right_history is not None else JointHistory()
         self.right_images: deque[tuple[float, np.ndarray]] = deque(maxlen=8)
         self.right_fix: deque[tuple[float, tuple[float, float], int]] = deque(maxlen=120)
@@ -877,7 +882,7 @@ class VergenceStep:
         rf = self._right_fix_near(f.t)
         if rf is None or rf[2] != self._right_id:
             return None
-        lq = self.left_history.at(f.t, max_extrapolation_s=0.0)
+        lq = self.left_joints(f.t)
         rq = self.right_history.at(rf[0], max_extrapolation_s=0.0)
         rm, lm = self._motion(self.right_history, rf[0]), self._motion(self.left_history, f.t)
         if lq is None or rq is None or rm is None or lm is None:
