@@ -292,6 +292,8 @@ def test_recorded_fixations_are_what_the_front_end_gets(tmp_path, monkeypatch, c
                 out.append((f'/fixego/{side}/fixation', msgtype, copy, t))
         return out
 
+    from fixego_ros.replay.cli import FIXATION_CHOICES
+    assert tuple(s.value for s in FixationSource) == FIXATION_CHOICES     # the CLI's choices are the enum's values
     src = rewrite(WALK, tmp_path / 'recorded', with_fixations, frames=15)
     assert fixations_in(Bag(src), ReplayTopics()) is FixationSource.RECORDED
     assert fixations_in(Bag(WALK), ReplayTopics()) is FixationSource.TRACKED
