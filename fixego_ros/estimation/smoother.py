@@ -308,8 +308,12 @@ class Smoother:
             messages.append('flow reference not in the graph: stepped from the last frame over shared tracks')
         elif last is not None and ref is None:
             messages.append('flow reference not in the graph: placed by landmarks and the motion prior')
-        pose0 = self._resect(i, obs, self._predict(obs.stamp))
-        tf, step_raw = self._two_frame(stepped, ref, pose0)
+        blind = self._blind(fix)
+        pose0 = self._predict(obs.stamp) if blind else self._resect(i, obs, self._predict(obs.stamp))
+        raw, step_raw = self._two_frame(stepped, ref, pose0)
+        tf = None if blind else raw         # what enters the graph; the raw chain keeps the two-frame solve
+        if blind and last is not None:
+            messages.append('no fixation in either camera (heads driven): placed by the motion prior')
         if tf is not None and tf.status is StepStatus.STATIONARY:
             self._stood = obs.stamp
         up = _Update()
@@ -317,7 +321,7 @@ class Smoother:
         if i == self._graph_start:
             anchor = gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)      # the graph's origin: this frame's pose
             up.graph.add(gtsam.PriorFactorPose3(pose_key(i), to_gtsam(pose0), anchor))
-        self._observe(i, obs, pose0, up)
+        self._observe(i, obs, pose0, up, sightings=not blind)
         if self._good(tf) and ref is not None:
             up.graph.add(self.steps.factor(ref.index, i, tf.pose, tf.covariance, obs.stamp - ref.stamp,
                                             self.scale_observed))
@@ -382,6 +386,15 @@ class Smoother:
         return tf, self.steps.scaled(tf.pose if self._good(tf) else ref.pose.inverse() @ pose0, dt)
 
     @staticmethod
+    def _blind(fix: dict[str, Fixation | None]) -> bool:
+        """Neither camera has a fixation: both heads are driven at once (limit swings, or a vergence step while the
+        other swings). Their readings at 80 deg/s are tenths of a degree off and every track is new, so the frame's
+        rays place nothing reliably, and it is placed by the motion prior (held speed). On stop 38's recorded demo
+        bag the two-frame steps and sightings of such frames turned the rig 3.5 deg/s too fast for seconds after
+        (47.9 cm mean against 4.4 cm; README "Stop 42")."""
+        return all(f is None for f in fix.values())
+
+    @staticmethod
     def _good(tf: TwoFrameResult | None) -> bool:
         """A solve that may enter the graph: usable, finite, and most points in front of both cameras."""
         return tf is not None and tf.status.usable and tf.pose.is_finite() and tf.cheirality >= 0.5
@@ -429,10 +442,11 @@ class Smoother:
             if ray is not None and cam.fixation_id >= 0 and np.all(np.isfinite(ray)):
                 yield side, LandmarkId(LandmarkKind.FIXATION, side, int(cam.fixation_id)), np.asarray(ray, float), cam
 
-    def _observe(self, i: int, obs: FrameObservation, pose: Pose, up: _Update) -> None:
+    def _observe(self, i: int, obs: FrameObservation, pose: Pose, up: _Update, sightings: bool = True) -> None:
         """Camera poses, and projection factors for every sighting: of landmarks in the graph (gated against the
         placed pose; measured: without the gate, observations of frames the landmarks could not place let outliers
-        in, 2.5 -> 9.7 cm on the paper bag), or kept as views until they can be triangulated."""
+        in, 2.5 -> 9.7 cm on the paper bag), or kept as views until they can be triangulated. Without
+        ``sightings`` (a blind frame) the camera poses only."""
         stamp = obs.stamp
         for side in SIDES:
             cam = obs.camera(side)
@@ -442,7 +456,7 @@ class Smoother:
             up.add_value(camera_key(i, side), to_gtsam(pose).compose(mount), stamp)
             up.graph.add(self.mount.factor(i, side, cam.cam_to_rig, self.rig.center(side), cam.joint_sigma))
         cfg = self.settings
-        for side, lid, ray, cam in self._sightings(obs):
+        for side, lid, ray, cam in (self._sightings(obs) if sightings else ()):
             index = self._landmarks.get(lid)
             if index is not None:
                 if self._reprojection_px(side, pose, cam.cam_to_rig, ray, index) > cfg.gate_px:
