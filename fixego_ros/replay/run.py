@@ -623,12 +623,10 @@ def replay(bag: Bag, rig: Rig, settings: ReplaySettings, topics: ReplayTopics = 
                     continue
                 last_image[side] = stamp
                 t0 = clock('decode', t0)
-                if recorded:
-                    sync.add_image(side, stamp, gray, max(now, stamp))
-                else:
+                sync.add_image(side, stamp, gray, max(now, stamp))
+                if not recorded:         # recorded: the bag's fixation message completes the camera's part
                     fix = trackers[side].update(gray, stamp)
                     clock('fixation', t0)
-                    sync.add_image(side, stamp, gray, max(now, stamp))
                     # as camera_node: a fixation or an explicit "none" for every image (the frame need not wait)
                     sync.add_fixation(side, stamp, fix.pixel, fix.fixation_id if fix.valid else NO_FIXATION_ID)
                     if not fix.valid:
