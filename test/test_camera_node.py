@@ -30,6 +30,7 @@ from fixego_ros.bench.servo import SyntheticView  # noqa: E402
 from fixego_ros.geometry.rig import CameraModel, Rig  # noqa: E402
 from fixego_ros.nodes.camera_node import CameraNode  # noqa: E402
 from fixego_ros.nodes.common import RELIABLE_QOS, SENSOR_QOS, array_to_image, sec_to_stamp  # noqa: E402
+from fixego_ros.pipeline.messages import stamp_to_sec  # noqa: E402
 from fixego_ros.visca.emulator import ViscaEmulator  # noqa: E402
 
 CAM = CameraModel(320, 240, 500.0, 500.0, 159.5, 119.5)
@@ -467,6 +468,53 @@ def test_near_a_pan_limit_the_head_swings_back_then_fixates_anew(ros_context, ri
         pans = [math.degrees(j.position[0]) for j in joints]
         assert max(pans) > 92.0 and 52.0 < pans[-1] < 70.0      # from the margin to about 97 - 40 deg
         assert node.stats['limit_swings'] == 1
+    finally:
+        ex.shutdown(timeout_sec=1.0)
+        node.destroy_node()
+        scene.peer.destroy_node()
+        emu.stop()
+
+
+@pytest.mark.parametrize('partner_back_after_s', [0.4, None])
+def test_the_swing_back_waits_while_the_other_camera_has_no_fixation(ros_context, rig_file, partner_back_after_s):
+    """Both heads swinging back at once leaves frames with no fixation in either camera. So a head whose swing is due
+    goes on fixating while the other camera publishes "no valid fixation" (here the left, a peer): it swings once
+    the other fixates again, or after limit_hold_max_s if it never does."""
+    emu = ViscaEmulator('evi_d30', baud=9600, start_pan_deg=97.0)
+    port = emu.start()
+    node = CameraNode(context=ros_context, parameter_overrides=[
+        Parameter('side', value='right'), Parameter('port', value=port), Parameter('rig_file', value=rig_file),
+        Parameter('search_radius_px', value=30.0), Parameter('border_margin_px', value=25.0),
+        Parameter('limit_swing_deg', value=40.0), Parameter('limit_hold_max_s', value=1.5)])
+    scene = DriftingView(ros_context, node, emu, seed=4)
+    partner = scene.peer.create_publisher(PointStamped, '/fixego/left/fixation', RELIABLE_QOS)
+    ex = executor_for(ros_context, node, scene.peer)
+    sent: list[tuple[float, bool]] = []     # (stamp, has a fixation) of the left messages
+
+    def frame_and_partner() -> bool:
+        n = len(scene.truth)
+        scene.publish_frame()
+        if len(scene.truth) > n:            # a new image: the left's message for the same stamp
+            stamp = max(scene.truth)
+            t = stamp[0] + 1e-9 * stamp[1]
+            fixating = partner_back_after_s is not None and sent and t - sent[0][0] >= partner_back_after_s
+            msg = PointStamped()
+            msg.header.stamp.sec, msg.header.stamp.nanosec = stamp
+            msg.point.x, msg.point.y, msg.point.z = (160.0, 120.0, 3.0) if fixating else (0.0, 0.0, -1.0)
+            partner.publish(msg)
+            sent.append((t, bool(fixating)))
+        return node.stats['limit_swings'] >= 1 and len(scene.fixes) > 5 and bool(scene.no_fixes)
+    try:
+        assert spin_until(ex, frame_and_partner, timeout_s=15.0, step_s=0.005)
+        assert node.stats['limit_swings'] == 1 and node.stats['limit_swings_held'] == 1
+        swing = min(stamp_to_sec(m.header.stamp) for m in scene.no_fixes)
+        held = [stamp_to_sec(m.header.stamp) for m in scene.fixes if stamp_to_sec(m.header.stamp) < swing]
+        assert len(held) >= 5, 'the head went on fixating while it waited'
+        if partner_back_after_s is not None:
+            back = min(t for t, fixating in sent if fixating)
+            assert back <= swing < back + 0.5       # swung once the left fixated again (its message is in)
+        else:
+            assert swing - held[0] > 1.0 and not any(fixating for _, fixating in sent)   # waited, to its bound
     finally:
         ex.shutdown(timeout_sec=1.0)
         node.destroy_node()

@@ -10,7 +10,7 @@ import pytest
 
 from fixego_ros.bench.servo import SyntheticView, run_closed_loop
 from fixego_ros.geometry.rig import CameraModel, PanTiltCalibration, pan_tilt_rotation
-from fixego_ros.tracking.fixation import FixationParams, FixationTracker, LimitCheck
+from fixego_ros.tracking.fixation import FixationParams, FixationTracker, LimitCheck, SwingStagger
 from fixego_ros.tracking.servo import JointHistory, ServoParams, centring_angles, servo_target
 from fixego_ros.visca.profiles import PROFILES
 
@@ -101,6 +101,55 @@ def test_limit_check_fires_once_per_approach_and_swings_towards_the_middle():
     assert lc.check(0.5, -0.35) == pytest.approx((0.5, 0.0))      # near the tilt bottom: to the middle, not past it
     assert lc.check(-0.5, 0.0) is None                           # clear again: re-armed
     assert lc.check(-0.95, 0.0) == pytest.approx((-0.35, 0.0))
+
+
+def test_a_swing_that_waits_stays_armed():
+    lc = LimitCheck((-1.0, 1.0), (-0.4, 0.4), margin_rad=0.1, swing_rad=0.6)
+    assert not lc.due(0.5, 0.0)
+    assert lc.due(0.95, 0.0) and lc.due(0.97, 0.0)           # asking does not consume the swing
+    assert lc.check(0.97, 0.0) == pytest.approx((0.37, 0.0))
+    assert not lc.due(0.97, 0.0)                             # fired: not again on this approach
+
+
+def test_a_swing_waits_while_the_other_camera_has_no_fixation_but_not_longer_than_its_bound():
+    dt = 1 / 30
+    st = SwingStagger(max_hold_s=0.5)
+    assert not st.hold(0.0, dt)                              # the other camera never published: no wait
+    st.on_partner(0.0, True)
+    assert not st.hold(dt, dt)                               # it fixates: swing at once
+    st.on_partner(dt, False)                                 # it swings back (no fixation)
+    st.on_partner(0.5 * dt, True)                            # an older message arriving late changes nothing
+    waits = [st.hold(k * dt, dt) for k in range(2, 40)]
+    assert waits[:16] == [True] * 16 and not any(waits[16:])   # held 0.5 s from the first wait, then swing anyway
+    assert st.holds == 1
+    st.reset()
+    st.on_partner(40 * dt, False)
+    assert st.hold(41 * dt, dt) and st.holds == 2            # the next approach waits afresh
+    st.on_partner(42 * dt, True)
+    assert not st.hold(43 * dt, dt)                          # the other camera fixates again: swing now
+    assert not SwingStagger(max_hold_s=0.0, _partner=(0.0, False)).hold(dt, dt)     # 0: never wait
+
+
+def test_both_heads_due_in_the_same_frame_swing_one_after_the_other():
+    """Both reach a limit at the same image stamp, each with the other's last message "fixating": the right swings
+    at once; the left waits until the right's message for that frame is in, which says "no fixation"."""
+    dt = 1 / 30
+    left = SwingStagger(max_hold_s=1.0, wait_for_partner_frame=True)
+    right = SwingStagger(max_hold_s=1.0)
+    left.on_partner(0.0, True)
+    right.on_partner(0.0, True)
+    assert not right.hold(dt, dt)                            # the right swings at frame 1 ...
+    assert left.hold(dt, dt)                                 # ... the left has not seen the right's frame 1 yet
+    left.on_partner(dt, False)
+    assert left.hold(2 * dt, dt)                             # now it has: "no fixation", so it goes on waiting
+    left.on_partner(3 * dt - 0.4 * dt, True)                 # the right fixates again (its frames 0.4 frame early)
+    assert not left.hold(3 * dt, dt)
+    assert (left.holds, right.holds) == (1, 0)
+    left.reset()
+    left.on_partner(10 * dt, True)
+    assert left.hold(11 * dt, dt)                            # waits for the right's frame 11 ...
+    left.on_partner(11 * dt, True)
+    assert not left.hold(11 * dt, dt) and left.holds == 1      # ... which fixates: no wait for a swinging head
 
 
 @pytest.mark.parametrize('pan,tilt', [(0.95, 0.0), (-0.95, 0.0), (0.0, 0.35), (0.0, -0.35), (0.93, 0.36)])

@@ -80,7 +80,7 @@ from fixego_ros.nodes.common import (
 )
 from fixego_ros.pipeline.messages import fixation_from_msg, pan_tilt
 from fixego_ros.pipeline.params import CAMERA_NODE_PARAMS, FIXATION_PARAMS, Getter, ParamsError, fixation_params
-from fixego_ros.tracking.fixation import NO_FIXATION_ID, FixationTracker, LimitCheck
+from fixego_ros.tracking.fixation import NO_FIXATION_ID, FixationTracker, LimitCheck, SwingStagger
 from fixego_ros.tracking.joint_prediction import JointSource
 from fixego_ros.tracking.servo import FixationServo, JointHistory, ServoLoop, ServoParams, Target
 from fixego_ros.tracking.vergence import (
@@ -98,8 +98,8 @@ PARAMS = CAMERA_NODE_PARAMS
 LIVE_TRACKER = tuple(name for name, spec in FIXATION_PARAMS.items() if not spec.read_only)
 LIVE_SERVO = ('servo_gain', 'servo_deadband_px', 'servo_move_time_s', 'servo_max_command_rate_hz',
               'servo_feedforward')
-LIVE_NODE = ('limit_margin_deg', 'limit_swing_deg', 'joint_max_wait_s', 'joint_mode', 'joint_predict_max_s',
-             'diagnostics_period_s')
+LIVE_NODE = ('limit_margin_deg', 'limit_swing_deg', 'limit_hold_max_s', 'joint_max_wait_s', 'joint_mode',
+             'joint_predict_max_s', 'diagnostics_period_s')
 # when vergence steps run (the scheduler's limits); the step itself is read-only
 LIVE_VERGENCE = ('vergence_period_s', 'vergence_min_interval_s', 'vergence_retry_s')
 MODEL_CHECK_TRIES = 3   # CAM_VersionInq attempts per connection before a silent camera counts as not answering
@@ -148,6 +148,11 @@ class CameraNode(Node):
                                  (pr.tilt_rad(pr.tilt_min), pr.tilt_rad(pr.tilt_max)),
                                  math.radians(float(g('limit_margin_deg'))), math.radians(float(g('limit_swing_deg'))))
         self._swing: tuple[tuple[float, float], float] | None = None     # (aim, start) while swinging back
+        # the left waits for the right's message of the same frame: both reaching a limit at once, one swings
+        self.stagger = SwingStagger(float(g('limit_hold_max_s')), wait_for_partner_frame=self.side == 'left')
+        self.partner = 'right' if self.side == 'left' else 'left'
+        self._last_image_t: float | None = None
+        self._frame_s = 0.0          # the last image interval (the stagger's "same frame")
         self.servo_params = servo_params(g)
         self.joint_max_wait_s = float(g('joint_max_wait_s'))
         self.joint_mode = str(g('joint_mode'))
@@ -184,6 +189,9 @@ class CameraNode(Node):
             self.loop.start()
             self.create_timer(0.02, self._flush_joints)
             self.create_timer(0.5, self._check_model)    # a port opened later, or re-opened: check again
+            # the other camera's fixations: a swing back waits for the other head's (and drives the vergence steps)
+            self.create_subscription(PointStamped, f'{self.partner}/fixation', self._on_partner_fixation,
+                                     RELIABLE_QOS)
         self._pending: deque = deque(maxlen=200)
         self.video = None
         self.pub_image = None
@@ -200,7 +208,8 @@ class CameraNode(Node):
         self.create_service(Trigger, '~/reselect', self._srv_reselect)
         self.create_service(Trigger, '~/home', self._srv_home)
         self.diag_timer = self.create_timer(float(g('diagnostics_period_s')), self._publish_diagnostics)
-        self.stats = {'frames': 0, 'frames_without_fixation': 0, 'limit_swings': 0, 'joint_states': 0,
+        self.stats = {'frames': 0, 'frames_without_fixation': 0, 'limit_swings': 0, 'limit_swings_held': 0,
+                      'joint_states': 0,
                       'joint_states_dropped': 0, 'joint_states_predicted': 0}
         self.joint_latency_ms: deque[float] = deque(maxlen=300)     # image stamp -> joint state published
         self._setup_vergence(g)
@@ -301,6 +310,9 @@ class CameraNode(Node):
         self.once.clear('size')
         self.stats['frames'] += 1
         t = stamp_to_sec(msg.header.stamp)
+        if self._last_image_t is not None and t > self._last_image_t:
+            self._frame_s = t - self._last_image_t
+        self._last_image_t = t
         if not self.passive:
             self._pending.append(msg.header.stamp)
             self._flush_joints()
@@ -354,6 +366,14 @@ class CameraNode(Node):
                                                    and step.phase not in ('waiting', 'ended')):
             return False
         if self._swing is None:
+            if self.limits.due(*joints) and self.stagger.hold(t, self._frame_s):
+                if self.stagger.holds > self.stats['limit_swings_held']:
+                    self.stats['limit_swings_held'] = self.stagger.holds
+                    self.get_logger().info(f'pan/tilt near a limit: the swing back waits (up to '
+                                           f'{self.stagger.max_hold_s:g} s) while the {self.partner} camera has no '
+                                           'fixation (counted on /diagnostics)', throttle_duration_sec=10.0)
+                return False
+            self.stagger.reset()
             aim = self.limits.check(*joints)
             if aim is None:
                 return False
@@ -439,6 +459,7 @@ class CameraNode(Node):
                 self.loop.params = new
         self.limits.margin_rad = math.radians(float(g('limit_margin_deg')))
         self.limits.swing_rad = math.radians(float(g('limit_swing_deg')))
+        self.stagger.max_hold_s = float(g('limit_hold_max_s'))
         self.joint_max_wait_s = float(g('joint_max_wait_s'))
         self.joint_mode = str(g('joint_mode'))
         if 'joint_predict_max_s' in changes and self.loop is not None:
@@ -514,7 +535,6 @@ class CameraNode(Node):
         self.pub_vergence = self.create_publisher(PoseWithCovarianceStamped, 'vergence', LATCHED_QOS)
         # raw: a right image is decoded only while a step wants it (most frames it is not looked at)
         self.create_subscription(Image, 'right/image_raw', self._on_right_image, SENSOR_QOS, raw=True)
-        self.create_subscription(PointStamped, 'right/fixation', self._on_right_fixation, RELIABLE_QOS)
         self.create_subscription(JointState, 'right/joint_states', self._on_right_joints, RELIABLE_QOS)
         self.create_subscription(Empty, 'vergence_request', self._on_vergence_request, RELIABLE_QOS)
         self._vergence_timer = self.create_timer(0.05, self._vergence_tick)
@@ -534,13 +554,15 @@ class CameraNode(Node):
         if gray.shape == (self.rig.right.height, self.rig.right.width):
             self.vergence.add_right_image(stamp_to_sec(msg.header.stamp), gray)
 
-    def _on_right_fixation(self, msg: PointStamped) -> None:
-        """A right fixation pixel: a new id may trigger a step, a running step uses it. The right node's "no valid
-        fixation" (id -1) is neither a new fixation point nor a pixel: ignored."""
+    def _on_partner_fixation(self, msg: PointStamped) -> None:
+        """The other camera's fixation: whether it has one (:class:`SwingStagger`); on the left node a right pixel
+        may also trigger a vergence step (a new id), and a running step uses it. "No valid fixation" (id -1) is
+        neither a new fixation point nor a pixel for the vergence step."""
         try:
             pixel, fid = fixation_from_msg(msg)
         except ValueError:
             return
+        self.stagger.on_partner(stamp_to_sec(msg.header.stamp), pixel is not None)
         if pixel is None:
             return
         if self.scheduler is not None:

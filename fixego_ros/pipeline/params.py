@@ -353,6 +353,10 @@ CAMERA_NODE_PARAMS: Table = _table(
     _num('limit_swing_deg', 60.0, 'how far the head swings back from a limit (towards the middle of the range, not '
                                   'past it); no fixation is published while it turns (EVI-D30: ~1 s for 60 deg)',
          gt=0.0, le=360.0, live=True),
+    _num('limit_hold_max_s', 1.0, "a swing back from a limit waits while the other camera publishes no fixation (it "
+                                  'is swinging too, lost its point, or a vergence step drives it), up to this long, '
+                                  'so the two cameras are never both without a fixation; 0 = swing at once',
+         ge=0.0, le=10.0, live=True),
     _str('joint_mode', 'predict', 'joint state at each image stamp: predict = at once, interpolated when a '
                                   'PosInq reading after the stamp exists, else predicted from the last reading and '
                                   "the servo's own commands (1-sigma in effort); wait = only once a reading after "

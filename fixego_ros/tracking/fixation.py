@@ -307,14 +307,66 @@ class LimitCheck:
             return angle + min(self.swing_rad, max(mid - angle, 0.0))
         return None
 
+    def due(self, pan: float, tilt: float) -> bool:
+        """Whether :meth:`check` would fire now (no state changes: a swing that waits stays armed)."""
+        return ((self._axis(pan, self.pan_range_rad) is not None and self.armed['pan'])
+                or (self._axis(tilt, self.tilt_range_rad) is not None and self.armed['tilt']))
+
     def check(self, pan: float, tilt: float) -> tuple[float, float] | None:
         """Device angles (pan, tilt) to swing the head to, or None. Fires once per approach: an axis re-arms only
         once it is clear of its margin again."""
+        fire = self.due(pan, tilt)
         aim_pan = self._axis(pan, self.pan_range_rad)
         aim_tilt = self._axis(tilt, self.tilt_range_rad)
-        fire = (aim_pan is not None and self.armed['pan']) or (aim_tilt is not None and self.armed['tilt'])
         self.armed['pan'] = aim_pan is None
         self.armed['tilt'] = aim_tilt is None
         if not fire:
             return None
         return (pan if aim_pan is None else aim_pan, tilt if aim_tilt is None else aim_tilt)
+
+
+@dataclass
+class SwingStagger:
+    """Keeps the two heads from swinging back from their limits at the same time. A head whose swing is due waits
+    while the other camera's latest fixation message says "no valid fixation" (it is swinging itself, has lost its
+    point, or a vergence step drives it), for at most ``max_hold_s``; meanwhile it goes on fixating (pinned at its
+    limit, the tracker re-selects as the point nears the border). Why: while both heads swing neither camera has a
+    fixation and every track is new, so the estimator has no rays to place those frames with. On the papers' loop
+    both heads reached their limits within frames of each other at the end of each arc: 3-4 such gaps of 0.1-0.8 s
+    per recorded run.
+
+    Both heads can reach a limit at the same image stamp, each seeing the other still fixating. The head with
+    ``wait_for_partner_frame`` (the left) breaks the tie: it also waits until the other's message for this frame
+    (a stamp within half a frame of its own, or later) is in. A partner that never published is not waited for."""
+
+    max_hold_s: float = 1.0
+    wait_for_partner_frame: bool = False
+    holds: int = 0                                   # swings that waited for the other head (once per approach)
+    _partner: tuple[float, bool] | None = None       # the partner's newest message: stamp, has a fixation
+    _since: float | None = None                      # image stamp when the current wait began
+    _counted: bool = False                           # this wait is in ``holds``
+
+    def on_partner(self, stamp: float, has_fixation: bool) -> None:
+        """The other camera's fixation message (the newest by stamp counts; late arrivals are ignored)."""
+        if self._partner is None or stamp >= self._partner[0]:
+            self._partner = (stamp, has_fixation)
+
+    def hold(self, t: float, frame_s: float) -> bool:
+        """Whether a swing due at image stamp ``t`` waits (``frame_s``: this camera's frame interval)."""
+        if self.max_hold_s <= 0.0 or self._partner is None:
+            return False
+        stamp, has_fixation = self._partner
+        behind = self.wait_for_partner_frame and stamp < t - 0.5 * frame_s
+        if has_fixation and not behind:
+            return False
+        if self._since is None:
+            self._since = t
+        if not has_fixation and not self._counted:
+            self._counted = True
+            self.holds += 1
+        return t - self._since <= self.max_hold_s
+
+    def reset(self) -> None:
+        """The swing started (or is no longer due): the next one waits afresh."""
+        self._since = None
+        self._counted = False
