@@ -17,6 +17,11 @@ go on is dropped after ``joint_max_wait_s``. JointState has no covariance: ``eff
 position in rad (reading quantisation when interpolated; growing with the extrapolation time and the commanded
 rate when predicted), a use of ``effort`` this package's consumers know about (a pan/tilt head reports no torque).
 
+Limits: near a pan/tilt limit the head swings back (``limit_margin_deg``, ``limit_swing_deg``) and publishes no
+fixation while it turns. Each node follows the other camera's ``<side>/fixation`` and holds a due swing while that
+camera has no fixation, up to ``limit_hold_max_s`` (:class:`~fixego_ros.tracking.fixation.SwingStagger`), so the
+two cameras are never both without a fixation (the estimator has no rays for such a frame).
+
 Vergence steps (the rig's own scale aid, on by default: ``vergence_enabled``; the *left* node in active mode
 runs them, the right node needs no change): the left node drives its head so the right fixation ray's epipolar
 curve is in view, finds the right fixation point in its image
