@@ -521,3 +521,14 @@ def test_a_measurement_whose_frame_a_restart_dropped_moves_to_the_new_graph(loop
     assert sm._vergence_used == 1
     stamp, rel_std = sm.scale_measurement
     assert stamp == obs[6].stamp and 0.0 < rel_std < 0.05     # carried one frame (0.2 s at rest-like speed)
+
+
+def test_marginals_only_change_the_covariance(loop):
+    """Replay runs the smoother without the newest pose's marginal (it writes poses only): the trajectory is the
+    same to the bit, and the covariance is the unknown one instead of the smoother's marginal."""
+    with_marginals, est, _ = _replay(Smoother(RIG, _config()), loop)
+    without, est_without, _ = _replay(Smoother(RIG, _config(), marginals=False), loop)
+    assert np.array_equal(est, est_without)
+    assert all(np.array_equal(a.pose.t, b.pose.t) for a, b in zip(with_marginals, without, strict=True))
+    assert np.allclose(without[-1].pose_covariance[:3, :3], np.eye(3) * 1e-2)      # rotation unknown (0.1 rad)
+    assert with_marginals[-1].pose_covariance[0, 0] < 1e-3      # the marginal: the rotation is well known

@@ -86,9 +86,9 @@ def _state(smoother: Any, skipped: int, error: str) -> SmootherState:
 class _Server:
     """What the smoother side does with each message (the child process's loop and :class:`_Inline` share it)."""
 
-    def __init__(self, rig: Rig, config: EstimatorConfig) -> None:
+    def __init__(self, rig: Rig, config: EstimatorConfig, marginals: bool = True) -> None:
         from fixego_ros.estimation.smoother import Smoother
-        self.smoother = Smoother(rig, config)
+        self.smoother = Smoother(rig, config, marginals)
         self.skipped, self.error = 0, ''
 
     def skip(self) -> None:
@@ -157,7 +157,7 @@ class _Inline:
     MIN_GAP_S = 0.1
 
     def __init__(self, rig: Rig, config: EstimatorConfig) -> None:
-        self._server = _Server(rig, config)
+        self._server = _Server(rig, config, marginals=False)     # replay writes poses, no covariance
         self._replies: deque[tuple[FrameResult, SmootherState]] = deque()
         self.closed = False
         self._last = -math.inf

@@ -145,8 +145,12 @@ class Smoother:
     COLD_START_GAIN = 0.5     # a cold-started step replaces the warm one below this fraction of its cost
     MIN_DEPTH_M = 0.3         # a point triangulated closer than this to its first view waits or enters far
 
-    def __init__(self, rig: Rig, config: EstimatorConfig | None = None) -> None:
+    def __init__(self, rig: Rig, config: EstimatorConfig | None = None, marginals: bool = True) -> None:
+        """``marginals``: give each result the newest pose's marginal covariance (``/fixego/odom`` needs it). Without,
+        results carry the unknown covariance: replay writes poses only, and the marginal was 10-15 ms of a 30 Hz
+        update."""
         self.rig = rig
+        self.marginals = marginals
         self.config = config or EstimatorConfig()     # read every frame (run-time parameters); smoother_* at start
         self.solver = TwoFrameSolver(self.config.solver)
         c = self.settings
@@ -751,7 +755,7 @@ class Smoother:
         """Marginal covariance of the frame's pose over [rotation (world), position (world)]; with the scale
         unobserved the position gets a large extra term (it is known only up to that scale)."""
         cov = np.diag([1e-2] * 3 + [VAR_MAX] * 3)
-        if self._in_graph(frame):
+        if self.marginals and self._in_graph(frame):
             try:
                 local = self._window.marginal_covariance(pose_key(frame.index))
                 J = np.zeros((6, 6))
