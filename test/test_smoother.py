@@ -78,7 +78,7 @@ def test_vergence_measurements_make_the_loop_metric(loop):
     """The path length comes out near right (the scale is measured). The shape on this point-level scene is the
     known weak case (README "Back end": ~18 cm mean after 12 s, against 2 cm on the shipped paper bag), so the
     position bound here is generous. The length was within 3 % until stop 31; the step-direction factor and the
-    looser speed floor that fixed the live starts from rest leave it at x0.87 here (README "Stop 31")."""
+    looser speed floor that fixed the live starts from rest leave it at x0.87 here (docs/results.md "Stop 31")."""
     results, est, true = _replay(Smoother(RIG, _config()), loop)
     err = np.linalg.norm(est - true, axis=1)
     assert err.mean() < 0.3, err.mean()

@@ -9,7 +9,7 @@ interruption per step is measured from ``/fixego/left/fixation``: the time witho
 the step and the first frame of its own new point after it (the partner point the step fixated is the id the left
 camera had at the measurement's stamp).
 Prints one line per step and a summary; ``--json`` writes them with the raw fixations, joint states, true poses
-and true head angles per frame. The figures in the README's vergence section come from this.
+and true head angles per frame. The vergence-step figures in docs/results.md come from this.
 """
 
 from __future__ import annotations

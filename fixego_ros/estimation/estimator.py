@@ -86,7 +86,7 @@ class Estimator:
     scale is reported unobserved
     (``FrameResult.scale_observed``, large position covariance) until a scale aid (:meth:`add_velocity`,
     :meth:`add_fixation_point`) was used: the rays alone carry no scale on straight and constant-curvature
-    motion (:mod:`.observability`), and too little on our other sequences to be trusted (README, "Scale").
+    motion (:mod:`.observability`), and too little on our other sequences to be trusted (docs/results.md, "Scale").
     ``scale_from_rotation`` restores the papers' assumption (observed after ``scale_min_rotation_deg`` of
     rotation).
     """

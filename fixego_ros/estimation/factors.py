@@ -48,7 +48,7 @@ class CameraMount:
     camera pose. The small rotation sigma lets the graph absorb the joint readings' noise; where the camera node
     says its readings are less certain (``reading_sigma``: a head turning fast, its angle predicted at the image
     stamp; recorded live runs p50 0.05 deg, p95 0.55 deg), the two add up. Held at the readings alone during a
-    swing-back, the rig pose took the readings' error and the landmarks dragged it (README "Stop 36")."""
+    swing-back, the rig pose took the readings' error and the landmarks dragged it (docs/results.md "Stop 36")."""
 
     def __init__(self, rotation_sigma: float, translation_sigma: float = 1e-4) -> None:
         self.rotation_sigma, self.translation_sigma = rotation_sigma, translation_sigma

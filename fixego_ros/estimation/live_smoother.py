@@ -149,10 +149,10 @@ class _Inline:
     without its timing). Every keyframe goes into the graph when it is sent, and another frame once ``MIN_GAP_S``
     has passed since the last one that went in: a bag of 10 Hz or less has every frame in the graph, a 30 Hz one
     its keyframes and about every third frame, as the node's child when it keeps up. Measured on 30 Hz bags (mean /
-    terminal cm, wall s; README "Stop 38"): every frame -> this, a simulated loop 3.9 / 6.3 in 272 s -> 3.4 / 6.1 in
-    54 s, a simulated walk 2.9 / 4.0 in 107 s -> 4.0 / 5.2 in 41 s, a recorded demo 6.9 / 18.2 in 247 s -> 7.1 / 10.6
-    in 42 s. Keyframes only was faster still (22-35 s) but lost the walk's scale in its first second (34 cm mean), as
-    did a gap of 0.2 s."""
+    terminal cm, wall s; docs/results.md "Stop 38"): every frame -> this, a simulated loop 3.9 / 6.3 in 272 s ->
+    3.4 / 6.1 in 54 s, a simulated walk 2.9 / 4.0 in 107 s -> 4.0 / 5.2 in 41 s, a recorded demo 6.9 / 18.2 in
+    247 s -> 7.1 / 10.6 in 42 s. Keyframes only was faster still (22-35 s) but lost the walk's scale in its first
+    second (34 cm mean), as did a gap of 0.2 s."""
 
     MIN_GAP_S = 0.1
 

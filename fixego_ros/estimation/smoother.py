@@ -306,7 +306,7 @@ class Smoother:
             # the front end's keyframe predates this graph (a reset while it kept its keyframe, or a restart):
             # step from the newest frame over the tracks both saw. Without a step the first frames of a graph had
             # only a few landmarks and the motion prior, and the demo's rig at rest turned 6-33 deg in its first
-            # second (7 of 57 runs, README "Stop 41")
+            # second (7 of 57 runs, docs/results.md "Stop 41")
             ref = self._frames[-1]
             stepped = with_track_flow(obs, ref.tracks)
             messages.append('flow reference not in the graph: stepped from the last frame over shared tracks')
@@ -330,8 +330,8 @@ class Smoother:
             up.graph.add(self.steps.factor(ref.index, i, tf.pose, tf.covariance, obs.stamp - ref.stamp,
                                             self.scale_observed))
             # keyframe -> keyframe only: a frame the front end does not keep has a short baseline (at 30 Hz a few
-            # mm) whose solved direction is biased, and it reuses its keyframe's rays (README "Stop 32"); so has a
-            # step over shared tracks from the newest frame
+            # mm) whose solved direction is biased, and it reuses its keyframe's rays (docs/results.md "Stop 32");
+            # so has a step over shared tracks from the newest frame
             keyframe_step = obs.keyframe and stepped is obs
             direction = self.direction.factor(ref.index, i, tf.pose, tf.covariance) if keyframe_step else None
             if direction is not None:
@@ -395,7 +395,7 @@ class Smoother:
         other swings). Their readings at 80 deg/s are tenths of a degree off and every track is new, so the frame's
         rays place nothing reliably, and it is placed by the motion prior (held speed). On stop 38's recorded demo
         bag the two-frame steps and sightings of such frames turned the rig 3.5 deg/s too fast for seconds after
-        (47.9 cm mean against 4.4 cm; README "Stop 42")."""
+        (47.9 cm mean against 4.4 cm; docs/results.md "Stop 42")."""
         return all(f is None for f in fix.values())
 
     @staticmethod
@@ -534,8 +534,8 @@ class Smoother:
         scale aid. Then the graph's baseline is metric, and a track's parallax over less than the far-guess baseline
         is more likely a rotation error than depth: the demo's heads settle after the start-up vergence step, the
         graph drifts 0.2-0.4 deg, and tracks entered with 0.5-0.75 deg over 10-16 mm at 0.4-1.7 m for 3-4 m; the
-        window went indeterminate and the smoother restarted without its scale (README "Stop 41"). Not for a rig
-        that never stood: a graph whose scale was just measured may still believe it creeps (the bench's walk with
+        window went indeterminate and the smoother restarted without its scale (docs/results.md "Stop 41"). Not for a
+        rig that never stood: a graph whose scale was just measured may still believe it creeps (the bench's walk with
         vergence: the rule kept every track out, 2.3 -> 197 cm)."""
         return self.scale_observed and stamp - self._stood <= self.settings.lag_s
 

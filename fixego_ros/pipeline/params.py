@@ -311,7 +311,7 @@ ESTIMATOR_PARAMS: Table = _table(
          ge=0.0, le=3600.0),
     _bool('scale_from_rotation', False, 'count the metric scale as observed after scale_min_rotation_deg of '
                                         "rotation without a scale aid (the papers' assumption; the lever arm "
-                                        'carries no scale on straight and constant-curvature motion: README '
+                                        'carries no scale on straight and constant-curvature motion: docs/results.md '
                                         '"Scale"). false = only a scale aid makes it observed; until then '
                                         '/fixego/odom carries a large covariance'),
 )

@@ -141,15 +141,6 @@ def settings_from_args(args: argparse.Namespace, rig):
                                        fixations=FixationSource(args.fixations or FixationSource.TRACKED.value))
 
 
-def vergence_topic_in(bag, topics) -> str:
-    """The contract's vergence topic (``<namespace>/vergence``) when the bag lists it with the right type, else ''."""
-    from fixego_ros.replay.run import VERGENCE_TYPE
-
-    name = topics.name('vergence')
-    t = bag.topics.get(name)
-    return name if t is not None and t.msgtype == VERGENCE_TYPE else ''
-
-
 def run(args: argparse.Namespace) -> int:
     """``fixego replay``; see the module docstring for the exit codes."""
     bars: list = []          # the progress bar, so an interruption ends its line before saying so
@@ -176,7 +167,7 @@ def _run(args: argparse.Namespace, bars: list) -> int:
         FixationSource,
         ReplayError,
         ReplayTopics,
-        fixations_in,
+        bag_defaults,
         intrinsics_from_bag,
         replay,
     )
@@ -203,10 +194,11 @@ def _run(args: argparse.Namespace, bars: list) -> int:
         rig, problems = intrinsics_from_bag(bag, rig, topics)     # what the rig file lacks; disagreements
         for problem in problems:
             print(f'{PROG}: error: {problem}', file=sys.stderr)
-        if args.vergence_topic is None:      # default: the bag's vergence measurements when it has them
-            args.vergence_topic = vergence_topic_in(bag, topics)
-        if args.fixations is None:           # default: the bag's fixations when it has them
-            args.fixations = fixations_in(bag, topics).value
+        defaults = bag_defaults(bag, topics)     # the bag's vergence measurements and fixations, when it has them
+        if args.vergence_topic is None:
+            args.vergence_topic = defaults['vergence_topic']
+        if args.fixations is None:
+            args.fixations = defaults['fixations'].value
         settings = settings_from_args(args, rig)
         if settings.speed.topic and not settings.speed.topic.startswith('/'):
             # a relative speed_topic (as the node takes it, in its namespace) names the bag topic under --namespace

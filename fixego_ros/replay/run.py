@@ -52,6 +52,7 @@ import time
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -439,6 +440,20 @@ def _revise(res: ReplayResult, index_of: dict[float, int], revised: tuple[tuple[
         k = index_of.get(stamp)
         if k is not None and pose.is_finite():
             res.poses[k] = pose
+
+
+def vergence_topic_in(bag: Bag, topics: ReplayTopics) -> str:
+    """The contract's vergence topic (``<namespace>/vergence``) when the bag lists it with the right type, else ''."""
+    name = topics.name('vergence')
+    t = bag.topics.get(name)
+    return name if t is not None and t.msgtype == VERGENCE_TYPE else ''
+
+
+def bag_defaults(bag: Bag, topics: ReplayTopics) -> dict[str, Any]:
+    """What ``fixego replay`` takes from the bag unless told otherwise (the :class:`ReplaySettings` fields
+    ``vergence_topic`` and ``fixations``): its vergence measurements and its recorded fixations, when it has them.
+    The benchmarks use the same, so they measure what a user's replay does."""
+    return {'vergence_topic': vergence_topic_in(bag, topics), 'fixations': fixations_in(bag, topics)}
 
 
 def fixations_in(bag: Bag, topics: ReplayTopics) -> FixationSource:
