@@ -13,7 +13,7 @@ from fixego_ros.estimation.estimator import Estimator
 from fixego_ros.estimation.frames import CameraFrame, FrameObservation, fixations_of, step_pairs
 from fixego_ros.estimation.local_ba import BAProblem, BATerm, refine_latest
 from fixego_ros.estimation.status import StepStatus
-from fixego_ros.estimation.twoframe import TwoFrameSolver
+from fixego_ros.estimation.twoframe import Fallback, TwoFrameSolver
 from fixego_ros.experiments.point_scene import PRESETS, PointScene, random_motion_sequence
 from fixego_ros.geometry.rotation import Pose, exp_so3
 
@@ -212,15 +212,16 @@ def test_blind_step_is_bridged_from_the_rates_on_both_sides():
     assert np.degrees(np.linalg.norm((poses[-1].inverse() @ later).rvec())) < 0.1
 
 
-def test_a_warm_start_behind_the_cameras_gets_the_cold_starts_unless_the_caller_has_its_own_fallback():
-    """The live pose turns the cold starts off (fallback=False) to bound its time: the warm solve behind the
-    cameras is then returned as DEGENERATE (the caller predicts), while the default still recovers the motion."""
+def test_a_warm_start_behind_the_cameras_falls_back_as_the_caller_asks():
+    """A warm solve behind the cameras (the mirror solution) is DEGENERATE with no fallback (a caller that predicts
+    instead); the closed-form starts (the live pose's budget) and the full cold starts both recover the motion."""
     scene, steps, _, _, clean = scene_and_steps(CLEAN, 2)
     pairs = pairs_of(scene, clean, 1)
     solver = TwoFrameSolver(papers_solver(sigma=1e-4 / scene.rig.right.fx, prior_step=0.25))
     behind = Pose(steps[0].R, -steps[0].t)          # the mirror solution: the points behind the cameras
-    res = solver.solve(pairs, initial=behind, fallback=False)
+    res = solver.solve(pairs, initial=behind, fallback=Fallback.NONE)
     assert res.status is StepStatus.DEGENERATE and res.cheirality < 0.5
-    res = solver.solve(pairs, initial=behind)
-    assert res.status.usable and res.cheirality >= 0.5
-    assert np.linalg.norm(res.pose.t - steps[0].t) <= 1e-6
+    for fallback in (Fallback.CLOSED_FORM, Fallback.COLD):
+        res = solver.solve(pairs, initial=behind, fallback=fallback)
+        assert res.status.usable and res.cheirality >= 0.5
+        assert np.linalg.norm(res.pose.t - steps[0].t) <= 1e-6

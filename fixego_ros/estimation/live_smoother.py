@@ -43,7 +43,7 @@ from fixego_ros.estimation.frames import (
     step_pairs,
 )
 from fixego_ros.estimation.status import StepStatus
-from fixego_ros.estimation.twoframe import TwoFrameSolver
+from fixego_ros.estimation.twoframe import Fallback, TwoFrameSolver
 from fixego_ros.geometry.rig import SIDES, Rig
 from fixego_ros.geometry.rotation import Pose
 from fixego_ros.interrupt import sigint_ignored
@@ -200,6 +200,7 @@ class _Recent:
     ref: _Recent | None = None      # the frame its flow starts from, and the step from there: a frame the child
     step: Pose | None = None        # skipped moves with its reference when the smoother revises that
     smoothed: bool = False
+    solved: Pose | None = None      # its own two-frame step from ``ref`` when that moved it (direction only)
 
 
 class LiveSmoother:
@@ -343,7 +344,7 @@ class LiveSmoother:
         ref = at_stamp(self._recent, obs.prev_stamp if obs.prev_stamp is not None else last)
         predicted = self._predict(obs.stamp)
         messages: list[str] = []
-        tf = None
+        tf, solved = None, None
         if ref is None:
             pose, step, step_raw = predicted, Pose.identity(), Pose.identity()
             if last is not None:
@@ -353,10 +354,13 @@ class LiveSmoother:
             # warm start only: a frame whose warm solve fails is predicted (the child solves it fully); the cold
             # starts were 7.6 % of a demo's frames and its p95 (2 -> 15 ms per frame)
             tf = self.solver.solve(step_pairs(self.rig, ref.fixation, obs, self._config.fixation_weight),
-                                   initial=ref.pose.inverse() @ predicted, fallback=False)
+                                   initial=self._warm_start(ref, predicted, dt), fallback=Fallback.CLOSED_FORM)
             if tf.status.usable and tf.pose.is_finite() and tf.cheirality >= 0.5:
                 step = with_length(tf.pose, self._speed() * dt)
                 pose = (ref.pose @ step).normalized()
+                if tf.status is not StepStatus.STATIONARY:
+                    solved = tf.pose
+                    self._heading = ref.pose.R @ tf.pose.t / np.linalg.norm(tf.pose.t)
             else:
                 pose = predicted
                 step = ref.pose.inverse() @ pose
@@ -365,7 +369,8 @@ class LiveSmoother:
                                     self._config.smoother.nominal_speed * dt)
         raw_base = ref.raw if ref is not None else (self._recent[-1].raw if self._recent else Pose.identity())
         status = StepStatus.INIT if last is None else (tf.status if tf is not None else StepStatus.REJECTED)
-        frame = _Recent(obs.stamp, pose, (raw_base @ step_raw).normalized(), fixations_of(obs), ref, step)
+        frame = _Recent(obs.stamp, pose, (raw_base @ step_raw).normalized(), fixations_of(obs), ref, step,
+                        solved=solved)
         self._recent.append(frame)
         while self._recent and self._recent[0].stamp < obs.stamp - self.HISTORY_S:
             self._recent.popleft().ref = None
@@ -385,6 +390,7 @@ class LiveSmoother:
         self._revised: dict[float, Pose] = {}
         self._state = SmootherState()
         self._pose_cov: np.ndarray | None = None
+        self._heading: np.ndarray | None = None     # unit, world: the direction of the last solved moving step
         self._index = -1
         self._sent_frames = 0
         self._answered = 0
@@ -459,6 +465,23 @@ class LiveSmoother:
             if b.stamp > a.stamp:
                 return float(np.linalg.norm(b.pose.t - a.pose.t)) / (b.stamp - a.stamp)
         return self._config.smoother.nominal_speed
+
+    def _warm_start(self, ref: _Recent, predicted: Pose, dt: float) -> Pose:
+        """The step ref -> frame to start the two-frame solve from: the prediction's rotation, and the direction of
+        the previous frame's own step when it has the same reference, else the rig's last solved heading. The
+        prediction's translation alone stands still after a stand or a run of failed frames (the previous ones
+        were predicted), and a solve started at zero translation lands behind the cameras: in a demo run 629 of
+        ~800 moving frames failed in a cascade and path_raw froze (docs/results.md "Stop 44")."""
+        init = ref.pose.inverse() @ predicted
+        length = max(self._speed() * dt, 1e-3)
+        prev = self._recent[-1] if self._recent else None
+        if prev is not None and prev.ref is ref and prev.solved is not None:
+            direction = prev.solved.t
+        elif self._heading is not None:
+            direction = ref.pose.R.T @ self._heading
+        else:
+            return init
+        return Pose(init.R, direction / np.linalg.norm(direction) * length)
 
     def _predict(self, stamp: float) -> Pose:
         """Constant twist from the last two frames (hold before there are two)."""

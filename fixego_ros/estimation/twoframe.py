@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from enum import Enum
 
 import numpy as np
 from scipy.linalg import lapack
@@ -31,6 +32,15 @@ from fixego_ros.estimation.status import StepStatus
 from fixego_ros.geometry.rotation import Pose, exp_so3, project_to_so3
 
 LOSSES = ('linear', 'huber', 'soft_l1', 'cauchy', 'arctan')
+
+
+class Fallback(Enum):
+    """What a warm solve that fails (behind the cameras) tries next. Per refinement ~2 ms at 150 pairs on this
+    machine (docs/results.md "Stop 45")."""
+
+    COLD = 'cold'                  # every cold start: the closed-form ones and a step along each axis (~16 ms)
+    CLOSED_FORM = 'closed_form'    # the 8-point essential matrix's starts only (2-4 refinements: the live pose)
+    NONE = 'none'                  # return it as DEGENERATE
 BACKENDS = ('lm', 'scipy')
 
 
@@ -393,15 +403,14 @@ class TwoFrameSolver:
 
     def solve(self, pairs: RayPairs, initial: Pose | None = None, prior_t: np.ndarray | None = None,
               prior_sigma_t: float = 0.0, prior_length: tuple[float, float] | None = None,
-              fallback: bool = True) -> TwoFrameResult:
+              fallback: Fallback = Fallback.COLD) -> TwoFrameResult:
         """Solve one step. With ``prior_t`` and ``prior_sigma_t`` > 0 a weak Gaussian prior on T (e.g. a
         constant-velocity prediction) keeps directions the rays do not observe (the scale under pure
         translation) where the prediction puts them instead of letting the optimiser wander; with
         ``prior_length = (length, sigma)`` a prior on |T| alone does that for the scale only (the direction
         stays the rays'). The covariance returned is the rays' alone, so those directions still show as
-        unobserved. ``fallback`` False: a warm start that lands behind the cameras is returned as DEGENERATE
-        instead of trying the ~10 cold starts, for a caller with a cheaper fallback of its own and a time budget
-        (the live pose: the constant-twist prediction)."""
+        unobserved. ``fallback``: what a warm start that lands behind the cameras tries next (:class:`Fallback`;
+        the live pose has a time budget and takes the closed-form starts only)."""
         prior = MotionPrior.build(prior_t, prior_sigma_t, prior_length)
         cfg = self.config
         m = len(pairs)
@@ -420,8 +429,10 @@ class TwoFrameSolver:
         # a poor warm start gets the cold starts too, unless a prior on T anchors it (real time: the cold starts
         # cost ~10 solves; a prior-anchored bad step is flagged below and predicted by the caller). A prior on
         # the length alone does not: it holds T and -T alike
-        if fallback and warm and (best is None or (best.cheirality < 0.5 and (prior is None or prior.t is None))):
-            best = self._best(pairs, self._cold_starts(pairs, R_rot) + ([best.pose] if best else []), prior)
+        if (fallback is not Fallback.NONE and warm
+                and (best is None or (best.cheirality < 0.5 and (prior is None or prior.t is None)))):
+            starts = essential_start(pairs) if fallback is Fallback.CLOSED_FORM else self._cold_starts(pairs, R_rot)
+            best = self._better(self._best(pairs, starts, prior), best)
         if best is None:
             return TwoFrameResult(initial or Pose.identity(), StepStatus.FAILED, n_constraints=m,
                                   message='optimiser produced no finite solution')
