@@ -72,11 +72,12 @@ def test_the_path_is_the_in_process_smoothers(loop, live):
 
 
 def test_every_frame_gets_a_pose_at_once_and_it_follows_the_smoother(loop, live):
-    """Fast poses: the two-frame step at the smoother's speed, on the smoother's latest estimate of its reference.
+    """Fast poses: the smoother's motion carried to the stamp once it has answered (it answers every frame here).
     Once the scale is measured they stay close to the truth (generous bound; the path is the refined answer)."""
     results, _ = _feed(live, loop, wait=True)
     assert results[0].status is StepStatus.INIT
     assert all(r.placed and r.pose.is_finite() and np.all(np.isfinite(r.pose_covariance)) for r in results)
+    assert sum(r.status is StepStatus.CARRIED for r in results) >= len(results) - 3    # once the smoother answered
     true = np.array([p.t for p in loop.poses])
     fast = np.array([r.pose.t for r in results])
     aided = [k for k, r in enumerate(results) if r.scale_observed]
@@ -205,3 +206,27 @@ def test_with_no_answer_from_the_smoother_the_fast_poses_still_follow_the_motion
     assert np.median(cosine) > 0.7
     nominal = live.config.smoother.nominal_speed * np.diff(loop.stamps)
     np.testing.assert_allclose(np.linalg.norm(steps, axis=1), nominal, rtol=1e-6)
+
+
+def test_once_the_smoother_answers_a_frame_is_its_motion_carried_to_the_stamp_with_the_rays_rotation():
+    """The live pose's cheap path (~0.3 ms, no solve): the translation is the smoother's newest motion (constant
+    twist over its last ``SPEED_WINDOW_S``) carried to the frame's stamp, the rotation the Kabsch fit of the
+    rays; with the smoother's newest frame over ``MAX_CARRY_S`` old (it fell behind) the frame is solved."""
+    from fixego_ros.estimation.coplanarity import RayPairs
+    from fixego_ros.estimation.live_smoother import _Recent
+    from fixego_ros.geometry.rotation import Pose, exp_so3
+
+    live = LiveSmoother.__new__(LiveSmoother)          # the parent's bookkeeping only: no child process
+    a = _Recent(0.0, Pose(np.eye(3), np.zeros(3)), Pose.identity(), {}, smoothed=True)
+    b = _Recent(0.2, Pose(np.eye(3), np.array([0.04, 0.0, 0.0])), Pose.identity(), {}, smoothed=True)
+    ref = _Recent(0.3, Pose(np.eye(3), np.array([0.07, 0.0, 0.0])), Pose.identity(), {}, ref=b)   # a fast pose
+    live._recent = deque([a, b, ref])
+    R = exp_so3(np.array([0.0, 0.01, 0.002]))
+    rays = np.random.default_rng(0).normal(size=(30, 3)) + [0.0, 0.0, 4.0]
+    pairs = RayPairs.build([(rays, rays @ R, np.zeros(3), 1.0)])        # b = R^T a: a pure rotation R
+    carried = live._carried(ref, pairs, 0.4)
+    assert carried.status is StepStatus.CARRIED and carried.status.usable
+    np.testing.assert_allclose(carried.pose.R, R, atol=1e-9)
+    np.testing.assert_allclose(carried.pose.t, [0.01, 0.0, 0.0], atol=1e-9)   # 0.2 m/s, at 0.4 s: x = 0.08
+    assert live._carried(ref, pairs, 0.2 + LiveSmoother.MAX_CARRY_S + 0.01) is None
+    assert live._carried(ref, RayPairs.build([(rays[:5], rays[:5] @ R, np.zeros(3), 1.0)]), 0.4) is None

@@ -2,9 +2,11 @@
 
 GTSAM holds the GIL for a whole solve (50-120 ms per frame on this machine), so a smoother in a thread would still
 stall the node's callbacks, and one in the callback leaves frames without a pose. :class:`LiveSmoother` runs the
-:class:`~fixego_ros.estimation.smoother.Smoother` in a child process and answers each frame itself: the two-frame
-coplanarity solve keyframe -> frame (a few ms), its length from the smoother's latest speed, placed on the
-smoother's latest estimate of the keyframe. The smoother's results revise the path as they arrive (the live pose
+:class:`~fixego_ros.estimation.smoother.Smoother` in a child process and answers each frame itself (~0.3 ms): the
+smoother's newest motion carried to the frame's stamp, with the rotation the frame's rays give. Before the smoother
+has answered, or when it has fallen behind by over ``MAX_CARRY_S``, the two-frame coplanarity solve keyframe ->
+frame (2-11 ms), its length from the smoother's latest speed, placed on the smoother's latest estimate of the
+keyframe. The smoother's results revise the path as they arrive (the live pose
 stays continuous; corrections go to the path). The child takes every keyframe (later flow starts from them, so
 they must be in its graph) and the newest non-keyframe whenever it is idle.
 
@@ -30,6 +32,7 @@ from typing import Any
 import numpy as np
 
 from fixego_ros.estimation.config import EstimatorConfig
+from fixego_ros.estimation.coplanarity import RayPairs
 from fixego_ros.estimation.covariance import VAR_MAX, checked_measurement
 from fixego_ros.estimation.factors import constant_twist, with_length
 from fixego_ros.estimation.frames import (
@@ -43,7 +46,7 @@ from fixego_ros.estimation.frames import (
     step_pairs,
 )
 from fixego_ros.estimation.status import StepStatus
-from fixego_ros.estimation.twoframe import Fallback, TwoFrameSolver
+from fixego_ros.estimation.twoframe import MIN_ROTATION_PAIRS, Fallback, TwoFrameResult, TwoFrameSolver, kabsch_rotation
 from fixego_ros.geometry.rig import SIDES, Rig
 from fixego_ros.geometry.rotation import Pose
 from fixego_ros.interrupt import sigint_ignored
@@ -195,7 +198,8 @@ class _Recent:
 
     stamp: float
     pose: Pose
-    raw: Pose              # two-frame steps only, at the nominal speed (path_raw)
+    raw: Pose              # two-frame steps at the nominal speed (path_raw): the smoother's chain where it solved
+                           # the frame, the live step between
     fixation: dict[str, Fixation | None]
     ref: _Recent | None = None      # the frame its flow starts from, and the step from there: a frame the child
     step: Pose | None = None        # skipped moves with its reference when the smoother revises that
@@ -210,6 +214,7 @@ class LiveSmoother:
     HISTORY_S = 10.0       # frames kept as references (a keyframe can be this old at most)
     SPEED_WINDOW_S = 0.5   # the speed of the fast poses: the smoother's motion over about this long
     JOIN_S = 2.0           # bound on waiting for the child to stop
+    MAX_CARRY_S = 0.5      # the smoother's motion is carried this far past its newest frame at most (then: solved)
 
     def __init__(self, rig: Rig, config: EstimatorConfig | None = None, inline: bool = False) -> None:
         """``inline``: the smoother in this process on every keyframe and one other frame per ``_Inline.MIN_GAP_S``,
@@ -351,11 +356,17 @@ class LiveSmoother:
                 messages.append('flow reference unknown: pose predicted at constant twist')
         else:
             dt = obs.stamp - ref.stamp
-            # warm start only: a frame whose warm solve fails is predicted (the child solves it fully); the cold
-            # starts were 7.6 % of a demo's frames and its p95 (2 -> 15 ms per frame)
-            tf = self.solver.solve(step_pairs(self.rig, ref.fixation, obs, self._config.fixation_weight),
-                                   initial=self._warm_start(ref, predicted, dt), fallback=Fallback.CLOSED_FORM)
-            if tf.status.usable and tf.pose.is_finite() and tf.cheirality >= 0.5:
+            # once the smoother has answered: its motion carried to this stamp, the rotation from the rays (~0.3 ms);
+            # before, the two-frame solve (~2 ms warm; the cold starts cost ~16 ms, so a failed warm solve tries the
+            # closed-form starts only, and a frame that still fails is predicted; the child solves it fully)
+            pairs = step_pairs(self.rig, ref.fixation, obs, self._config.fixation_weight)
+            carried = self._carried(ref, pairs, obs.stamp)
+            tf = carried or self.solver.solve(pairs, initial=self._warm_start(ref, predicted, dt),
+                                              fallback=Fallback.CLOSED_FORM)
+            if tf is carried:
+                step = tf.pose
+                pose = (ref.pose @ step).normalized()
+            elif tf.status.usable and tf.pose.is_finite() and tf.cheirality >= 0.5:
                 step = with_length(tf.pose, self._speed() * dt)
                 pose = (ref.pose @ step).normalized()
                 if tf.status is not StepStatus.STATIONARY:
@@ -425,6 +436,8 @@ class LiveSmoother:
         updates[round(result.stamp, 6)] = result.pose
         moved: set[int] = set()
         for r in self._recent:
+            if abs(r.stamp - result.stamp) <= 1e-6 and result.pose_raw.is_finite():
+                r.raw = result.pose_raw     # the smoother's two-frame chain: later raw poses go on from it
             p = updates.get(round(r.stamp, 6))
             if p is not None and p.is_finite():
                 r.pose, r.smoothed = p, True
@@ -465,6 +478,27 @@ class LiveSmoother:
             if b.stamp > a.stamp:
                 return float(np.linalg.norm(b.pose.t - a.pose.t)) / (b.stamp - a.stamp)
         return self._config.smoother.nominal_speed
+
+    def _carried(self, ref: _Recent, pairs: RayPairs, stamp: float) -> TwoFrameResult | None:
+        """The step ref -> frame from the smoother's newest motion (constant twist over its last
+        ``SPEED_WINDOW_S``, carried to ``stamp``) with the rotation the rays give (Kabsch: they are mostly rotation
+        over one frame); None before the smoother has answered, when its newest frame is over ``MAX_CARRY_S`` old
+        (it has fallen behind), or with too few rays. The two-frame solve of a
+        30 Hz step scatters by tens of degrees in direction and costs 2-11 ms on the loaded demo machine, where
+        it doubled the latency (docs/results.md "Stop 45"); carried, a recorded demo run's live pose was 7.8 cm
+        off with the smoother 130 ms late, against 8.2 solved."""
+        smoothed = [r for r in self._recent if r.smoothed]
+        if len(smoothed) < 2 or len(pairs) < MIN_ROTATION_PAIRS:
+            return None
+        a, b = span_start(smoothed, self.SPEED_WINDOW_S) or smoothed[0], smoothed[-1]
+        if not b.stamp > a.stamp or stamp - b.stamp > self.MAX_CARRY_S:
+            return None
+        ahead = constant_twist(a.pose, a.stamp, b.pose, b.stamp, stamp)
+        step = Pose(kabsch_rotation(pairs.a, pairs.b), ref.pose.R.T @ (ahead.t - ref.pose.t))
+        if not step.is_finite():
+            return None
+        return TwoFrameResult(step, StepStatus.CARRIED, n_constraints=len(pairs),
+                              message='the smoother\'s motion carried to the stamp, rotation from the rays')
 
     def _warm_start(self, ref: _Recent, predicted: Pose, dt: float) -> Pose:
         """The step ref -> frame to start the two-frame solve from: the prediction's rotation, and the direction of

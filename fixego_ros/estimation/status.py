@@ -17,7 +17,8 @@ class StepStatus(StrEnum):
     FAILED = 'failed'              # optimiser failed or produced non-finite values
     REJECTED = 'rejected'          # solved, but rejected (implausible jump or covariance too large)
     PREDICTED = 'predicted'        # step not solved; constant-velocity prediction used instead
+    CARRIED = 'carried'            # live pose: the smoother's motion carried to the stamp, rotation from the rays
 
     @property
     def usable(self) -> bool:
-        return self in (StepStatus.OK, StepStatus.WEAK, StepStatus.STATIONARY)
+        return self in (StepStatus.OK, StepStatus.WEAK, StepStatus.STATIONARY, StepStatus.CARRIED)
