@@ -230,3 +230,32 @@ def test_once_the_smoother_answers_a_frame_is_its_motion_carried_to_the_stamp_wi
     np.testing.assert_allclose(carried.pose.t, [0.01, 0.0, 0.0], atol=1e-9)   # 0.2 m/s, at 0.4 s: x = 0.08
     assert live._carried(ref, pairs, 0.2 + LiveSmoother.MAX_CARRY_S + 0.01) is None
     assert live._carried(ref, RayPairs.build([(rays[:5], rays[:5] @ R, np.zeros(3), 1.0)]), 0.4) is None
+
+
+def test_the_published_pose_takes_up_a_revision_without_a_jump_and_converges_on_the_estimate():
+    """REP-105's odom frame is continuous: when the smoother revises the previous frame (its keyframe moved 5 cm),
+    the pose to publish (``odom``) moves on from where it was by the frame's own motion, and closes the gap to the
+    estimate (``pose``) by a share ``dt / ODOM_CONVERGENCE_S`` per frame."""
+    from fixego_ros.estimation.live_smoother import _Recent
+    from fixego_ros.geometry.rotation import Pose
+
+    live = LiveSmoother.__new__(LiveSmoother)          # the parent's bookkeeping only: no child process
+    live._odom = None
+    frames = [_Recent(0.1 * k, Pose(np.eye(3), np.array([0.01 * k, 0.0, 0.0])), Pose.identity(), {}) for k in (0, 1)]
+    live._recent = deque(frames[:1])
+    np.testing.assert_allclose(live._odom_pose(frames[0].pose, 0.0).t, 0.0, atol=1e-12)
+    live._recent.append(frames[1])
+    first = live._odom_pose(frames[1].pose, 0.1)
+    np.testing.assert_allclose(first.t, [0.01, 0.0, 0.0], atol=1e-12)       # nothing revised: the estimate
+    frames[1].pose = Pose(np.eye(3), np.array([0.06, 0.0, 0.0]))             # the smoother moved it 5 cm
+    stamp, estimate, published = 0.1, None, first
+    for k in range(2, 40):
+        stamp += 0.1
+        estimate = Pose(np.eye(3), np.array([0.06 + 0.01 * (k - 1), 0.0, 0.0]))
+        live._recent.append(_Recent(stamp, estimate, Pose.identity(), {}))
+        odom = live._odom_pose(estimate, stamp)
+        assert abs(odom.t[0] - published.t[0] - 0.01) <= 0.05 * 0.1 / LiveSmoother.ODOM_CONVERGENCE_S + 1e-9
+        published = odom
+    gap = 0.05 * (1.0 - 0.1 / LiveSmoother.ODOM_CONVERGENCE_S) ** 38          # a share of it each frame
+    np.testing.assert_allclose(published.t, estimate.t - [gap, 0.0, 0.0], atol=1e-9)
+    assert gap < 1e-3

@@ -176,6 +176,9 @@ class FrameResult:
     # the smoother's newer estimates of earlier frames still in its lag: (stamp, pose) each, to replace the poses
     # reported for them then (the live pose stays continuous; the path takes these)
     revised: tuple[tuple[float, Pose], ...] = ()
+    # the pose to publish as odometry (pose, odom, TF): continuous, as REP-105's odom frame asks (a revision of
+    # earlier frames does not make it jump; it converges on ``pose``); None = ``pose``
+    odom: Pose | None = None
 
     @classmethod
     def rejected(cls, index: int, stamp: float, pose: Pose, pose_raw: Pose, why: str,

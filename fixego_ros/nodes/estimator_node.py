@@ -386,17 +386,19 @@ class EstimatorNode(Node):
         if res.corrected is not None:
             self._correct_last(*res.corrected)
         self._revise(res.revised)
-        ps = self._stamped(stamp, pose)
-        self.pub_pose.publish(ps)
-        self.path.append(ps)
+        live = pose if res.odom is None else rig_pose_to_base_link(res.odom, self.rig.mount)
+        if not live.is_finite():
+            live = pose
+        self.pub_pose.publish(self._stamped(stamp, live))
+        self.path.append(self._stamped(stamp, pose))
         self.path_raw.append(self._stamped(stamp, pose_raw))
         self._paths_pending = True
         self._last_pose_wall = time.monotonic()
         if self.path_period == 0 or self._path_stamp is None or res.stamp - self._path_stamp >= self.path_period - 1e-6:
             self._publish_paths()
-        self.pub_odom.publish(self._odometry(stamp, pose, res))
+        self.pub_odom.publish(self._odometry(stamp, live, res))
         if self.tf is not None:
-            self._send_tf(stamp, pose)
+            self._send_tf(stamp, live)
         self.stats['published'] += 1
 
     def _publish_paths(self) -> None:
