@@ -475,12 +475,20 @@ class LiveSmoother:
 
     def _speed(self) -> float:
         """m/s: the smoother's motion over its newest ``SPEED_WINDOW_S``; the nominal speed before there is one."""
+        span = self._smoothed_span()
+        if span is None:
+            return self._config.smoother.nominal_speed
+        a, b = span
+        return float(np.linalg.norm(b.pose.t - a.pose.t)) / (b.stamp - a.stamp)
+
+    def _smoothed_span(self) -> tuple[_Recent, _Recent] | None:
+        """The smoother's newest motion: its frame about ``SPEED_WINDOW_S`` before its newest, and the newest (None
+        before two smoothed frames apart in time)."""
         smoothed = [r for r in self._recent if r.smoothed]
-        if len(smoothed) >= 2:
-            a, b = span_start(smoothed, self.SPEED_WINDOW_S) or smoothed[0], smoothed[-1]
-            if b.stamp > a.stamp:
-                return float(np.linalg.norm(b.pose.t - a.pose.t)) / (b.stamp - a.stamp)
-        return self._config.smoother.nominal_speed
+        if len(smoothed) < 2:
+            return None
+        a, b = span_start(smoothed, self.SPEED_WINDOW_S) or smoothed[0], smoothed[-1]
+        return (a, b) if b.stamp > a.stamp else None
 
     def _odom_pose(self, pose: Pose, stamp: float) -> Pose:
         """The continuous pose: ``pose`` behind a correction that takes up each revision of the previous frame (so
@@ -506,12 +514,10 @@ class LiveSmoother:
         30 Hz step scatters by tens of degrees in direction and costs 2-11 ms on the loaded demo machine, where
         it doubled the latency (docs/results.md "Stop 45"); carried, a recorded demo run's live pose was 7.8 cm
         off with the smoother 130 ms late, against 8.2 solved."""
-        smoothed = [r for r in self._recent if r.smoothed]
-        if len(smoothed) < 2 or len(pairs) < MIN_ROTATION_PAIRS:
+        span = self._smoothed_span()
+        if span is None or stamp - span[1].stamp > self.MAX_CARRY_S or len(pairs) < MIN_ROTATION_PAIRS:
             return None
-        a, b = span_start(smoothed, self.SPEED_WINDOW_S) or smoothed[0], smoothed[-1]
-        if not b.stamp > a.stamp or stamp - b.stamp > self.MAX_CARRY_S:
-            return None
+        a, b = span
         ahead = constant_twist(a.pose, a.stamp, b.pose, b.stamp, stamp)
         step = Pose(kabsch_rotation(pairs.a, pairs.b), ref.pose.R.T @ (ahead.t - ref.pose.t))
         if not step.is_finite():

@@ -32,6 +32,7 @@ from fixego_ros.estimation.status import StepStatus
 from fixego_ros.geometry.rotation import Pose, exp_so3, project_to_so3
 
 LOSSES = ('linear', 'huber', 'soft_l1', 'cauchy', 'arctan')
+BACKENDS = ('lm', 'scipy')
 
 
 class Fallback(Enum):
@@ -41,7 +42,6 @@ class Fallback(Enum):
     COLD = 'cold'                  # every cold start: the closed-form ones and a step along each axis (~16 ms)
     CLOSED_FORM = 'closed_form'    # the 8-point essential matrix's starts only (2-4 refinements: the live pose)
     NONE = 'none'                  # return it as DEGENERATE
-BACKENDS = ('lm', 'scipy')
 
 
 @dataclass(frozen=True)
