@@ -7,6 +7,7 @@ import pytest
 import yaml
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from scipy.spatial.transform import Rotation
 
 from fixego_ros.geometry.rig import (
     CameraModel,
@@ -69,6 +70,20 @@ def test_quaternion_roundtrip(w):
     q = quat_xyzw(R)
     assert q[3] >= 0 and np.isclose(np.linalg.norm(q), 1)
     assert np.allclose(from_quat_xyzw(q), R, atol=1e-12)
+
+
+@given(rotvec)
+def test_quaternion_is_scipys_to_the_bit(w):
+    # the plain-float formula replaced Rotation.from_matrix for speed: TUM files and messages must not change
+    R = exp_so3(w)
+    q = Rotation.from_matrix(R).as_quat()
+    assert np.array_equal(quat_xyzw(R), -q if q[3] < 0 else q)
+
+
+def test_quaternion_of_a_half_turn():
+    for R in (np.diag([1.0, -1.0, -1.0]), np.diag([-1.0, 1.0, -1.0]), np.diag([-1.0, -1.0, 1.0])):
+        q = quat_xyzw(R)
+        assert np.allclose(from_quat_xyzw(q), R, atol=1e-12) and q[3] >= 0
 
 
 @given(poses)

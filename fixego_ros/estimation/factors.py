@@ -8,6 +8,7 @@ Jacobians (:class:`ConstantTwist`, :class:`StepDirection`, :class:`HeldSpeed`, :
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import gtsam
 import numpy as np
@@ -34,9 +35,15 @@ def with_length(step: Pose, length: float) -> Pose:
 def constant_twist(a: Pose, t_a: float, b: Pose, t_b: float, stamp: float) -> Pose:
     """The pose at ``stamp`` moving on from ``b`` with the twist ``a`` -> ``b`` (a prediction, and the motion
     between two frames at a stamp between them)."""
-    step = gtsam.Pose3.Logmap(to_gtsam(a).between(to_gtsam(b)))
-    k = (stamp - t_b) / max(t_b - t_a, 1e-9)
-    return from_gtsam(to_gtsam(b).compose(gtsam.Pose3.Expmap(step * k)))
+    return constant_twists(a, t_a, b, t_b, (stamp,))[0]
+
+
+def constant_twists(a: Pose, t_a: float, b: Pose, t_b: float, stamps: Sequence[float]) -> list[Pose]:
+    """:func:`constant_twist` at each of ``stamps``, the twist taken once (the frames between two smoothed ones)."""
+    end = to_gtsam(b)
+    step = gtsam.Pose3.Logmap(to_gtsam(a).between(end))
+    dt = max(t_b - t_a, 1e-9)
+    return [from_gtsam(end.compose(gtsam.Pose3.Expmap(step * ((stamp - t_b) / dt)))) for stamp in stamps]
 
 
 def _jac(rows: int, cols: int) -> np.ndarray:

@@ -34,7 +34,7 @@ import numpy as np
 from fixego_ros.estimation.config import EstimatorConfig
 from fixego_ros.estimation.coplanarity import RayPairs
 from fixego_ros.estimation.covariance import VAR_MAX, checked_measurement
-from fixego_ros.estimation.factors import constant_twist, with_length
+from fixego_ros.estimation.factors import constant_twist, constant_twists, with_length
 from fixego_ros.estimation.frames import (
     STAMP_TOLERANCE_S,
     Fixation,
@@ -467,8 +467,9 @@ class LiveSmoother:
             ra, rb = recent[a], recent[b]
             if b - a < 2 or not (id(ra) in moved or id(rb) in moved):
                 continue
-            for r in recent[a + 1:b]:
-                pose = constant_twist(ra.pose, ra.stamp, rb.pose, rb.stamp, r.stamp)
+            inner = recent[a + 1:b]
+            for r, pose in zip(inner, constant_twists(ra.pose, ra.stamp, rb.pose, rb.stamp, [r.stamp for r in inner]),
+                               strict=True):
                 if pose.is_finite():
                     r.pose = pose
                     self._revised[r.stamp] = pose

@@ -8,6 +8,7 @@ and motions chain by ``P_{j,t} = P_{j,j+1} @ P_{j+1,j+2} @ ... @ P_{t-1,t}``.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -70,8 +71,26 @@ def project_to_so3(R: np.ndarray) -> np.ndarray:
 
 
 def quat_xyzw(R: np.ndarray) -> np.ndarray:
-    """Unit quaternion (x, y, z, w) of a rotation matrix, w >= 0."""
-    q = Rotation.from_matrix(R).as_quat()
+    """Unit quaternion (x, y, z, w) of a rotation matrix, w >= 0.
+
+    SciPy's method (``Rotation.from_matrix``: the largest of the trace and the diagonal picks the formula) in plain
+    floats, the same bits for a rotation matrix at ~1 us instead of ~30: every pose message and TUM line takes one,
+    and each smoother answer revises ~100 path poses (docs/results.md "Stop 46"). Non-finite input goes to SciPy."""
+    (a, b, c), (d, e, f), (g, h, i) = np.asarray(R, dtype=float).tolist()
+    tr = a + e + i
+    if not math.isfinite(tr + b + c + d + f + g + h):
+        q = Rotation.from_matrix(R).as_quat()
+        return -q if q[3] < 0 else q
+    if tr >= a and tr >= e and tr >= i:
+        x, y, z, w = h - f, c - g, d - b, 1.0 + tr
+    elif a >= e and a >= i:
+        x, y, z, w = 1.0 - tr + 2.0 * a, d + b, g + c, h - f
+    elif e >= i:
+        x, y, z, w = b + d, 1.0 - tr + 2.0 * e, h + f, c - g
+    else:
+        x, y, z, w = c + g, f + h, 1.0 - tr + 2.0 * i, d - b
+    n = math.sqrt(x * x + y * y + z * z + w * w)
+    q = np.array([x / n, y / n, z / n, w / n])
     return -q if q[3] < 0 else q
 
 
