@@ -256,6 +256,36 @@ def test_estimator_node_rejects_future_stamps_counts_disorder_and_resets_on_a_cl
         ex.shutdown()
 
 
+def test_estimator_node_skips_only_what_waited_in_its_own_queue(ros_context, clean_sequence, tmp_path):
+    """A non-keyframe that waited in the node's queue longer than max_lag_s is skipped (the node is behind its
+    input); one that arrived late from upstream but found the node idle is posed (a pose costs ~1 ms: skipping it
+    only left a frame without a pose). Without the middleware's receive time the clock decides, as before."""
+    import copy
+    import time
+
+    rig, _, clean = clean_sequence
+    node = _synthetic_estimator_node(ros_context, rig, tmp_path, Parameter('max_lag_s', value=0.1))
+    try:
+        def feed(k: int, waited_s: float | None) -> None:
+            obs = copy.copy(clean[1 + k % (len(clean) - 1)])     # the fixture's frames stay as they are
+            obs.keyframe = k == 0
+            info = None if waited_s is None else {'received_timestamp': time.time_ns() - int(waited_s * 1e9)}
+            node._on_observation(_cloud(obs, 100.0 + 0.2 * k), info)     # stamped ~56 years behind the clock
+
+        feed(0, 0.0)
+        assert node.stats['published'] == 1                  # a keyframe: always
+        feed(1, 0.001)
+        feed(2, 0.02)
+        assert node.stats['published'] == 3 and node.stats['skipped_behind'] == 0     # late, but the node idle
+        feed(3, 0.3)
+        assert node.stats['published'] == 3 and node.stats['skipped_behind'] == 1     # behind its own input
+        feed(4, None)
+        assert node.stats['skipped_behind'] == 2              # no receive time: behind the clock
+        assert len(node.queue_ms) == 4 and max(node.queue_ms) >= 300.0
+    finally:
+        node.destroy_node()
+
+
 def test_estimator_node_publishes_paths_at_the_period_and_bounded(ros_context, clean_sequence, tmp_path):
     """A long run: pose every frame, but path and path_raw at most once per path_publish_period_s of observation
     time, never longer than path_max_length, and once more when the poses stop, holding the newest poses."""
@@ -377,7 +407,7 @@ def test_demo_runs_every_node_as_a_process_and_writes_a_report(tmp_path):
     # the latency breakdown: every stage the recorder sees, and the nodes' own, measured (no timing asserted)
     stages = report['latency_stages_ms']
     for name in ('joint_publish', 'joint_state', 'fixation', 'flow_image_in', 'flow_ready', 'flow_compute',
-                 'observation', 'estimator_solve', 'pose'):
+                 'observation', 'estimator_queue', 'estimator_solve', 'pose'):
         assert stages[name]['p50'] >= 0 and stages[name]['p95'] >= stages[name]['p50'], (name, stages[name])
     # the camera nodes' joint states against the simulator's true angles at the same image stamps
     for side in ('right', 'left'):

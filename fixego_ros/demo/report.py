@@ -49,6 +49,8 @@ STAGES = (
      'flow_node diagnostics ready_ms, last 300 frames'),
     ('flow_compute', 'compute: flow_node front end + publish', 'flow_node diagnostics process_ms, last 300 frames'),
     ('observation', 'after the stamp: the flow observation arrives (+ DDS)', 'recorder, whole run'),
+    ('estimator_queue', "wait: the observation in estimator_node's queue (receive -> callback)",
+     'estimator_node diagnostics queue_ms, last 300 observations'),
     ('estimator_solve', 'compute: estimator_node solve per frame', 'estimator_node diagnostics solve_ms'),
     ('pose', 'after the stamp: the pose arrives', 'recorder, whole run'),
 )
@@ -70,6 +72,7 @@ def latency_stages(rec) -> dict[str, dict[str, Any]]:
         'flow_ready': _diag_ms(st, 'fixego flow_node', 'ready_ms'),
         'flow_compute': _diag_ms(st, 'fixego flow_node', 'process_ms'),
         'observation': _ms(seen.get('observation', [])),
+        'estimator_queue': _diag_ms(st, 'fixego estimator_node', 'queue_ms'),
         'estimator_solve': _diag_ms(st, 'fixego estimator_node', 'solve_ms'),
         'pose': _ms(rec.latency_s),
     }

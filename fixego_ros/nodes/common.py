@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 import sys
+import time
 from collections.abc import Callable, Iterable, Mapping
 
 import numpy as np
@@ -426,6 +427,14 @@ def diagnostic_status(name: str, hardware_id: str, level: bytes, message: str,
     items = values.items() if isinstance(values, dict) else values
     return DiagnosticStatus(level=level, name=name, message=message, hardware_id=hardware_id,
                             values=[KeyValue(key=str(k), value=str(v)) for k, v in items])
+
+
+def queue_wait_s(info: Mapping[str, int] | None) -> float | None:
+    """Seconds a message waited between its arrival in this process (the middleware's receive time, on the system
+    clock) and its callback (``info``: the message info rclpy gives a two-argument callback); None when there is
+    no receive time."""
+    received = (info or {}).get('received_timestamp') or 0
+    return max(0.0, (time.time_ns() - received) * 1e-9) if received > 0 else None
 
 
 def percentile_values(name: str, values: Iterable[float]) -> dict[str, str]:

@@ -419,8 +419,10 @@ ESTIMATOR_NODE_PARAMS: Table = _table(
                                                'the node namespace)'),
     ESTIMATOR_PARAMS,
     SPEED_PARAMS,
-    _num('max_lag_s', 0.1, 'when an observation is this far behind the clock and not a keyframe, skip it (keyframes '
-                           'are always solved: the trajectory continues through them)', ge=0.0, live=True),
+    _num('max_lag_s', 0.1, "when a non-keyframe observation has waited this long in this node's queue (the node is "
+                           'behind its input), skip it; an observation that came late but finds the node idle is '
+                           "posed (where the middleware gives no receive time: its age on the node's clock decides). "
+                           'Keyframes are always solved: the trajectory continues through them', ge=0.0, live=True),
     _num('max_keyframe_lag_s', 0.5, 'even keyframes are skipped this far behind (the estimator then bridges the gap '
                                     'at constant velocity): bounds the latency when the machine is overloaded',
          ge=0.0, live=True),
