@@ -348,11 +348,10 @@ class LiveSmoother:
         self._send(Message.FRAME, obs)
         self._sent_frames += 1
         ref = at_stamp(self._recent, obs.prev_stamp if obs.prev_stamp is not None else last)
-        predicted = self._predict(obs.stamp)
         messages: list[str] = []
         tf, solved = None, None
         if ref is None:
-            pose, step, step_raw = predicted, Pose.identity(), Pose.identity()
+            pose, step, step_raw = self._predict(obs.stamp), Pose.identity(), Pose.identity()
             if last is not None:
                 messages.append('flow reference unknown: pose predicted at constant twist')
         else:
@@ -362,6 +361,8 @@ class LiveSmoother:
             # closed-form starts only, and a frame that still fails is predicted; the child solves it fully)
             pairs = step_pairs(self.rig, ref.fixation, obs, self._config.fixation_weight)
             carried = self._carried(ref, pairs, obs.stamp)
+            # the prediction only where it is used: a carried frame does without (0.3 ms of its ~1.5)
+            predicted = None if carried else self._predict(obs.stamp)
             tf = carried or self.solver.solve(pairs, initial=self._warm_start(ref, predicted, dt),
                                               fallback=Fallback.CLOSED_FORM)
             if tf is carried:
@@ -374,7 +375,7 @@ class LiveSmoother:
                     solved = tf.pose
                     self._heading = ref.pose.R @ tf.pose.t / np.linalg.norm(tf.pose.t)
             else:
-                pose = predicted
+                pose = predicted if predicted is not None else self._predict(obs.stamp)
                 step = ref.pose.inverse() @ pose
                 messages.append(f'two-frame step not usable ({tf.status.value}): pose predicted at constant twist')
             step_raw = with_length(tf.pose if tf.pose.is_finite() else step,
