@@ -7,9 +7,8 @@ smoother's newest motion carried to the frame's stamp, with the rotation the fra
 has answered, or when it has fallen behind by over ``MAX_CARRY_S``, the two-frame coplanarity solve keyframe ->
 frame (2-11 ms), its length from the smoother's latest speed, placed on the smoother's latest estimate of the
 keyframe. The smoother's results revise the path as they arrive (the live pose
-stays continuous; corrections go to the path). The child takes every keyframe (later flow starts from them) unless
-it has fallen behind (a keyframe that waited over ``KEYFRAME_WAIT_S`` while a later frame waits is skipped), and the
-newest non-keyframe whenever it is idle (:func:`left_out`).
+stays continuous; corrections go to the path). The child takes every keyframe (later flow starts from them, so
+they must be in its graph) and the newest non-keyframe whenever it is idle.
 
 Replay runs the same class with the smoother in the caller's process (``inline``): every keyframe goes into the graph,
 and another frame once 0.1 s has passed since the last one (:class:`_Inline`), so the output is deterministic and
@@ -53,7 +52,6 @@ from fixego_ros.geometry.rotation import Pose
 from fixego_ros.interrupt import sigint_ignored
 
 CHILD_NICENESS = 5     # the smoother yields the CPU to the per-frame work (its results may come late, poses not)
-KEYFRAME_WAIT_S = 0.3  # a keyframe that waited this long in the child is skipped when a later frame waits (left_out)
 
 
 class Message(Enum):
@@ -118,43 +116,27 @@ class _Server:
         return None
 
 
-def left_out(kind: Message, payload: Any, waited_s: float, later_frame: bool, started: bool = True) -> bool:
-    """Whether the child skips this message: a frame, when a later frame is already waiting, if it is not a keyframe
-    or has waited over ``KEYFRAME_WAIT_S`` (the child is behind) in a graph that has ``started`` (its first frame is
-    the trajectory's origin, so it is never skipped; the child's start-up alone takes longer than the wait).
-
-    Taking every keyframe, a child at ~0.15-0.2 s per update on the loaded demo machine fell behind for seconds
-    (keyframes come at ~6/s), the live poses were then solved instead of carried, and the graph's newest motion was
-    old. Three recorded demo runs fed through the child's loop in virtual time (docs/results.md "Stop 46"), refined
-    path mean / terminal cm at 0.13 s per update: 7.6 / 35.0, 8.5 / 26.9, 12.0 / 96.4 taking every keyframe,
-    6.4 / 13.9, 4.4 / 17.8, 5.4 / 9.2 with this rule; at 0.2 s: 6.0 / 14.3, 9.4 / 44.7, 21.8 / 100.7 against
-    5.2 / 11.9, 4.3 / 15.2, 7.8 / 28.0. A frame whose keyframe was skipped steps from the newest frame in the graph
-    over the tracks both saw (:meth:`.Smoother.update`)."""
-    return kind is Message.FRAME and later_frame and (not payload.keyframe or (started and waited_s > KEYFRAME_WAIT_S))
-
-
 def serve(conn: Any, rig: Rig, config: EstimatorConfig) -> None:
-    """The child's loop: drain what the parent sent, then handle the oldest message unless it is :func:`left_out`.
-    Ends on STOP or when the parent's end closes (the parent exited). Ctrl-C is the parent's (the terminal sends it
-    to the whole process group; the parent stops us)."""
+    """The child's loop: drain what the parent sent, then handle the oldest message; a non-keyframe is skipped
+    when a later frame is already waiting. Ends on STOP or when the parent's end closes (the parent exited). Ctrl-C
+    is the parent's (the terminal sends it to the whole process group; the parent stops us)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     with contextlib.suppress(OSError):      # the camera and flow nodes' frames come first on a busy machine
         os.nice(CHILD_NICENESS)
     server = _Server(rig, config)
-    queue: deque[tuple[Message, Any, float]] = deque()        # (kind, payload, when it arrived: monotonic s)
+    queue: deque[tuple[Message, Any]] = deque()
     while True:
         try:
             while conn.poll(0.0 if queue else 1.0):
-                queue.append((*conn.recv(), time.monotonic()))
+                queue.append(conn.recv())
         except (EOFError, OSError):
             return
         if not queue:
             continue
-        kind, payload, arrived = queue.popleft()
+        kind, payload = queue.popleft()
         if kind is Message.STOP:
             return
-        if left_out(kind, payload, time.monotonic() - arrived, any(k is Message.FRAME for k, _, _ in queue),
-                    server.smoother.last_stamp is not None):
+        if kind is Message.FRAME and not payload.keyframe and any(k is Message.FRAME for k, _ in queue):
             server.skip()
             continue
         reply = server.handle(kind, payload)
@@ -237,8 +219,8 @@ class LiveSmoother:
 
     def __init__(self, rig: Rig, config: EstimatorConfig | None = None, inline: bool = False) -> None:
         """``inline``: the smoother in this process on every keyframe and one other frame per ``_Inline.MIN_GAP_S``,
-        deterministic (replay); else in a child process on the keyframes and the newest other frame whenever it is
-        idle (the node; :func:`left_out`)."""
+        deterministic (replay); else in a child process on every keyframe and the newest other frame whenever it is
+        idle (the node)."""
         self.rig = rig
         self._config = config or EstimatorConfig()
         self.solver = TwoFrameSolver(self._config.solver)
