@@ -256,6 +256,21 @@ def test_estimator_node_rejects_future_stamps_counts_disorder_and_resets_on_a_cl
         ex.shutdown()
 
 
+def test_message_info_gives_the_transport_and_the_queue_wait():
+    """From the middleware's source and receive stamps (system clock, ns): the transport alone and the wait in this
+    process since the arrival; None where the middleware leaves a stamp out (0 or missing)."""
+    import time
+
+    from fixego_ros.nodes.common import queue_wait_s, transport_s
+    info = {'source_timestamp': 5_000_000_000, 'received_timestamp': 5_002_500_000}
+    assert transport_s(info) == pytest.approx(2.5e-3)
+    assert transport_s({'source_timestamp': 0, 'received_timestamp': 5}) is None and transport_s(None) is None
+    before = time.time_ns()
+    waited = queue_wait_s({'received_timestamp': before - 50_000_000})
+    assert 0.05 <= waited <= 0.05 + (time.time_ns() - before) * 1e-9
+    assert queue_wait_s({'received_timestamp': 0}) is None and queue_wait_s({}) is None
+
+
 def test_estimator_node_skips_only_what_waited_in_its_own_queue(ros_context, clean_sequence, tmp_path):
     """A non-keyframe that waited in the node's queue longer than max_lag_s is skipped (the node is behind its
     input); one that arrived late from upstream but found the node idle is posed (a pose costs ~1 ms: skipping it
@@ -406,7 +421,8 @@ def test_demo_runs_every_node_as_a_process_and_writes_a_report(tmp_path):
     assert report['latency_image_to_pose_ms']['p50'] > 0
     # the latency breakdown: every stage the recorder sees, and the nodes' own, measured (no timing asserted)
     stages = report['latency_stages_ms']
-    for name in ('joint_publish', 'joint_state', 'fixation', 'flow_image_in', 'flow_ready', 'flow_compute',
+    for name in ('joint_publish', 'joint_state', 'fixation', 'flow_image_in', 'flow_image_dds', 'flow_image_queue',
+                 'flow_ready', 'flow_compute',
                  'observation', 'estimator_queue', 'estimator_solve', 'pose'):
         assert stages[name]['p50'] >= 0 and stages[name]['p95'] >= stages[name]['p50'], (name, stages[name])
     # the camera nodes' joint states against the simulator's true angles at the same image stamps

@@ -437,6 +437,14 @@ def queue_wait_s(info: Mapping[str, int] | None) -> float | None:
     return max(0.0, (time.time_ns() - received) * 1e-9) if received > 0 else None
 
 
+def transport_s(info: Mapping[str, int] | None) -> float | None:
+    """Seconds from a message's publication (its source timestamp) to its arrival in this process (receive
+    timestamp), both the middleware's on the system clock: the transport alone, e.g. of an image over DDS; None
+    when either is missing."""
+    sent, received = ((info or {}).get(k) or 0 for k in ('source_timestamp', 'received_timestamp'))
+    return max(0.0, (received - sent) * 1e-9) if sent > 0 and received > 0 else None
+
+
 def percentile_values(name: str, values: Iterable[float]) -> dict[str, str]:
     """``name_p50`` / ``name_p95`` (2 decimals) of recent timings, the keys ``fixego_ros.demo.report`` reads back."""
     a = np.asarray(list(values), dtype=float)

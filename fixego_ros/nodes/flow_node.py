@@ -25,6 +25,7 @@ import dataclasses
 import sys
 import time
 from collections import deque
+from collections.abc import Mapping
 
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PointStamped
@@ -45,10 +46,12 @@ from fixego_ros.nodes.common import (
     in_namespace,
     percentile_values,
     publish_diagnostics,
+    queue_wait_s,
     run_node,
     set_timer_period,
     stamp_to_sec,
     table_to_cloud,
+    transport_s,
 )
 from fixego_ros.pipeline.frontend import CameraSample, StereoFrontEnd
 from fixego_ros.pipeline.messages import fixation_from_msg, gray_for_camera, joint_sigma, pan_tilt
@@ -84,7 +87,8 @@ class FlowNode(Node):
         self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', RELIABLE_QOS)
         for side in SIDES:
             ns = side
-            self.create_subscription(Image, f'{ns}/image_raw', lambda m, s=side: self._on_image(s, m), SENSOR_QOS)
+            self.create_subscription(Image, f'{ns}/image_raw', lambda m, info, s=side: self._on_image(s, m, info),
+                                     SENSOR_QOS)     # with the message info: the image's transport and queue times
             self.create_subscription(JointState, f'{ns}/joint_states', lambda m, s=side: self._on_joints(s, m),
                                      RELIABLE_QOS)
             self.create_subscription(PointStamped, f'{ns}/fixation', lambda m, s=side: self._on_fixation(s, m),
@@ -97,6 +101,8 @@ class FlowNode(Node):
         # latency stages (ms from the image stamp): an image received here (DDS), a stereo frame complete (its
         # images, joint states and fixations in: the synchroniser's wait), as in the README's latency breakdown
         self.image_in_ms: deque[float] = deque(maxlen=300)
+        self.image_dds_ms: deque[float] = deque(maxlen=300)      # published -> received (the middleware's stamps)
+        self.image_queue_ms: deque[float] = deque(maxlen=300)    # received -> this callback
         self.ready_ms: deque[float] = deque(maxlen=300)
         self.last_problem = ''
         self.params.start(self._apply_params, LIVE_FLOW + LIVE_KEYFRAMES + LIVE_SYNC + ('diagnostics_period_s',))
@@ -109,8 +115,14 @@ class FlowNode(Node):
     def _on_rig(self, rig) -> None:
         self.rig = self.frontend.rig = rig
 
-    def _on_image(self, side: str, msg: Image) -> None:
+    def _on_image(self, side: str, msg: Image, info: Mapping[str, int] | None = None) -> None:
         self.stats['images'] += 1
+        transport = transport_s(info)
+        if transport is not None:
+            self.image_dds_ms.append(1e3 * transport)
+        waited = queue_wait_s(info)
+        if waited is not None:
+            self.image_queue_ms.append(1e3 * waited)
         if not self.intrinsics.ready():
             self.stats['images_before_intrinsics'] = self.stats.get('images_before_intrinsics', 0) + 1
             self.once.warn('intrinsics', 'images ignored until both cameras have intrinsics (rig file or '
@@ -212,6 +224,7 @@ class FlowNode(Node):
                        for k in ('lk_predicted', 'lk_zero', 'lk_fixation', 'lk_stereo', 'lk_retry', 'ransac',
                                  'epipolar')})
         for name, q in (('process_ms', self.process_ms), ('image_in_ms', self.image_in_ms),
+                        ('image_dds_ms', self.image_dds_ms), ('image_queue_ms', self.image_queue_ms),
                         ('ready_ms', self.ready_ms)):
             values.update(percentile_values(name, q or (0.0,)))
         level, message = OK, 'tracking flow'
