@@ -360,24 +360,26 @@ class LiveSmoother:
             # before, the two-frame solve (~2 ms warm; the cold starts cost ~16 ms, so a failed warm solve tries the
             # closed-form starts only, and a frame that still fails is predicted; the child solves it fully)
             pairs = step_pairs(self.rig, ref.fixation, obs, self._config.fixation_weight)
-            carried = self._carried(ref, pairs, obs.stamp)
-            # the prediction only where it is used: a carried frame does without (0.3 ms of its ~1.5)
-            predicted = None if carried else self._predict(obs.stamp)
-            tf = carried or self.solver.solve(pairs, initial=self._warm_start(ref, predicted, dt),
-                                              fallback=Fallback.CLOSED_FORM)
-            if tf is carried:
+            tf = self._carried(ref, pairs, obs.stamp)
+            if tf is not None:
                 step = tf.pose
                 pose = (ref.pose @ step).normalized()
-            elif tf.status.usable and tf.pose.is_finite() and tf.cheirality >= 0.5:
-                step = with_length(tf.pose, self._speed() * dt)
-                pose = (ref.pose @ step).normalized()
-                if tf.status is not StepStatus.STATIONARY:
-                    solved = tf.pose
-                    self._heading = ref.pose.R @ tf.pose.t / np.linalg.norm(tf.pose.t)
             else:
-                pose = predicted if predicted is not None else self._predict(obs.stamp)
-                step = ref.pose.inverse() @ pose
-                messages.append(f'two-frame step not usable ({tf.status.value}): pose predicted at constant twist')
+                # the prediction only here: a carried frame does without it (0.3 ms of its ~1.5)
+                predicted = self._predict(obs.stamp)
+                tf = self.solver.solve(pairs, initial=self._warm_start(ref, predicted, dt),
+                                       fallback=Fallback.CLOSED_FORM)
+                if tf.status.usable and tf.pose.is_finite() and tf.cheirality >= 0.5:
+                    step = with_length(tf.pose, self._speed() * dt)
+                    pose = (ref.pose @ step).normalized()
+                    if tf.status is not StepStatus.STATIONARY:
+                        solved = tf.pose
+                        self._heading = ref.pose.R @ tf.pose.t / np.linalg.norm(tf.pose.t)
+                else:
+                    pose = predicted
+                    step = ref.pose.inverse() @ pose
+                    messages.append(f'two-frame step not usable ({tf.status.value}): pose predicted at constant '
+                                    'twist')
             step_raw = with_length(tf.pose if tf.pose.is_finite() else step,
                                     self._config.smoother.nominal_speed * dt)
         raw_base = ref.raw if ref is not None else (self._recent[-1].raw if self._recent else Pose.identity())

@@ -248,9 +248,10 @@ class EstimatorNode(Node):
         behind = lag if waited is None else waited
         if (obs.keyframe is False and behind > self.max_lag_s) or lag > self.max_keyframe_lag_s:
             self.stats['skipped_behind'] += 1
-            where = 'in the queue' if waited is not None and lag <= self.max_keyframe_lag_s else 'behind the clock'
-            self.get_logger().warning(f'{behind * 1e3:.0f} ms {where}: skipping non-keyframe observations '
-                                      '(count on /diagnostics)', throttle_duration_sec=10.0)
+            why = (f'{behind * 1e3:.0f} ms in the queue' if waited is not None and lag <= self.max_keyframe_lag_s
+                   else f'{lag * 1e3:.0f} ms behind the clock')
+            self.get_logger().warning(f'{why}: skipping non-keyframe observations (count on /diagnostics)',
+                                      throttle_duration_sec=10.0)
             return
         last = self.estimator.last_stamp
         t = time.perf_counter()
