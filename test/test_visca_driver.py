@@ -6,13 +6,14 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 import threading
 import time
 
 import pytest
 
 from fixego_ros.visca import protocol as vp
-from fixego_ros.visca.driver import ViscaCamera
+from fixego_ros.visca.driver import SWITCH_INTERVAL_S, ViscaCamera, prompt_serial_threads
 from fixego_ros.visca.emulator import ViscaEmulator
 from fixego_ros.visca.profiles import PROFILES, CameraProfile
 
@@ -241,3 +242,21 @@ def test_an_event_the_emulator_reaches_late_happens_when_it_is_handled():
         assert got and t_post <= got[0] <= time.monotonic()
     finally:
         emu.stop()
+
+
+def test_serial_threads_take_the_gil_promptly():
+    """Starting the emulator (or a servo loop) shortens the interpreter's thread switch interval, so a thread whose
+    serial bytes have arrived is not kept waiting ~5 ms by another thread of the process; a shorter one set by the
+    application is kept."""
+    old = sys.getswitchinterval()
+    try:
+        sys.setswitchinterval(0.005)
+        emu = ViscaEmulator('evi_d30')
+        emu.start()
+        emu.stop()
+        assert sys.getswitchinterval() <= SWITCH_INTERVAL_S * 1.001
+        sys.setswitchinterval(1e-4)
+        prompt_serial_threads()
+        assert sys.getswitchinterval() == pytest.approx(1e-4, rel=1e-3)
+    finally:
+        sys.setswitchinterval(old)

@@ -21,7 +21,7 @@ import numpy as np
 from fixego_ros.geometry.rig import CameraModel, PanTiltCalibration, pan_tilt_for_direction, pan_tilt_rotation
 from fixego_ros.tracking.joint_prediction import JointHistory, JointPredictor, PredictionParams
 from fixego_ros.visca import protocol as vp
-from fixego_ros.visca.driver import PositionReading, ViscaCamera
+from fixego_ros.visca.driver import PositionReading, ViscaCamera, prompt_serial_threads
 from fixego_ros.visca.profiles import CameraProfile
 
 
@@ -172,6 +172,7 @@ class ServoLoop:
     def start(self) -> None:
         if self._running:
             return
+        prompt_serial_threads()
         self._running = True
         self._t_start = time.monotonic()
         self._thread = threading.Thread(target=self._run, name='visca-servo', daemon=True)

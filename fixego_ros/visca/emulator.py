@@ -44,6 +44,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from fixego_ros.visca import protocol as vp
+from fixego_ros.visca.driver import prompt_serial_threads
 from fixego_ros.visca.profiles import CameraProfile, get_profile
 
 
@@ -166,6 +167,7 @@ class ViscaEmulator:
         self.link_path = os.path.join(self._tmpdir, 'tty')
         self._open_pty()
         self._wake_r, self._wake_w = os.pipe()
+        prompt_serial_threads()     # its byte timing is the device's: rendering in the same process must not delay it
         self._running = True
         self._thread = threading.Thread(target=self._serve, name=f'visca-emu-{self.address}', daemon=True)
         self._thread.start()
