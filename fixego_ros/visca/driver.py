@@ -161,6 +161,7 @@ class ViscaCamera:
         self.state = 'closed'
         self.last_error = ''
         self.last_write = 0.0
+        self.last_arrival = 0.0
         self.stats: dict[str, int] = {k: 0 for k in (
             'commands', 'inquiries', 'timeouts', 'reply_errors', 'protocol_errors', 'garbage_bytes',
             'disconnects', 'reconnects', 'open_failures', 'unsolicited', 'network_changes', 'lost_completions')}
@@ -247,6 +248,7 @@ class ViscaCamera:
         self._ignored = []
         try:
             self.last_write = time.monotonic()      # the packet's first byte cannot leave before this
+            self.last_arrival = self.last_write + len(pkt) * self.byte_time    # nor its last reach the camera
             self._ser.write(pkt)
             self._ser.flush()
         except _SERIAL_ERRORS as e:
@@ -622,7 +624,7 @@ class ViscaCamera:
                                       f'{tilt} units ({pr.tilt_deg(tilt):.4g} deg) is outside {allowed}: '
                                       f'data {data.hex(" ")}')
             latest = t - 11 * self.byte_time
-            return PositionReading(pan, tilt, min(self.last_write + len(pkt) * self.byte_time, latest), latest)
+            return PositionReading(pan, tilt, min(self.last_arrival, latest), latest)
 
     def position(self, check_range: bool = True) -> tuple[int, int]:
         r = self.position_timed(check_range)
