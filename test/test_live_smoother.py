@@ -208,6 +208,34 @@ def test_with_no_answer_from_the_smoother_the_fast_poses_still_follow_the_motion
     np.testing.assert_allclose(np.linalg.norm(steps, axis=1), nominal, rtol=1e-6)
 
 
+
+def test_a_solved_step_without_translation_leaves_the_warm_start_finite(loop):
+    """A usable, non-stationary solve whose translation is zero has no direction: it must not become the heading
+    the next warm starts take (dividing by its zero length made the heading NaN, and every warm start after it NaN,
+    until the next solved step; seen as a RuntimeWarning in make bench)."""
+    import warnings
+
+    from fixego_ros.geometry.rotation import Pose
+    live = LiveSmoother(RIG, EstimatorConfig(solver=SolverConfig(sigma=1.0 / F)), inline=True)
+    live._conn = _Silent()
+    real = live.solver.solve
+    calls = {'n': 0}
+
+    def zero_on_the_fourth(pairs, **kwargs):
+        result = real(pairs, **kwargs)
+        calls['n'] += 1
+        if calls['n'] == 4:
+            result = dataclasses.replace(result, pose=Pose(result.pose.R, np.zeros(3)), status=StepStatus.WEAK)
+        return result
+
+    live.solver.solve = zero_on_the_fourth
+    with warnings.catch_warnings():
+        warnings.simplefilter('error', RuntimeWarning)
+        results = [live.update(o) for o in loop.observations[:12]]
+    assert calls['n'] >= 5
+    assert live._heading is not None and np.all(np.isfinite(live._heading))
+    assert all(r.pose.is_finite() for r in results)
+
 def test_once_the_smoother_answers_a_frame_is_its_motion_carried_to_the_stamp_with_the_rays_rotation():
     """The live pose's cheap path (~0.3 ms, no solve): the translation is the smoother's newest motion (constant
     twist over its last ``SPEED_WINDOW_S``) carried to the frame's stamp, the rotation the Kabsch fit of the

@@ -372,9 +372,10 @@ class LiveSmoother:
                 if tf.status.usable and tf.pose.is_finite() and tf.cheirality >= 0.5:
                     step = with_length(tf.pose, self._speed() * dt)
                     pose = (ref.pose @ step).normalized()
-                    if tf.status is not StepStatus.STATIONARY:
+                    length = float(np.linalg.norm(tf.pose.t))
+                    if tf.status is not StepStatus.STATIONARY and length > 0.0:     # a direction to start from
                         solved = tf.pose
-                        self._heading = ref.pose.R @ tf.pose.t / np.linalg.norm(tf.pose.t)
+                        self._heading = ref.pose.R @ tf.pose.t / length
                 else:
                     pose = predicted
                     step = ref.pose.inverse() @ pose
