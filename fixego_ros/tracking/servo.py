@@ -127,6 +127,13 @@ class FixationServo:
         return Target(pan_u, tilt_u, pr.pan_code_for(dp), pr.tilt_code_for(dt))
 
 
+def _beyond_narrowest(windows: deque[float], window: float) -> float:
+    """Record a timing window (s) and return how much wider it is than the narrowest recent one: the narrowest is
+    the camera's own delay, the rest how late the host (or a busy camera) was, i.e. how uncertain the time is."""
+    windows.append(window)
+    return max(0.0, window - min(windows))
+
+
 class ServoLoop:
     """Owns the serial line of one camera on a thread: timed PosInq readings + rate-limited targets.
 
@@ -253,15 +260,14 @@ class ServoLoop:
         within that part (:meth:`_date_by_motion`). Before, such readings were left out unless none had come for
         50 ms and then dated in the middle: on a demo (emulator's log against the servo's dates) the forced ones were
         off by up to 0.46 deg (5.8 ms at 80 deg/s), and every prediction from them by as much."""
-        self._windows.append(r.window_s)
-        excess = max(0.0, r.window_s - min(self._windows))
-        offset = self.clock() - time.monotonic()
+        excess = _beyond_narrowest(self._windows, r.window_s)
         pr = self.cam.profile
         pan, tilt = pr.pan_rad(r.pan), pr.tilt_rad(r.tilt)
-        t = r.latest - 0.5 * excess + offset
+        lo = self._to_clock(r.latest - excess)
+        t = lo + 0.5 * excess
         if excess > self.params.reading_window_s:
             self.stats['late_readings'] += 1
-            t = self._date_by_motion(r.latest - excess + offset, r.latest + offset, pan, tilt)
+            t = self._date_by_motion(lo, lo + excess, pan, tilt)
         self.history.add(t, pan, tilt)
 
     def _date_by_motion(self, lo: float, hi: float, pan: float, tilt: float) -> float:
@@ -293,9 +299,8 @@ class ServoLoop:
         against the emulator's own log); so: rms 3.9 -> 2.6 ms, at most 13-16 ms (at 50 deg/s, 1 ms is 0.05 deg)."""
         pr = self.cam.profile
         ack = time.monotonic() - 3 * self.cam.byte_time
-        window = max(0.0, ack - self.cam.last_arrival)
-        self._ack_windows.append(window)
-        t = self._to_clock(ack - 0.5 * (window - min(self._ack_windows)))
+        excess = _beyond_narrowest(self._ack_windows, max(0.0, ack - self.cam.last_arrival))
+        t = self._to_clock(ack - 0.5 * excess)
         self.predictor.add_command(t, pr.pan_rad(pan_u), pr.tilt_rad(tilt_u),
                                    math.radians(pr.pan_speed_deg_s(pan_code)),
                                    math.radians(pr.tilt_speed_deg_s(tilt_code)))

@@ -101,11 +101,10 @@ def prompt_serial_threads(interval_s: float = SWITCH_INTERVAL_S) -> None:
     """Shorten the interpreter's thread switch interval (process-wide, never lengthened) so that a thread reading
     the serial line takes its bytes when they arrive. At Python's default, 5 ms, a thread whose reply is in waits
     up to that long while another thread of the process holds the GIL (the node's image callbacks, the simulator's
-    rendering): the reply reads late, its time is uncertain by the wait, and the servo leaves it out of the joint
-    history. Measured with a CPU-bound thread beside the servo loop (``python -m fixego_ros.bench.joints`` plus
-    one such thread): late readings 96 of 355 -> 38 of 377, prediction horizon p95 61 -> 51 ms, error max
-    0.174 -> 0.121 deg. Called by whoever starts such a thread (:class:`~fixego_ros.tracking.servo.ServoLoop`,
-    the emulator)."""
+    rendering): the reply reads late and its time is uncertain by the wait. Measured with a CPU-bound thread beside
+    the servo loop (``python -m fixego_ros.bench.joints`` plus one such thread): late readings 96 of 355 -> 38 of
+    377, prediction horizon p95 61 -> 51 ms, error max 0.174 -> 0.121 deg. Called by whoever starts such a thread
+    (:class:`~fixego_ros.tracking.servo.ServoLoop`, the emulator)."""
     if sys.getswitchinterval() > interval_s:
         sys.setswitchinterval(interval_s)
 
