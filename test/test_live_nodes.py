@@ -430,6 +430,11 @@ def test_demo_runs_every_node_as_a_process_and_writes_a_report(tmp_path):
         je = report['joint_error_deg'][side]
         assert je['frames'] >= 10 and 0.0 <= je['p50_deg'] <= je['p95_deg'] <= je['max_deg'] < 5.0, (side, je)
     assert 'joint states against the true angles' in (out / 'report.txt').read_text()
+    # the demo waits (bounded) for the smoother process to finish the last frames, and says how long that took
+    assert report['smoother_done_after_last_pose_s'] >= 0.0
+    est_diag = report['diagnostics']['fixego estimator_node']
+    assert est_diag['smoother_behind_s'] == '0.00' and float(est_diag['smoother_behind_s_p95']) >= 0.0
+    assert 'after the last pose' in (out / 'report.txt').read_text()
     # where the cores went: every node process (and the estimator's smoother child) measured, and the sum
     cpu = report['cpu_percent_of_one_core']
     nodes = ('sim_rig_node', 'right_camera_node', 'left_camera_node', 'flow_node', 'estimator_node')

@@ -99,6 +99,21 @@ def test_a_busy_smoother_skips_non_keyframes_but_never_a_keyframe(loop, live):
     assert set(revised) == {o.stamp for o in observations}
 
 
+def test_behind_says_how_far_the_smoothers_newest_result_lags_the_newest_frame(loop, live):
+    """``behind_s`` (on /diagnostics): 0 while the child answers every frame; once it stops answering, the stamps
+    sent since its last result."""
+    assert live.behind_s == 0.0
+    for obs in loop.observations[:2]:
+        live.update(obs)
+        live.drain(WAIT_S)
+    assert live.behind_s == 0.0
+    live._process.kill()
+    live._process.join(WAIT_S)
+    for obs in loop.observations[2:5]:
+        live.update(obs)
+    assert live.behind_s == pytest.approx(loop.stamps[4] - loop.stamps[1])
+
+
 def test_bad_aids_are_refused_here_and_a_dead_child_leaves_poses_flowing(loop, live):
     with pytest.raises(ValueError):
         live.add_velocity(1.0, np.array([np.nan, 0.0, 0.0]), np.eye(3))

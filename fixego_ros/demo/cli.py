@@ -30,6 +30,7 @@ from fixego_ros.tracking.joint_prediction import MODES as JOINT_MODES
 
 PROG = 'fixego demo'
 READY_TIMEOUT_MAX = 3600.0     # s
+SMOOTHER_CATCH_UP_S = 15.0     # s: after the last pose, the smoother's last results (its lag, and a diagnostics period)
 SCALE_AT_REST_TIMEOUT_S = 15.0  # s: the request may wait out the camera node's vergence_min_interval_s, then ~3 s
 
 
@@ -197,8 +198,14 @@ def _run(args: argparse.Namespace, out: Path, rig_path: Path, launcher) -> int:
             if time.monotonic() - last_print > 2.0:
                 last_print = time.monotonic()
                 _say(args, _progress(node, time.monotonic() - t_run))
-        # let the last frames through the pipeline (bounded)
+        # let the last frames through the pipeline, and the smoother process finish them (bounded: on a loaded
+        # machine it can be seconds behind, and the end of the path would be fast poses only)
         wait_for(lambda: node.poses and node.truth and node.poses[-1][0] >= node.truth[-1][0], 5.0, spin=spin)
+        t_last = time.monotonic()
+        est = 'fixego estimator_node'
+        if wait_for(lambda: node.status_times.get(est, -math.inf) > t_last
+                    and node.statuses[est].get('smoother_behind_s') == '0.00', SMOOTHER_CATCH_UP_S, spin=spin):
+            node.smoother_catch_up_s = time.monotonic() - t_last
         spin(0.3)
         # the estimator publishes the paths at most once per period and once more when the poses stop: wait for
         # the paths that hold the last pose (bounded)

@@ -163,6 +163,7 @@ def write_report(out: Path, rec, t_start: float, run_args: dict[str, Any],
         'cpu_percent_of_one_core': {**(cpu or {}), 'cores': os.cpu_count()},
         'paper_table1_cm': PAPER_TABLE1,
         'diagnostics': dict(rec.statuses),      # each node's last /diagnostics status
+        'smoother_done_after_last_pose_s': getattr(rec, 'smoother_catch_up_s', None),
         'vergence': vergence_summary(rec.statuses, list(vergence_stamps or []), t_start),
         'joint_error_deg': {side: joint_errors({t: q for t, q in rec.joints[side].items() if t >= t_start},
                                                rec.true_joints[side])
@@ -218,9 +219,14 @@ def write_report(out: Path, rec, t_start: float, run_args: dict[str, Any],
                  f'{v.get("max_interrupted_s", "?")} s' + (f'; last failure: {v["last_failure"]}'
                                                           if v.get('last_failure') else ''))
     est = report['diagnostics'].get('fixego estimator_node', {})
-    if 'smoother_restarts' in est:      # numerical health of the back end (its last /diagnostics status)
+    if 'smoother_restarts' in est:      # numerical health of the back end (its last /diagnostics status), its lag
+        done = report['smoother_done_after_last_pose_s']
         lines.append(f'  smoother: {est["smoother_restarts"]} restarts, {est.get("smoother_repairs", "?")} repairs, '
-                     f'{est.get("smoother_dropped_landmarks", "?")} landmarks dropped behind a camera')
+                     f'{est.get("smoother_dropped_landmarks", "?")} landmarks dropped behind a camera; its newest '
+                     f'result behind the newest frame p50 {est.get("smoother_behind_s_p50", "?")} / p95 '
+                     f'{est.get("smoother_behind_s_p95", "?")} s (last 300 frames); '
+                     + (f'done {done:.1f} s after the last pose' if done is not None
+                        else 'not done within the wait after the last pose (the path ends in fast poses)'))
     je = [f'{side} p50 {e["p50_deg"]:.3f}, p95 {e["p95_deg"]:.3f}, max {e["max_deg"]:.3f}'
           + (f', p95 {e["moving_p95_deg"]:.3f} while turning' if 'moving_p95_deg' in e else '')
           for side, e in report['joint_error_deg'].items() if e]

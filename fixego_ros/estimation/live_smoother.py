@@ -271,6 +271,14 @@ class LiveSmoother:
         return self._state.frames_skipped
 
     @property
+    def behind_s(self) -> float:
+        """How far the smoother's newest result lags the newest frame (s of stamps; 0 before either): the frames
+        in between have fast poses only, and the path there waits for its revisions."""
+        if self._smoothed_stamp is None or not self._recent:
+            return 0.0
+        return max(0.0, self._recent[-1].stamp - self._smoothed_stamp)
+
+    @property
     def restarts(self) -> int:
         """The smoother's numerical failures (each starts a new graph at the last estimate)."""
         return self._state.restarts
@@ -412,6 +420,7 @@ class LiveSmoother:
         self._index = -1
         self._sent_frames = 0
         self._answered = 0
+        self._smoothed_stamp: float | None = None      # the newest frame the smoother answered
 
     def _take_revised(self) -> tuple[tuple[float, Pose], ...]:
         """The revisions not handed out yet, oldest first; from now on the caller has them."""
@@ -439,6 +448,7 @@ class LiveSmoother:
         self.smoothed_results += 1
         if not result.placed:
             return 1
+        self._smoothed_stamp = result.stamp
         updates = {round(s, 6): p for s, p in result.revised}
         updates[round(result.stamp, 6)] = result.pose
         moved: set[int] = set()

@@ -12,6 +12,7 @@ like the pipeline's nodes.
 from __future__ import annotations
 
 import struct
+import time
 from collections import Counter
 
 from diagnostic_msgs.msg import DiagnosticArray
@@ -53,6 +54,8 @@ class Recorder(Node):
         self.true_joints: dict[str, dict[float, tuple[float, float]]] = {s: {} for s in SIDES}
         self.fixations: Counter[str] = Counter()
         self.statuses: dict[str, dict[str, str]] = {}
+        self.status_times: dict[str, float] = {}     # when each status last came (monotonic)
+        self.smoother_catch_up_s: float | None = None   # how long the smoother took to finish after the last pose
         # the last path / path_raw received (bytes: deserialised only when asked for, then cached with its bytes)
         self._paths: dict[str, bytes | None] = dict.fromkeys(PATHS)
         self._parsed: dict[str, tuple[bytes, Path]] = {}
@@ -111,6 +114,7 @@ class Recorder(Node):
     def _on_diag(self, msg: DiagnosticArray) -> None:
         for st in msg.status:
             self.statuses[st.name] = {'message': st.message, **{kv.key: kv.value for kv in st.values}}
+            self.status_times[st.name] = time.monotonic()
 
     def _last_path(self, name: str) -> Path | None:
         data = self._paths[name]

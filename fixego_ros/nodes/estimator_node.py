@@ -178,6 +178,7 @@ class EstimatorNode(Node):
         self._backward: tuple[float, int] | None = None   # (monotonic start, count) of a run of older stamps
         self.solve_ms: deque[float] = deque(maxlen=300)
         self.queue_ms: deque[float] = deque(maxlen=300)     # receive -> callback, per observation
+        self.behind_s: deque[float] = deque(maxlen=300)     # the smoother process's lag behind each frame
         self.last: FrameResult | None = None
         self.last_error = ''
         self.params.start(self._apply_params, LIVE_CONFIG + LIVE_NODE)
@@ -270,6 +271,8 @@ class EstimatorNode(Node):
             self.solve_ms.append((time.perf_counter() - t) * 1e3)
         self._backward = None
         self.once.clear('order', 'observations in order again')
+        if isinstance(self.estimator, LiveSmoother):
+            self.behind_s.append(self.estimator.behind_s)
         self.status_counts[res.status.value] += 1
         if not res.status.usable and res.status is not StepStatus.INIT:
             self.get_logger().warning(f'step not solved ({res.status.value}): {res.message} (further ones are '
@@ -524,6 +527,8 @@ class EstimatorNode(Node):
         else:
             values.update({'smoother_results': self.estimator.smoothed_results,
                            'smoother_skipped_frames': self.estimator.frames_skipped,
+                           'smoother_behind_s': f'{self.estimator.behind_s:.2f}',
+                           **percentile_values('smoother_behind_s', self.behind_s or (0.0,)),
                            'smoother_restarts': self.estimator.restarts,
                            'smoother_repairs': self.estimator.repairs,
                            'smoother_dropped_landmarks': self.estimator.dropped})
