@@ -36,6 +36,10 @@ def run(joint_mode: str | None = None) -> dict[str, float]:
            'frames_rendered': frames['rendered'], 'frames_without_pose': frames['dropped']}
     for stage, v in rep.get('latency_stages_ms', {}).items():
         res.update({f'stage_{stage}_{q}_ms': v[q] for q in ('p50', 'p95') if q in v})
+    est = rep.get('diagnostics', {}).get('fixego estimator_node', {})
+    for q in ('p50', 'p95'):         # the smoother process's lag behind the newest frame (s)
+        if f'smoother_behind_s_{q}' in est:
+            res[f'smoother_behind_{q}_s'] = float(est[f'smoother_behind_s_{q}'])
     for label in ('raw', 'refined'):
         pe = rep.get(label, {}).get('position_error_m')
         if pe:
