@@ -8,6 +8,7 @@ import pytest
 
 from fixego_ros.geometry.rig import SIDES, default_rig_path, load_rig
 from fixego_ros.geometry.rotation import exp_so3, rot_y
+from fixego_ros.pipeline import frontend
 from fixego_ros.pipeline.frontend import (
     LK_PREDICTED,
     OK,
@@ -198,6 +199,31 @@ def test_ransac_removes_injected_outliers_and_keeps_inliers(rig, side):
     a0, b0, _ = _pairs(rig, side, 100, rng, R, np.zeros(3) - (R - np.eye(3)) @ rig.center(side), 0.2)
     assert epipolar_outliers(a0, b0, C, f, 1.0) is None
     assert epipolar_outliers(a[:7], b[:7], C, f, 1.0) is None                 # too few pairs
+
+
+def test_ransac_gets_the_same_numbers_when_the_rays_differ_in_their_last_bits(rig, monkeypatch):
+    """The rays come out of BLAS products, whose last bits differ between CPU kernels; a pair at RANSAC's bound then
+    flips between inlier and outlier, and the trajectories part on another machine. What OpenCV is given is rounded
+    (``frontend.RANSAC_INPUT_STEP``): rays one ulp apart reach it as the same numbers, so it decides the same."""
+    seen = []
+    real = cv2.findEssentialMat
+
+    def spy(x1, x2, *args, **kwargs):
+        seen.append((x1.copy(), x2.copy()))
+        return real(x1, x2, *args, **kwargs)
+
+    monkeypatch.setattr(frontend.cv2, 'findEssentialMat', spy)
+    rng = np.random.default_rng(11)
+    f = rig.camera('right').fx
+    a, b, C = _pairs(rig, 'right', 80, rng, exp_so3(np.array([0.0, 0.02, 0.0])), np.array([0.1, 0.0, 0.05]), 0.2)
+    b = b + rng.normal(0, 0.5 / f, b.shape)
+    b /= np.linalg.norm(b, axis=1, keepdims=True)
+    up, down = np.nextafter(a, 2.0), np.nextafter(b, -2.0)        # one ulp each way, as another kernel rounds
+    assert np.any(up != a) and np.any(down != b)
+    outs = [epipolar_outliers(x, y, C, f, 1.0) for x, y in ((a, b), (up, b), (a, down))]
+    assert all(o is not None and np.array_equal(o, outs[0]) for o in outs)
+    for x1, x2 in seen[1:]:
+        assert np.array_equal(x1, seen[0][0]) and np.array_equal(x2, seen[0][1])
 
 
 def test_front_end_kills_epipolar_outliers(rig):

@@ -135,6 +135,18 @@ def parallax_px(a: np.ndarray, b: np.ndarray, focal_px: float) -> float:
     return float(np.median(np.arccos(cosang)) * focal_px)
 
 
+RANSAC_INPUT_STEP = 1e-7   # normalised coordinates (~2e-4 px here): what OpenCV's RANSAC is given is rounded to this
+
+
+def _on_grid(x: np.ndarray) -> np.ndarray:
+    """``x`` rounded to :data:`RANSAC_INPUT_STEP`. The rays come out of BLAS products whose last bits differ between
+    CPU kernels, and a pair whose residual sits at RANSAC's bound is an inlier under one kernel and an outlier under
+    the other: its track dies on one machine only, and the trajectories part (recorded demo run 1: first difference
+    at 7.7 s, 1.04 cm RMS between OpenBLAS Prescott and the default kernel; docs/results.md "Stop 48"). Rounded, both
+    give OpenCV the same numbers (unless a value straddles a step: ~1e-9 per value)."""
+    return np.round(x / RANSAC_INPUT_STEP) * RANSAC_INPUT_STEP
+
+
 def epipolar_outliers(a: np.ndarray, b: np.ndarray, cam_to_rig: np.ndarray, focal_px: float,
                       threshold_px: float, min_parallax_px: float = 0.5) -> np.ndarray | None:
     """Outliers (N,) bool of one camera's ray pairs ``a`` (keyframe) -> ``b`` (now), both rig frame, under
@@ -148,8 +160,8 @@ def epipolar_outliers(a: np.ndarray, b: np.ndarray, cam_to_rig: np.ndarray, foca
     front = (ac[:, 2] > 0.05) & (bc[:, 2] > 0.05)
     if front.sum() < 8:
         return None
-    x1 = ac[front, :2] / ac[front, 2:]
-    x2 = bc[front, :2] / bc[front, 2:]
+    x1 = _on_grid(ac[front, :2] / ac[front, 2:])
+    x2 = _on_grid(bc[front, :2] / bc[front, 2:])
     E, mask = cv2.findEssentialMat(x1, x2, focal=1.0, pp=(0.0, 0.0), method=cv2.RANSAC, prob=0.999,
                                    threshold=float(threshold_px) / float(focal_px))
     if E is None or mask is None:
