@@ -223,7 +223,6 @@ def test_with_no_answer_from_the_smoother_the_fast_poses_still_follow_the_motion
     np.testing.assert_allclose(np.linalg.norm(steps, axis=1), nominal, rtol=1e-6)
 
 
-
 def test_a_solved_step_without_translation_leaves_the_warm_start_finite(loop):
     """A usable, non-stationary solve whose translation is zero has no direction: it must not become the heading
     the next warm starts take (dividing by its zero length made the heading NaN, and every warm start after it NaN,
@@ -250,6 +249,7 @@ def test_a_solved_step_without_translation_leaves_the_warm_start_finite(loop):
     assert calls['n'] >= 5
     assert live._heading is not None and np.all(np.isfinite(live._heading))
     assert all(r.pose.is_finite() for r in results)
+
 
 def test_once_the_smoother_answers_a_frame_is_its_motion_carried_to_the_stamp_with_the_rays_rotation():
     """The live pose's cheap path (~0.3 ms, no solve): the translation is the smoother's newest motion (constant

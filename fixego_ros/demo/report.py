@@ -163,7 +163,7 @@ def write_report(out: Path, rec, t_start: float, run_args: dict[str, Any],
         'cpu_percent_of_one_core': {**(cpu or {}), 'cores': os.cpu_count()},
         'paper_table1_cm': PAPER_TABLE1,
         'diagnostics': dict(rec.statuses),      # each node's last /diagnostics status
-        'smoother_done_after_last_pose_s': getattr(rec, 'smoother_catch_up_s', None),
+        'smoother_done_after_last_pose_s': rec.smoother_catch_up_s,
         'vergence': vergence_summary(rec.statuses, list(vergence_stamps or []), t_start),
         'joint_error_deg': {side: joint_errors({t: q for t, q in rec.joints[side].items() if t >= t_start},
                                                rec.true_joints[side])
