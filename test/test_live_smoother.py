@@ -251,27 +251,33 @@ def test_a_solved_step_without_translation_leaves_the_warm_start_finite(loop):
     assert all(r.pose.is_finite() for r in results)
 
 
-def test_once_the_smoother_answers_a_frame_is_its_motion_carried_to_the_stamp_with_the_rays_rotation():
-    """The live pose's cheap path (~0.3 ms, no solve): the translation is the smoother's newest motion (constant
-    twist over its last ``SPEED_WINDOW_S``) carried to the frame's stamp, the rotation the Kabsch fit of the
-    rays; with the smoother's newest frame over ``MAX_CARRY_S`` old (it fell behind) the frame is solved."""
+def test_once_the_smoother_answers_a_frame_is_dead_reckoned_on_its_velocity_in_the_rig_frame():
+    """The live pose's cheap path (~0.3 ms, no solve): the rotation is the Kabsch fit of the rays, the translation
+    the smoother's newest velocity in the rig's own frame over the time since the keyframe, turned by half the
+    step's rotation. On an arc that velocity points along the rig's heading whichever way the rig faces, and it is
+    carried however far the smoother lags; too few rays for a rotation leave the frame to the solve."""
     from fixego_ros.estimation.coplanarity import RayPairs
     from fixego_ros.estimation.live_smoother import _Recent
-    from fixego_ros.geometry.rotation import Pose, exp_so3
+    from fixego_ros.geometry.rotation import Pose, exp_so3, rot_y
 
     live = LiveSmoother.__new__(LiveSmoother)          # the parent's bookkeeping only: no child process
-    a = _Recent(0.0, Pose(np.eye(3), np.zeros(3)), Pose.identity(), {}, smoothed=True)
-    b = _Recent(0.2, Pose(np.eye(3), np.array([0.04, 0.0, 0.0])), Pose.identity(), {}, smoothed=True)
-    ref = _Recent(0.3, Pose(np.eye(3), np.array([0.07, 0.0, 0.0])), Pose.identity(), {}, ref=b)   # a fast pose
+    # the smoother's newest motion: 0.2 s along an arc of the rig's heading (z forward, turning about y)
+    turn = 0.1
+    a = _Recent(0.0, Pose(rot_y(1.0), np.zeros(3)), Pose.identity(), {}, smoothed=True)
+    chord = rot_y(1.0 + turn / 2) @ np.array([0.0, 0.0, 0.04])       # 0.2 m/s along the mean heading
+    b = _Recent(0.2, Pose(rot_y(1.0 + turn), chord), Pose.identity(), {}, smoothed=True)
+    ref = _Recent(0.3, Pose(rot_y(2.5), np.array([1.0, 0.0, 0.0])), Pose.identity(), {}, ref=b)   # facing elsewhere
     live._recent = deque([a, b, ref])
-    R = exp_so3(np.array([0.0, 0.01, 0.002]))
+    np.testing.assert_allclose(LiveSmoother._body_velocity(a, b), [0.0, 0.0, 0.2], atol=1e-12)
+    R = exp_so3(np.array([0.0, 0.02, 0.0]))
     rays = np.random.default_rng(0).normal(size=(30, 3)) + [0.0, 0.0, 4.0]
     pairs = RayPairs.build([(rays, rays @ R, np.zeros(3), 1.0)])        # b = R^T a: a pure rotation R
     carried = live._carried(ref, pairs, 0.4)
     assert carried.status is StepStatus.CARRIED and carried.status.usable
     np.testing.assert_allclose(carried.pose.R, R, atol=1e-9)
-    np.testing.assert_allclose(carried.pose.t, [0.01, 0.0, 0.0], atol=1e-9)   # 0.2 m/s, at 0.4 s: x = 0.08
-    assert live._carried(ref, pairs, 0.2 + LiveSmoother.MAX_CARRY_S + 0.01) is None
+    np.testing.assert_allclose(carried.pose.t, exp_so3(np.array([0.0, 0.01, 0.0])) @ [0.0, 0.0, 0.02], atol=1e-9)
+    late = live._carried(ref, pairs, 5.3)               # the smoother 5 s behind: still carried, 1 m forward
+    np.testing.assert_allclose(late.pose.t, exp_so3(np.array([0.0, 0.01, 0.0])) @ [0.0, 0.0, 1.0], atol=1e-9)
     assert live._carried(ref, RayPairs.build([(rays[:5], rays[:5] @ R, np.zeros(3), 1.0)]), 0.4) is None
 
 

@@ -3,9 +3,9 @@
 GTSAM holds the GIL for a whole solve (50-120 ms per frame on this machine), so a smoother in a thread would still
 stall the node's callbacks, and one in the callback leaves frames without a pose. :class:`LiveSmoother` runs the
 :class:`~fixego_ros.estimation.smoother.Smoother` in a child process and answers each frame itself (~0.3 ms): the
-smoother's newest motion carried to the frame's stamp, with the rotation the frame's rays give. Before the smoother
-has answered, or when it has fallen behind by over ``MAX_CARRY_S``, the two-frame coplanarity solve keyframe ->
-frame (2-11 ms), its length from the smoother's latest speed, placed on the smoother's latest estimate of the
+smoother's newest velocity in the rig's frame carried to the frame's stamp, with the rotation the frame's rays
+give. Before the smoother has answered (or with too few rays for the rotation), the two-frame coplanarity solve
+keyframe -> frame (2-11 ms), its length from the smoother's speed (nominal before it has one), placed on the
 keyframe. The smoother's results revise the path as they arrive (the live pose
 stays continuous; corrections go to the path). The child takes every keyframe (later flow starts from them, so
 they must be in its graph) and the newest non-keyframe whenever it is idle.
@@ -48,7 +48,7 @@ from fixego_ros.estimation.frames import (
 from fixego_ros.estimation.status import StepStatus
 from fixego_ros.estimation.twoframe import MIN_ROTATION_PAIRS, Fallback, TwoFrameResult, TwoFrameSolver, kabsch_rotation
 from fixego_ros.geometry.rig import SIDES, Rig
-from fixego_ros.geometry.rotation import Pose
+from fixego_ros.geometry.rotation import Pose, exp_so3, log_so3
 from fixego_ros.interrupt import sigint_ignored
 
 CHILD_NICENESS = 5     # the smoother yields the CPU to the per-frame work (its results may come late, poses not)
@@ -215,7 +215,6 @@ class LiveSmoother:
     SPEED_WINDOW_S = 0.5   # the speed of the fast poses: the smoother's motion over about this long
     JOIN_S = 2.0           # bound on waiting for the child to stop
     ODOM_CONVERGENCE_S = 1.0   # time constant of the continuous pose closing its gap to the newest estimate
-    MAX_CARRY_S = 0.5      # the smoother's motion is carried this far past its newest frame at most (then: solved)
 
     def __init__(self, rig: Rig, config: EstimatorConfig | None = None, inline: bool = False) -> None:
         """``inline``: the smoother in this process on every keyframe and one other frame per ``_Inline.MIN_GAP_S``,
@@ -522,23 +521,36 @@ class LiveSmoother:
         return (correction @ pose).normalized()
 
     def _carried(self, ref: _Recent, pairs: RayPairs, stamp: float) -> TwoFrameResult | None:
-        """The step ref -> frame from the smoother's newest motion (constant twist over its last
-        ``SPEED_WINDOW_S``, carried to ``stamp``) with the rotation the rays give (Kabsch: they are mostly rotation
-        over one frame); None before the smoother has answered, when its newest frame is over ``MAX_CARRY_S`` old
-        (it has fallen behind), or with too few rays. The two-frame solve of a
-        30 Hz step scatters by tens of degrees in direction and costs 2-11 ms on the loaded demo machine, where
-        it doubled the latency (docs/results.md "Stop 45"); carried, a recorded demo run's live pose was 7.8 cm
-        off with the smoother 130 ms late, against 8.2 solved."""
+        """The step ref -> frame by dead reckoning on the smoother's newest motion: the rotation the rays give
+        (Kabsch: over one frame they are mostly rotation), the translation the smoother's newest velocity in the
+        rig's own frame (:meth:`_body_velocity`) over the time since ``ref``, turned by half the step's rotation.
+        None before the smoother has answered, or with too few rays.
+
+        In the rig's frame the velocity of a rig whose heading follows its path holds through turns, so this holds
+        while the smoother lags by seconds. Until stop 49 the smoother's world-frame twist was carried, for 0.5 s
+        past its newest frame at most; after that the two-frame solve of each 30 Hz step (2-11 ms on the loaded demo
+        machine, its direction scattering by tens of degrees) drove the pose. Recorded runs replayed live with the
+        smoother 1.3-1.8 s behind (p50; two CPU-bound processes beside it): run 2 live 38.2 and 26.4 cm mean, path
+        x1.65 and x1.56 that way, 18.6 and 15.7 cm, x1.24 and x1.26 now; run 4 14.6 cm, x1.46, terminal 75 cm
+        against 15.2 cm, x1.12, 33 cm. With the smoother 0.2 s behind: 5.0 against 5.3 cm (docs/results.md
+        "Stop 49")."""
         span = self._smoothed_span()
-        if span is None or stamp - span[1].stamp > self.MAX_CARRY_S or len(pairs) < MIN_ROTATION_PAIRS:
+        if span is None or len(pairs) < MIN_ROTATION_PAIRS:
             return None
-        a, b = span
-        ahead = constant_twist(a.pose, a.stamp, b.pose, b.stamp, stamp)
-        step = Pose(kabsch_rotation(pairs.a, pairs.b), ref.pose.R.T @ (ahead.t - ref.pose.t))
+        rotation = kabsch_rotation(pairs.a, pairs.b)
+        half = exp_so3(0.5 * log_so3(rotation))
+        step = Pose(rotation, half @ self._body_velocity(*span) * (stamp - ref.stamp))
         if not step.is_finite():
             return None
         return TwoFrameResult(step, StepStatus.CARRIED, n_constraints=len(pairs),
-                              message='the smoother\'s motion carried to the stamp, rotation from the rays')
+                              message="the smoother's velocity in the rig frame carried to the stamp, rotation from "
+                                      'the rays')
+
+    @staticmethod
+    def _body_velocity(a: _Recent, b: _Recent) -> np.ndarray:
+        """m/s in the rig's frame: the chord a -> b over its time, in the rotation halfway between theirs."""
+        mid = a.pose.R @ exp_so3(0.5 * log_so3(a.pose.R.T @ b.pose.R))
+        return mid.T @ (b.pose.t - a.pose.t) / (b.stamp - a.stamp)
 
     def _warm_start(self, ref: _Recent, predicted: Pose, dt: float) -> Pose:
         """The step ref -> frame to start the two-frame solve from: the prediction's rotation, and the direction of
