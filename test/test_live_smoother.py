@@ -254,8 +254,9 @@ def test_a_solved_step_without_translation_leaves_the_warm_start_finite(loop):
 def test_once_the_smoother_answers_a_frame_is_dead_reckoned_on_its_velocity_in_the_rig_frame():
     """The live pose's cheap path (~0.3 ms, no solve): the rotation is the Kabsch fit of the rays, the translation
     the smoother's newest velocity in the rig's own frame over the time since the keyframe, turned by half the
-    step's rotation. On an arc that velocity points along the rig's heading whichever way the rig faces, and it is
-    carried however far the smoother lags; too few rays for a rotation leave the frame to the solve."""
+    step's rotation. On an arc that velocity points along the rig's heading whichever way the rig faces. With the
+    smoother's newest frame over ``MAX_CARRY_S`` old the rotation comes from the solve, the translation still from
+    that velocity however far the smoother lags; too few rays for a rotation leave the frame to the solve."""
     from fixego_ros.estimation.coplanarity import RayPairs
     from fixego_ros.estimation.live_smoother import _Recent
     from fixego_ros.geometry.rotation import Pose, exp_so3, rot_y
@@ -270,15 +271,20 @@ def test_once_the_smoother_answers_a_frame_is_dead_reckoned_on_its_velocity_in_t
     live._recent = deque([a, b, ref])
     np.testing.assert_allclose(LiveSmoother._body_velocity(a, b), [0.0, 0.0, 0.2], atol=1e-12)
     R = exp_so3(np.array([0.0, 0.02, 0.0]))
+    half = exp_so3(np.array([0.0, 0.01, 0.0]))
     rays = np.random.default_rng(0).normal(size=(30, 3)) + [0.0, 0.0, 4.0]
     pairs = RayPairs.build([(rays, rays @ R, np.zeros(3), 1.0)])        # b = R^T a: a pure rotation R
     carried = live._carried(ref, pairs, 0.4)
     assert carried.status is StepStatus.CARRIED and carried.status.usable
     np.testing.assert_allclose(carried.pose.R, R, atol=1e-9)
-    np.testing.assert_allclose(carried.pose.t, exp_so3(np.array([0.0, 0.01, 0.0])) @ [0.0, 0.0, 0.02], atol=1e-9)
-    late = live._carried(ref, pairs, 5.3)               # the smoother 5 s behind: still carried, 1 m forward
-    np.testing.assert_allclose(late.pose.t, exp_so3(np.array([0.0, 0.01, 0.0])) @ [0.0, 0.0, 1.0], atol=1e-9)
+    np.testing.assert_allclose(carried.pose.t, half @ [0.0, 0.0, 0.02], atol=1e-9)
+    assert live._carried(ref, pairs, 0.2 + LiveSmoother.MAX_CARRY_S + 0.01) is None     # lagging: solved
+    late = live._dead_reckoned(R, 5.0)                  # 5 s on the smoother's velocity: 1 m forward
+    np.testing.assert_allclose(late.R, R, atol=1e-12)
+    np.testing.assert_allclose(late.t, half @ [0.0, 0.0, 1.0], atol=1e-9)
     assert live._carried(ref, RayPairs.build([(rays[:5], rays[:5] @ R, np.zeros(3), 1.0)]), 0.4) is None
+    live._recent = deque([ref])                         # before the smoother has a motion: nothing to reckon on
+    assert live._dead_reckoned(R, 0.1) is None
 
 
 def test_the_published_pose_takes_up_a_revision_without_a_jump_and_converges_on_the_estimate():

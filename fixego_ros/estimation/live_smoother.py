@@ -4,11 +4,12 @@ GTSAM holds the GIL for a whole solve (50-120 ms per frame on this machine), so 
 stall the node's callbacks, and one in the callback leaves frames without a pose. :class:`LiveSmoother` runs the
 :class:`~fixego_ros.estimation.smoother.Smoother` in a child process and answers each frame itself (~0.3 ms): the
 smoother's newest velocity in the rig's frame carried to the frame's stamp, with the rotation the frame's rays
-give. Before the smoother has answered (or with too few rays for the rotation), the two-frame coplanarity solve
-keyframe -> frame (2-11 ms), its length from the smoother's speed (nominal before it has one), placed on the
-keyframe. The smoother's results revise the path as they arrive (the live pose
-stays continuous; corrections go to the path). The child takes every keyframe (later flow starts from them, so
-they must be in its graph) and the newest non-keyframe whenever it is idle.
+give. When the smoother has fallen behind by over ``MAX_CARRY_S`` (or too few rays give the rotation), the
+rotation of the two-frame coplanarity solve keyframe -> frame (2-11 ms) with the same translation; before the
+smoother has answered, that solve alone, its length at the nominal speed, placed on the keyframe. The smoother's
+results revise the path as they arrive (the live pose stays continuous; corrections go to the path). The child
+takes every keyframe (later flow starts from them, so they must be in its graph) and the newest non-keyframe
+whenever it is idle.
 
 Replay runs the same class with the smoother in the caller's process (``inline``): every keyframe goes into the graph,
 and another frame once 0.1 s has passed since the last one (:class:`_Inline`), so the output is deterministic and
@@ -215,6 +216,7 @@ class LiveSmoother:
     SPEED_WINDOW_S = 0.5   # the speed of the fast poses: the smoother's motion over about this long
     JOIN_S = 2.0           # bound on waiting for the child to stop
     ODOM_CONVERGENCE_S = 1.0   # time constant of the continuous pose closing its gap to the newest estimate
+    MAX_CARRY_S = 0.5      # the rays' rotation is trusted this far past the smoother's newest frame (then: solved)
 
     def __init__(self, rig: Rig, config: EstimatorConfig | None = None, inline: bool = False) -> None:
         """``inline``: the smoother in this process on every keyframe and one other frame per ``_Inline.MIN_GAP_S``,
@@ -377,7 +379,7 @@ class LiveSmoother:
                 tf = self.solver.solve(pairs, initial=self._warm_start(ref, predicted, dt),
                                        fallback=Fallback.CLOSED_FORM)
                 if tf.status.usable and tf.pose.is_finite() and tf.cheirality >= 0.5:
-                    step = with_length(tf.pose, self._speed() * dt)
+                    step = self._dead_reckoned(tf.pose.R, dt) or with_length(tf.pose, self._speed() * dt)
                     pose = (ref.pose @ step).normalized()
                     length = float(np.linalg.norm(tf.pose.t))
                     if tf.status is not StepStatus.STATIONARY and length > 0.0:     # a direction to start from
@@ -521,30 +523,38 @@ class LiveSmoother:
         return (correction @ pose).normalized()
 
     def _carried(self, ref: _Recent, pairs: RayPairs, stamp: float) -> TwoFrameResult | None:
-        """The step ref -> frame by dead reckoning on the smoother's newest motion: the rotation the rays give
-        (Kabsch: over one frame they are mostly rotation), the translation the smoother's newest velocity in the
-        rig's own frame (:meth:`_body_velocity`) over the time since ``ref``, turned by half the step's rotation.
-        None before the smoother has answered, or with too few rays.
-
-        In the rig's frame the velocity of a rig whose heading follows its path holds through turns, so this holds
-        while the smoother lags by seconds. Until stop 49 the smoother's world-frame twist was carried, for 0.5 s
-        past its newest frame at most; after that the two-frame solve of each 30 Hz step (2-11 ms on the loaded demo
-        machine, its direction scattering by tens of degrees) drove the pose. Recorded runs replayed live with the
-        smoother 1.3-1.8 s behind (p50; two CPU-bound processes beside it): run 2 live 38.2 and 26.4 cm mean, path
-        x1.65 and x1.56 that way, 18.6 and 15.7 cm, x1.24 and x1.26 now; run 4 14.6 cm, x1.46, terminal 75 cm
-        against 15.2 cm, x1.12, 33 cm. With the smoother 0.2 s behind: 5.0 against 5.3 cm (docs/results.md
-        "Stop 49")."""
+        """The step ref -> frame dead reckoned (:meth:`_dead_reckoned`) with the rotation the rays give (Kabsch:
+        over one frame they are mostly rotation; ~0.3 ms against the solve's 2-11 ms on the loaded demo machine).
+        None before the smoother has answered, when its newest frame is over ``MAX_CARRY_S`` old, or with too few
+        rays: then the two-frame solve gives the rotation. Kabsch takes the parallax of a fast rig's near points for
+        rotation: on a 30 Hz walk at 1 m/s, dead reckoned on it with the smoother 2-5 s behind, the live heading
+        drifted 14 deg/s."""
         span = self._smoothed_span()
-        if span is None or len(pairs) < MIN_ROTATION_PAIRS:
+        if span is None or stamp - span[1].stamp > self.MAX_CARRY_S or len(pairs) < MIN_ROTATION_PAIRS:
             return None
-        rotation = kabsch_rotation(pairs.a, pairs.b)
-        half = exp_so3(0.5 * log_so3(rotation))
-        step = Pose(rotation, half @ self._body_velocity(*span) * (stamp - ref.stamp))
-        if not step.is_finite():
+        step = self._dead_reckoned(kabsch_rotation(pairs.a, pairs.b), stamp - ref.stamp)
+        if step is None:
             return None
         return TwoFrameResult(step, StepStatus.CARRIED, n_constraints=len(pairs),
                               message="the smoother's velocity in the rig frame carried to the stamp, rotation from "
                                       'the rays')
+
+    def _dead_reckoned(self, rotation: np.ndarray, dt: float) -> Pose | None:
+        """The step over ``dt`` with ``rotation``: its translation the smoother's newest velocity in the rig's own
+        frame (:meth:`_body_velocity`), turned by half the rotation; None before the smoother has a motion.
+
+        In the rig's frame the velocity of a rig whose heading follows its path holds through turns, so this holds
+        while the smoother lags by seconds. Until stop 49 the smoother's world-frame twist was carried, and past
+        ``MAX_CARRY_S`` each 30 Hz step took the direction of its two-frame solve, which scatters by tens of degrees.
+        Recorded runs replayed live with the smoother 1.3-1.8 s behind (p50; two CPU-bound processes beside it):
+        run 2 live 38.2 and 26.4 cm mean, path x1.65 and x1.56 that way, 18.6 and 15.7 cm, x1.24 and x1.26 dead
+        reckoned; run 4 14.6 cm, x1.46, terminal 75 cm against 15.2 cm, x1.12, 33 cm (docs/results.md "Stop 49")."""
+        span = self._smoothed_span()
+        if span is None:
+            return None
+        half = exp_so3(0.5 * log_so3(rotation))
+        step = Pose(rotation, half @ self._body_velocity(*span) * dt)
+        return step if step.is_finite() else None
 
     @staticmethod
     def _body_velocity(a: _Recent, b: _Recent) -> np.ndarray:
