@@ -279,12 +279,12 @@ def test_once_the_smoother_answers_a_frame_is_dead_reckoned_on_its_velocity_in_t
     np.testing.assert_allclose(carried.pose.R, R, atol=1e-9)
     np.testing.assert_allclose(carried.pose.t, half @ [0.0, 0.0, 0.02], atol=1e-9)
     assert live._carried(ref, pairs, 0.2 + LiveSmoother.MAX_CARRY_S + 0.01) is None     # lagging: solved
-    late = live._dead_reckoned(R, 5.0)                  # 5 s on the smoother's velocity: 1 m forward
+    late = live._dead_reckoned(live._smoothed_span(), R, 5.0)     # 5 s on the smoother's velocity: 1 m forward
     np.testing.assert_allclose(late.R, R, atol=1e-12)
     np.testing.assert_allclose(late.t, half @ [0.0, 0.0, 1.0], atol=1e-9)
     assert live._carried(ref, RayPairs.build([(rays[:5], rays[:5] @ R, np.zeros(3), 1.0)]), 0.4) is None
     live._recent = deque([ref])                         # before the smoother has a motion: nothing to reckon on
-    assert live._dead_reckoned(R, 0.1) is None
+    assert live._smoothed_span() is None and live._dead_reckoned(None, R, 0.1) is None
 
 
 def test_the_published_pose_takes_up_a_revision_without_a_jump_and_converges_on_the_estimate():

@@ -55,6 +55,11 @@ from fixego_ros.interrupt import sigint_ignored
 CHILD_NICENESS = 5     # the smoother yields the CPU to the per-frame work (its results may come late, poses not)
 
 
+def _halfway(rotation: np.ndarray) -> np.ndarray:
+    """The rotation half way along ``rotation``'s geodesic from the identity."""
+    return exp_so3(0.5 * log_so3(rotation))
+
+
 class Message(Enum):
     """What the parent sends the smoother process."""
 
@@ -379,7 +384,8 @@ class LiveSmoother:
                 tf = self.solver.solve(pairs, initial=self._warm_start(ref, predicted, dt),
                                        fallback=Fallback.CLOSED_FORM)
                 if tf.status.usable and tf.pose.is_finite() and tf.cheirality >= 0.5:
-                    step = self._dead_reckoned(tf.pose.R, dt) or with_length(tf.pose, self._speed() * dt)
+                    step = (self._dead_reckoned(self._smoothed_span(), tf.pose.R, dt)
+                            or with_length(tf.pose, self._speed() * dt))
                     pose = (ref.pose @ step).normalized()
                     length = float(np.linalg.norm(tf.pose.t))
                     if tf.status is not StepStatus.STATIONARY and length > 0.0:     # a direction to start from
@@ -532,16 +538,18 @@ class LiveSmoother:
         span = self._smoothed_span()
         if span is None or stamp - span[1].stamp > self.MAX_CARRY_S or len(pairs) < MIN_ROTATION_PAIRS:
             return None
-        step = self._dead_reckoned(kabsch_rotation(pairs.a, pairs.b), stamp - ref.stamp)
+        step = self._dead_reckoned(span, kabsch_rotation(pairs.a, pairs.b), stamp - ref.stamp)
         if step is None:
             return None
         return TwoFrameResult(step, StepStatus.CARRIED, n_constraints=len(pairs),
                               message="the smoother's velocity in the rig frame carried to the stamp, rotation from "
                                       'the rays')
 
-    def _dead_reckoned(self, rotation: np.ndarray, dt: float) -> Pose | None:
+    @staticmethod
+    def _dead_reckoned(span: tuple[_Recent, _Recent] | None, rotation: np.ndarray, dt: float) -> Pose | None:
         """The step over ``dt`` with ``rotation``: its translation the smoother's newest velocity in the rig's own
-        frame (:meth:`_body_velocity`), turned by half the rotation; None before the smoother has a motion.
+        frame over ``span`` (:meth:`_smoothed_span`, :meth:`_body_velocity`), turned by half the rotation; None
+        before the smoother has a motion (``span`` None).
 
         In the rig's frame the velocity of a rig whose heading follows its path holds through turns, so this holds
         while the smoother lags by seconds. Until stop 49 the smoother's world-frame twist was carried, and past
@@ -549,17 +557,15 @@ class LiveSmoother:
         Recorded runs replayed live with the smoother 1.3-1.8 s behind (p50; two CPU-bound processes beside it):
         run 2 live 38.2 and 26.4 cm mean, path x1.65 and x1.56 that way, 18.6 and 15.7 cm, x1.24 and x1.26 dead
         reckoned; run 4 14.6 cm, x1.46, terminal 75 cm against 15.2 cm, x1.12, 33 cm (docs/results.md "Stop 49")."""
-        span = self._smoothed_span()
         if span is None:
             return None
-        half = exp_so3(0.5 * log_so3(rotation))
-        step = Pose(rotation, half @ self._body_velocity(*span) * dt)
+        step = Pose(rotation, _halfway(rotation) @ LiveSmoother._body_velocity(*span) * dt)
         return step if step.is_finite() else None
 
     @staticmethod
     def _body_velocity(a: _Recent, b: _Recent) -> np.ndarray:
         """m/s in the rig's frame: the chord a -> b over its time, in the rotation halfway between theirs."""
-        mid = a.pose.R @ exp_so3(0.5 * log_so3(a.pose.R.T @ b.pose.R))
+        mid = a.pose.R @ _halfway(a.pose.R.T @ b.pose.R)
         return mid.T @ (b.pose.t - a.pose.t) / (b.stamp - a.stamp)
 
     def _warm_start(self, ref: _Recent, predicted: Pose, dt: float) -> Pose:
