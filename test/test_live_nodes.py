@@ -7,6 +7,8 @@ import json
 import math
 import subprocess
 import sys
+import threading
+import time
 
 import numpy as np
 import pytest
@@ -299,6 +301,55 @@ def test_estimator_node_skips_only_what_waited_in_its_own_queue(ros_context, cle
         assert len(node.queue_ms) == 4 and max(node.queue_ms) >= 300.0
     finally:
         node.destroy_node()
+
+
+class _PipeStandIn:
+    """What :class:`AnswerWaiter` asks of the live smoother: an answer waiting (``pending``) and whether it lives."""
+
+    def __init__(self) -> None:
+        self.pending, self.alive, self.polls = 0, True, 0
+
+    def wait_for_answer(self, timeout_s: float) -> bool:
+        self.polls += 1
+        if self.pending:
+            return True
+        time.sleep(min(timeout_s, 0.01))
+        return False
+
+
+def test_the_smoothers_answers_are_taken_between_frames_by_the_executor(ros_context):
+    """The waiter wakes the executor once per answer (the guard condition's callback takes it, on the executor's
+    thread), does not spin while an answer waits to be taken, and ends on stop() or when the smoother is gone."""
+    from fixego_ros.nodes.estimator_node import AnswerWaiter
+
+    node = rclpy.create_node('waiter_probe', context=ros_context)
+    ex = executor_for(ros_context, node)
+    pipe, taken = _PipeStandIn(), []
+
+    def take() -> None:
+        taken.append(threading.get_ident())
+        pipe.pending = 0
+
+    waiter = AnswerWaiter(node, pipe, take)
+    try:
+        assert not spin_until(ex, lambda: taken, 0.3)            # nothing sent: nothing taken
+        pipe.pending = 1
+        polls = pipe.polls
+        time.sleep(0.5)                                           # not spinning: the answer waits, the thread too
+        assert pipe.polls - polls <= 1 + 0.5 / AnswerWaiter.WAIT_S + 1
+        assert spin_until(ex, lambda: taken, 5.0)
+        assert taken == [threading.get_ident()]                  # on the executor's thread, once
+        pipe.pending = 1
+        assert spin_until(ex, lambda: len(taken) == 2, 5.0)
+    finally:
+        waiter.stop()
+    assert not waiter._thread.is_alive()
+    pipe.alive = False
+    gone = AnswerWaiter(node, pipe, take)
+    gone._thread.join(2 * AnswerWaiter.WAIT_S)
+    assert not gone._thread.is_alive()                            # a dead smoother ends the thread by itself
+    ex.shutdown()
+    node.destroy_node()
 
 
 def test_estimator_node_publishes_paths_at_the_period_and_bounded(ros_context, clean_sequence, tmp_path):

@@ -114,6 +114,23 @@ def test_behind_says_how_far_the_smoothers_newest_result_lags_the_newest_frame(l
     assert live.behind_s == pytest.approx(loop.stamps[4] - loop.stamps[1])
 
 
+def test_wait_for_answer_says_when_the_child_has_sent_something_and_is_false_once_it_is_gone(loop, live):
+    """What the node's waiter thread polls: True once the child has answered a frame, False after the answer was
+    taken, when the child is dead, and always inline (its answers come with each frame)."""
+    assert not live.wait_for_answer(0.0)
+    live.update(loop.observations[0])
+    assert live.wait_for_answer(WAIT_S)
+    live.drain(0.0)
+    assert not live.wait_for_answer(0.0)
+    live._process.kill()
+    live._process.join(WAIT_S)
+    live.update(loop.observations[1])
+    assert not live.wait_for_answer(0.5)
+    inline = LiveSmoother(RIG, live.config, inline=True)
+    inline.update(loop.observations[0])
+    assert not inline.wait_for_answer(0.5)
+
+
 def test_bad_aids_are_refused_here_and_a_dead_child_leaves_poses_flowing(loop, live):
     with pytest.raises(ValueError):
         live.add_velocity(1.0, np.array([np.nan, 0.0, 0.0]), np.eye(3))

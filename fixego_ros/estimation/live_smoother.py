@@ -307,6 +307,17 @@ class LiveSmoother:
     def last_stamp(self) -> float | None:
         return self._recent[-1].stamp if self._recent else None
 
+    def wait_for_answer(self, timeout_s: float) -> bool:
+        """Whether the smoother process has sent something not yet taken, after waiting at most ``timeout_s``; False
+        once it is gone or closed (and inline, whose answers come with each frame). It only looks at the pipe, so
+        another thread may call it while this one works: the node's waiter does, and the answers are then taken
+        between frames (:meth:`drain`) instead of on the next frame's path."""
+        if self._process is None or not self._process.is_alive():
+            return False
+        with contextlib.suppress(EOFError, OSError, ValueError):
+            return bool(self._conn.poll(max(0.0, timeout_s)))
+        return False
+
     def add_velocity(self, stamp: float, v_rig: np.ndarray, cov_rig: np.ndarray) -> None:
         """As :meth:`Smoother.add_velocity` (checked here: ValueError on bad values; the child applies it)."""
         v, cov = checked_measurement(stamp, v_rig, cov_rig, 'velocity sample')
