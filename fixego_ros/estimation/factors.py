@@ -39,15 +39,11 @@ def constant_twist(a: Pose, t_a: float, b: Pose, t_b: float, stamp: float) -> Po
 
 
 def constant_twists(a: Pose, t_a: float, b: Pose, t_b: float, stamps: Sequence[float]) -> list[Pose]:
-    """:func:`constant_twist` at each of ``stamps``, the twist taken once (the frames between two smoothed ones).
-    The poses are not projected onto SO(3) again (:func:`from_gtsam`): one exponential composed with a projected
-    end is a rotation to rounding, and the two SVDs were three quarters of the cost (the live node re-interpolates
-    ~60 frames per smoother answer)."""
+    """:func:`constant_twist` at each of ``stamps``, the twist taken once (the frames between two smoothed ones)."""
     end = to_gtsam(b)
     step = gtsam.Pose3.Logmap(to_gtsam(a).between(end))
     dt = max(t_b - t_a, 1e-9)
-    poses = (end.compose(gtsam.Pose3.Expmap(step * ((stamp - t_b) / dt))) for stamp in stamps)
-    return [Pose(p.rotation().matrix(), np.asarray(p.translation(), float)) for p in poses]
+    return [from_gtsam(end.compose(gtsam.Pose3.Expmap(step * ((stamp - t_b) / dt)))) for stamp in stamps]
 
 
 def _jac(rows: int, cols: int) -> np.ndarray:
