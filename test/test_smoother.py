@@ -532,3 +532,26 @@ def test_marginals_only_change_the_covariance(loop):
     assert all(np.array_equal(a.pose.t, b.pose.t) for a, b in zip(with_marginals, without, strict=True))
     assert np.allclose(without[-1].pose_covariance[:3, :3], np.eye(3) * 1e-2)      # rotation unknown (0.1 rad)
     assert with_marginals[-1].pose_covariance[0, 0] < 1e-3      # the marginal: the rotation is well known
+
+
+def test_the_marginal_is_computed_at_most_once_per_period_and_turned_with_the_frame(loop, monkeypatch):
+    """The newest pose's marginal costs ~10 ms of a live update: computed for a frame at most once per
+    ``MARGINAL_PERIOD_S`` of stamps; the frames in between carry it turned into their own orientation."""
+    from fixego_ros.estimation.fixed_lag import FixedLagWindow
+    from fixego_ros.estimation.keys import pose_key
+    computed: list[int] = []
+    real = FixedLagWindow.marginal_covariance
+    monkeypatch.setattr(FixedLagWindow, 'marginal_covariance', lambda self, key: computed.append(key) or real(self, key))
+    results, _, _ = _replay(Smoother(RIG, _config()), loop)
+    span = loop.stamps[-1] - loop.stamps[0]
+    assert 1 < len(computed) <= span / Smoother.MARGINAL_PERIOD_S + 2 < len(results) - 1
+    fresh = {r.index for r in results if pose_key(r.index) in computed}
+    shared = 0
+    for a, b in zip(results, results[1:]):
+        if b.index in fresh or a.pose_covariance[0, 0] >= 1e-2:
+            continue
+        turned = b.pose.R @ a.pose.R.T
+        np.testing.assert_allclose(b.pose_covariance[:3, :3], turned @ a.pose_covariance[:3, :3] @ turned.T,
+                                   atol=1e-15)
+        shared += 1
+    assert shared >= len(results) // 3
