@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 
 import numpy as np
@@ -541,13 +542,14 @@ def test_the_marginal_is_computed_at_most_once_per_period_and_turned_with_the_fr
     from fixego_ros.estimation.keys import pose_key
     computed: list[int] = []
     real = FixedLagWindow.marginal_covariance
-    monkeypatch.setattr(FixedLagWindow, 'marginal_covariance', lambda self, key: computed.append(key) or real(self, key))
+    monkeypatch.setattr(FixedLagWindow, 'marginal_covariance',
+                        lambda self, key: computed.append(key) or real(self, key))
     results, _, _ = _replay(Smoother(RIG, _config()), loop)
     span = loop.stamps[-1] - loop.stamps[0]
     assert 1 < len(computed) <= span / Smoother.MARGINAL_PERIOD_S + 2 < len(results) - 1
     fresh = {r.index for r in results if pose_key(r.index) in computed}
     shared = 0
-    for a, b in zip(results, results[1:]):
+    for a, b in itertools.pairwise(results):
         if b.index in fresh or a.pose_covariance[0, 0] >= 1e-2:
             continue
         turned = b.pose.R @ a.pose.R.T
