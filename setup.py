@@ -30,6 +30,7 @@ setup(
         'evo',
         'matplotlib',
         'gtsam',
+        'threadpoolctl',
     ],
     extras_require={
         # ROS 2 Jazzy from PyPI wheels; on a full ROS install these come from the distro instead.

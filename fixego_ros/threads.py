@@ -1,0 +1,49 @@
+"""One compute thread per process for the numerical libraries (BLAS, OpenCV), unless the environment sets a count.
+
+Why: the live pipeline is six to eight processes (the simulated rig, two camera nodes, the flow node, the estimator
+and its smoother child, a recorder) on a machine of a few cores. Each process's work per frame is small (Lucas-Kanade
+on crops, matrices of 6 to a few hundred rows; GTSAM does its own linear algebra), so a second library thread rarely
+has anything to do in parallel with the first; but OpenBLAS and OpenCV start a pool of one thread per core in every
+process, and a call that hands work to a pool thread waits until the scheduler runs it, behind the other processes.
+Measured on ``fixego demo``, 8 runs each way alternated (docs/results.md "Stop 51"): image -> pose p95 median 54.6 ->
+45.5 ms (range 38.7-61.1 -> 40.2-51.6), the estimator's own p95 14.3 -> 8.6 ms, the flow node's compute p95 25.1 ->
+18.9 ms; p50 27.2 -> 26.6 ms. ``fixego replay`` (one process per stage, each mostly waiting on the other) gave the same
+time and the same bytes either way, so only the nodes do this.
+
+A count the user set (``OPENBLAS_NUM_THREADS`` or ``OMP_NUM_THREADS`` for BLAS, ``OPENCV_FOR_THREADS_NUM`` for
+OpenCV) is kept. The variables are also set for processes started from this one (the estimator's smoother child is
+spawned, a fresh interpreter that reads them when it loads the libraries).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import MutableMapping
+
+import cv2
+import threadpoolctl
+
+# each library and the variables that set its thread count (OpenBLAS reads OMP_NUM_THREADS when its own is unset)
+LIBRARIES: dict[str, tuple[str, ...]] = {'BLAS': ('OPENBLAS_NUM_THREADS', 'OMP_NUM_THREADS'),
+                                         'OpenCV': ('OPENCV_FOR_THREADS_NUM',)}
+
+
+def limit_threads(environ: MutableMapping[str, str] | None = None) -> str:
+    """Give BLAS and OpenCV one thread in this process and the processes it starts, except where ``environ``
+    (default ``os.environ``) already sets a count. Returns one line for the start-up log."""
+    env = os.environ if environ is None else environ
+    limited, kept = [], []
+    for library, names in LIBRARIES.items():
+        chosen = next((n for n in names if env.get(n)), None)
+        if chosen is not None:
+            kept.append(f'{library} {env[chosen]} ({chosen})')
+            continue
+        limited.append(library)
+        env[names[0]] = '1'
+    if 'BLAS' in limited:
+        threadpoolctl.threadpool_limits(1, user_api='blas')
+    if 'OpenCV' in limited:
+        cv2.setNumThreads(1)
+    parts = [f'one thread for {" and ".join(limited)}'] if limited else []
+    parts += [f'{", ".join(kept)} as the environment says'] if kept else []
+    return 'compute threads: ' + '; '.join(parts)
