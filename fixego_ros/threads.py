@@ -5,10 +5,9 @@ and its smoother child, a recorder) on a machine of a few cores. Each process's 
 on crops, matrices of 6 to a few hundred rows; GTSAM does its own linear algebra), so a second library thread rarely
 has anything to do in parallel with the first; but OpenBLAS and OpenCV start a pool of one thread per core in every
 process, and a call that hands work to a pool thread waits until the scheduler runs it, behind the other processes.
-Measured on ``fixego demo``, 8 runs each way alternated (docs/results.md "Stop 51"): image -> pose p95 median 54.6 ->
-45.5 ms (range 38.7-61.1 -> 40.2-51.6), the estimator's own p95 14.3 -> 8.6 ms, the flow node's compute p95 25.1 ->
-18.9 ms; p50 27.2 -> 26.6 ms. ``fixego replay`` (one process per stage, each mostly waiting on the other) gave the same
-time and the same bytes either way, so only the nodes do this.
+Measured on ``fixego demo``, 12 runs each way alternated (docs/results.md "Stop 51"): image -> pose p95 median 55.5 ->
+49.5 ms, lower in 8 of the 12 pairs; p50 unchanged. ``fixego replay`` gave the same time and the same bytes either way,
+so only the nodes do this.
 
 A count the user set (``OPENBLAS_NUM_THREADS`` or ``OMP_NUM_THREADS`` for BLAS, ``OPENCV_FOR_THREADS_NUM`` for
 OpenCV) is kept. The variables are also set for processes started from this one (the estimator's smoother child is
