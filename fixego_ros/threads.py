@@ -20,7 +20,11 @@ import os
 from collections.abc import MutableMapping
 
 import cv2
-import threadpoolctl
+
+try:
+    import threadpoolctl
+except ImportError:     # a full ROS install without the PyPI extras (README): the processes it starts still get one
+    threadpoolctl = None
 
 # each library and the variables that set its thread count (OpenBLAS reads OMP_NUM_THREADS when its own is unset)
 LIBRARIES: dict[str, tuple[str, ...]] = {'BLAS': ('OPENBLAS_NUM_THREADS', 'OMP_NUM_THREADS'),
@@ -39,10 +43,14 @@ def limit_threads(environ: MutableMapping[str, str] | None = None) -> str:
             continue
         limited.append(library)
         env[names[0]] = '1'
+    missing = ''
     if 'BLAS' in limited:
-        threadpoolctl.threadpool_limits(1, user_api='blas')
+        if threadpoolctl is not None:
+            threadpoolctl.threadpool_limits(1, user_api='blas')
+        else:
+            missing = ' (threadpoolctl not installed: BLAS keeps its pool in this process, not in those it starts)'
     if 'OpenCV' in limited:
         cv2.setNumThreads(1)
     parts = [f'one thread for {" and ".join(limited)}'] if limited else []
     parts += [f'{", ".join(kept)} as the environment says'] if kept else []
-    return 'compute threads: ' + '; '.join(parts)
+    return 'compute threads: ' + '; '.join(parts) + missing

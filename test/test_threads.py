@@ -26,7 +26,9 @@ def child(queue):
 
 def main():
     out = {'before': counts()}
-    if sys.argv[1] == 'limit':
+    if sys.argv[1] in ('limit', 'no_threadpoolctl'):
+        if sys.argv[1] == 'no_threadpoolctl':
+            sys.modules['threadpoolctl'] = None      # as if not installed: importing it fails
         from fixego_ros.threads import limit_threads
         out['note'] = limit_threads()
     elif sys.argv[1] == 'node':
@@ -85,3 +87,10 @@ def test_a_node_started_by_spin_node_computes_with_one_thread_each(tmp_path):
     out = _run(tmp_path, 'node')
     one = {'blas': [1], 'opencv': 1}
     assert out['in_node'] == one and out['child'] == one
+
+
+def test_without_threadpoolctl_the_node_still_starts_and_its_children_get_one_blas_thread(tmp_path):
+    out = _run(tmp_path, 'no_threadpoolctl')
+    assert out['after']['opencv'] == 1 and out['child'] == {'blas': [1], 'opencv': 1}
+    assert out['after']['blas'] == out['before']['blas']            # this process's pool cannot be changed
+    assert 'threadpoolctl not installed' in out['note']
