@@ -17,7 +17,6 @@ spawned, a fresh interpreter that reads them when it loads the libraries).
 from __future__ import annotations
 
 import os
-from collections.abc import MutableMapping
 
 import cv2
 
@@ -31,18 +30,18 @@ LIBRARIES: dict[str, tuple[str, ...]] = {'BLAS': ('OPENBLAS_NUM_THREADS', 'OMP_N
                                          'OpenCV': ('OPENCV_FOR_THREADS_NUM',)}
 
 
-def limit_threads(environ: MutableMapping[str, str] | None = None) -> str:
-    """Give BLAS and OpenCV one thread in this process and the processes it starts, except where ``environ``
-    (default ``os.environ``) already sets a count. Returns one line for the start-up log."""
-    env = os.environ if environ is None else environ
+def limit_threads() -> str:
+    """Give BLAS and OpenCV one thread in this process and the processes it starts, except where the environment
+    already sets a count. Returns one line for the start-up log. (No environment argument, unlike
+    :func:`~fixego_ros.nodes.dds_profile.use_image_profile`: the limits are the process's own, not only variables.)"""
     limited, kept = [], []
     for library, names in LIBRARIES.items():
-        chosen = next((n for n in names if env.get(n)), None)
+        chosen = next((n for n in names if os.environ.get(n)), None)
         if chosen is not None:
-            kept.append(f'{library} {env[chosen]} ({chosen})')
+            kept.append(f'{library} {os.environ[chosen]} ({chosen})')
             continue
         limited.append(library)
-        env[names[0]] = '1'
+        os.environ[names[0]] = '1'
     missing = ''
     if 'BLAS' in limited:
         if threadpoolctl is not None:
