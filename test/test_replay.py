@@ -90,13 +90,14 @@ def test_paper_bag_replays_with_bounded_error():
         nominal = ESTIMATOR_PARAMS['speed_nominal'].default * (res.stamps[-1] - res.stamps[0])
         s = accuracy(res.stamps, res.poses, res.gt_stamps, res.gt_poses)
         length = s['path_length_m']
-        if topic:     # 1.03 measured: 4.15 / 31 cm mean / terminal error
+        if topic:     # 1.015 measured: 1.13 / 4.87 cm mean / terminal error
             assert 0.8 < length['ratio'] < 1.25, length
             assert s['ape_translation_m']['none']['mean'] < 0.15, s['ape_translation_m']
         else:         # unobserved: the nominal speed, pulled by the landmarks and the motion prior (1.33 measured)
             assert np.isfinite(length['estimate']) and length['estimate'] < 1.5 * nominal, length
-        # the shape (Sim(3)): 6.7 cm measured with the vergence measurements
-        assert s['ape_translation_m']['sim3']['rmse'] < 0.3, s['ape_translation_m']
+        # the shape (Sim(3)): 0.96 cm measured with the vergence measurements, 36 cm without (unaided, this recipe's
+        # seeds 0-7 span 9-36 cm: docs/results.md "Stop 52")
+        assert s['ape_translation_m']['sim3']['rmse'] < (0.05 if topic else 0.5), s['ape_translation_m']
         # heading after the loop (a full turn): within 30 degrees of the truth (4 / 6 deg measured)
         yaw = np.degrees(np.arctan2(res.poses[-1].R[1, 0], res.poses[-1].R[0, 0]))
         yaw_gt = np.degrees(np.arctan2(res.gt_poses[-1].R[1, 0], res.gt_poses[-1].R[0, 0]))

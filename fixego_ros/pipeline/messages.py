@@ -111,7 +111,8 @@ def pan_tilt(msg: Any, side: str) -> tuple[float, float]:
 def joint_sigma(msg: Any, side: str) -> float:
     """The larger 1-sigma (rad) of ``<side>_pan`` and ``<side>_tilt`` that camera_node puts in a JointState's
     ``effort`` (it has no covariance field; a pan/tilt head reports no torque). 0.0 = not given (a bag from another
-    recorder, the simulator's exactly timed readings), or anything negative or non-finite there."""
+    recorder, or one written before the simulator stated its readings' quantisation), or anything negative or
+    non-finite there."""
     names = list(msg.name)
     effort = list(msg.effort)
     try:

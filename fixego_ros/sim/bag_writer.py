@@ -8,7 +8,8 @@ value-identical to what the nodes would publish (alignment padding is zeroed for
 see :func:`canonical_cdr`).
 
 Topics (namespace ``/fixego``): ``{right,left}/image_raw``, ``{right,left}/camera_info``,
-``{right,left}/joint_states``, ``ground_truth/pose`` and, simulator only,
+``{right,left}/joint_states`` (the readings, quantised as VISCA reports them, with their 1-sigma in ``effort`` as
+camera_node states it: unit / sqrt 12), ``ground_truth/pose`` and, simulator only,
 ``ground_truth/{right,left}/fixation`` (geometry_msgs/PointStamped: ``point.x, point.y`` = true pixel
 of the servo's fixation point, no message while it is behind the camera; ``point.z`` = fixation id, which
 increases by one at each re-selection).
@@ -140,6 +141,7 @@ def frame_messages(frame: Frame, rig: Rig, epoch: float, encoding: str) -> list[
         js.header.stamp = stamp
         js.name = [f'{side}_pan', f'{side}_tilt']
         js.position = [float(st.pan_reading), float(st.tilt_reading)]
+        js.effort = [float(v) for v in st.reading_sigmas]     # their 1-sigma, where camera_node puts it
         out += [(f'{NS}/{side}/image_raw', im), (f'{NS}/{side}/camera_info', camera_info_msg(rig, side, t)),
                 (f'{NS}/{side}/joint_states', js)]
         if np.all(np.isfinite(st.pixel)):   # no message (never NaN) while the point is behind the camera

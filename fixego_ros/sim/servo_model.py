@@ -56,6 +56,15 @@ def required_readings(rig: Rig, side: str, rig_pose: Pose, point: np.ndarray) ->
     return rig.aim_readings(side, rig_pose.inverse().apply(np.asarray(point, dtype=float)))
 
 
+def reading_sigmas(params: ServoParams) -> tuple[float, float]:
+    """1-sigma (rad) of the pan and tilt readings: a quantised reading of a head at any angle is off by up to half a
+    unit, uniformly (unit / sqrt 12); 0 unquantised. camera_node states the same for a moving head."""
+    if not params.quantize:
+        return 0.0, 0.0
+    return (float(np.radians(1.0 / params.pan_units_per_deg)) / np.sqrt(12.0),
+            float(np.radians(1.0 / params.tilt_units_per_deg)) / np.sqrt(12.0))
+
+
 def quantized(params: ServoParams, pan: float, tilt: float) -> tuple[float, float]:
     """Joint readings (rad) as VISCA position units report true angles (pan, tilt)."""
     if not params.quantize:
@@ -77,6 +86,7 @@ class ServoState:
     point: np.ndarray  # world coordinates of the fixation point
     pixel: np.ndarray = field(default_factory=lambda: np.full(2, np.nan))  # its true image position
     reselected: bool = False
+    reading_sigmas: tuple[float, float] = (0.0, 0.0)   # 1-sigma (rad) of pan_reading, tilt_reading
 
 
 class Head:
@@ -291,4 +301,5 @@ class FixationServo:
         pr, tr = self.quantized(self.pan, self.tilt)
         pix, depth = project_points(self.rig, self.side, rig_pose, self.pan, self.tilt, self.point[None])
         pixel = pix[0] if depth[0] > 0 else np.full(2, np.nan)
-        return ServoState(t, self.pan, self.tilt, pr, tr, self.fixation_id, self.point.copy(), pixel, reselected)
+        return ServoState(t, self.pan, self.tilt, pr, tr, self.fixation_id, self.point.copy(), pixel, reselected,
+                          reading_sigmas(self.p))
