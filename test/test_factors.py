@@ -111,9 +111,9 @@ def _pair(rng: np.random.Generator, step: np.ndarray) -> gtsam.Values:
 
 
 def test_step_direction_jacobian_matches_central_differences():
-    direction = StepDirection(cauchy_k=1.0)
+    direction = StepDirection(cauchy_k=1.0, nominal_speed=0.5)
     step, cov = Pose(np.eye(3), np.array([0.3, -0.1, 1.0])), np.diag([1e-6] * 3 + [1e-4] * 3)
-    factor = direction.factor(0, 1, step, cov)
+    factor = direction.factor(0, 1, step, cov, dt=0.2)
     values = _pair(np.random.default_rng(2), np.array([0.5, 0.2, 0.9]))
     J = _numeric_jacobian(factor, values, direction.sigma(step, cov), poses=2)
     A, _ = factor.linearize(values).jacobian()
@@ -124,10 +124,10 @@ def test_step_direction_jacobian_matches_central_differences():
 def test_step_direction_holds_the_direction_and_leaves_the_length_free():
     """The rays fix the step's direction, not its length: any length along the solved direction costs nothing, a
     turn away from it costs its angle; a direction the solve barely knows adds no factor."""
-    direction = StepDirection(cauchy_k=1.0)
+    direction = StepDirection(cauchy_k=1.0, nominal_speed=0.5)
     solved = Pose(np.eye(3), np.array([0.0, 0.0, 2.0]))
     cov = np.diag([1e-6] * 3 + [(2.0 * 0.01) ** 2] * 3)         # 0.01 rad across the direction
-    factor = direction.factor(0, 1, solved, cov)
+    factor = direction.factor(0, 1, solved, cov, dt=0.2)
     assert direction.sigma(solved, cov) == pytest.approx(0.01)
     rng = np.random.default_rng(4)
     for length in (0.01, 0.3, 5.0):
@@ -138,7 +138,24 @@ def test_step_direction_holds_the_direction_and_leaves_the_length_free():
     turned = _pair(rng, np.array([np.sin(0.05), 0.0, np.cos(0.05)]))
     assert np.linalg.norm(factor.unwhitenedError(turned)) == pytest.approx(np.sin(0.05), rel=1e-6)
     loose = np.diag([1e-6] * 3 + [4.0] * 3)                       # 1 rad across a 2 m step
-    assert direction.sigma(solved, loose) is None and direction.factor(0, 1, solved, loose) is None
+    assert direction.sigma(solved, loose) is None and direction.factor(0, 1, solved, loose, dt=0.2) is None
+
+
+def test_step_direction_stays_gentle_at_a_step_of_no_length():
+    """At a (nearly) zero-length step the unit vector's Jacobian would be 1 / length: below a tenth of the nominal
+    step it is taken over that floor instead, so a rig predicted at rest does not make the window indeterminate."""
+    direction = StepDirection(cauchy_k=1.0, nominal_speed=0.5)
+    solved = Pose(np.eye(3), np.array([0.0, 0.0, 2.0]))
+    sigma = 0.01
+    factor = direction.factor(0, 1, solved, np.diag([1e-6] * 3 + [(2.0 * sigma) ** 2] * 3), dt=0.2)
+    floor = direction.min_length(0.2)
+    assert floor == pytest.approx(0.01)
+    values = _pair(np.random.default_rng(6), np.array([1e-6, 0.0, 0.0]))      # 1 um, across the solved direction
+    A, _ = factor.linearize(values).jacobian()
+    assert np.abs(A).max() <= 1.01 / (floor * sigma)              # ~1e4: 1 / (1 um * sigma) = 1e8 unfloored
+    assert np.linalg.norm(factor.unwhitenedError(values)) == pytest.approx(1e-6 / floor, rel=1e-3)
+    above = _pair(np.random.default_rng(6), np.array([0.0, 0.3, 0.3]))         # above the floor: the angle, 45 deg
+    assert np.linalg.norm(factor.unwhitenedError(above)) == pytest.approx(np.sin(np.pi / 4), rel=1e-6)
 
 
 def test_held_speed_jacobian_matches_central_differences():

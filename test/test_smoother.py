@@ -293,6 +293,30 @@ def test_frames_whose_keyframe_predates_the_graph_step_from_the_newest_frame(loo
     assert turned < 0.05 and sm.restarts == 0
 
 
+def test_a_first_step_without_parallax_does_not_make_the_window_indeterminate(loop, monkeypatch):
+    """A rig that starts off slowly: its first step (0.8 cm at 5.1 Hz) shows no parallax and is stationary, so the
+    next frame is predicted at rest and its direction factor linearised at a zero-length step. Unfloored, that made
+    the window indeterminate: five anchoring repairs here (a simulated paper loop restarted its graph and stood
+    still for 0.6 s, docs/results.md "Stop 52")."""
+    from fixego_ros.estimation.factors import StepDirection
+
+    first = loop.observations[1]
+    still = {side: dataclasses.replace(first.camera(side), flow_curr=first.camera(side).flow_prev)
+             for side in ('right', 'left')}
+    frames = [loop.observations[0], dataclasses.replace(first, **still), *loop.observations[2:10]]
+
+    def run() -> tuple[Smoother, list]:
+        sm = Smoother(RIG, _config())
+        return sm, [sm.update(obs) for obs in frames]
+
+    sm, results = run()
+    assert results[1].status is StepStatus.STATIONARY
+    assert sm.repairs == 0 and sm.restarts == 0 and all(r.pose.is_finite() for r in results)
+    monkeypatch.setattr(StepDirection, 'MIN_STEP_FRACTION', 1e-6 / (0.5 * 0.196))     # the old 1 um floor
+    sm, _ = run()
+    assert sm.repairs + sm.restarts > 0                    # measured 5 repairs
+
+
 def _enters(baseline_m: float, scale_observed: bool = True, stood_s_ago: float | None = 1.0) -> bool:
     """Whether a right-camera track seen from five rig poses along z (``baseline_m`` apart end to end) with rays
     turning by 1 deg in all enters the graph; the rig's last stationary step ``stood_s_ago`` (None: never)."""
@@ -399,13 +423,18 @@ def test_a_restarted_graph_moves_on_at_the_speed_it_had(loop, monkeypatch):
     """Stop 35. A numerical failure starts a new graph; it used to begin at rest (its first step had a prior of zero
     motion), no landmark then had the parallax to enter and hold the scale, and the graph stayed at rest while the
     rig moved on (a recorded live run: 10 s standing still, 114 cm mean). It now starts with the old graph's
-    motion. Here the rig gets no vergence measurement after the failure at frame 30 (6 s in)."""
+    motion. Here the rig gets no vergence measurement after the failure at frame 30 (6 s in). Since stop 52 a graph
+    restarted at rest moves off as well, if slower: what held it was the step-direction factor at zero length."""
     k = 30
     sm, est, true = _restart_at(loop, k, monkeypatch)
     after = slice(k + 1, k + 15)
     ratio = _length(est[after]) / _length(true[after])
     assert sm.restarts == 1 and 0.6 < ratio < 1.4                  # measured 0.85
     monkeypatch.setattr(Smoother, '_carried_motion', lambda self: None)    # a restart at rest, as before
+    sm, est, true = _restart_at(loop, k, monkeypatch)
+    assert _length(est[after]) / _length(true[after]) > 0.5       # measured 0.76: the direction floor (stop 52)
+    from fixego_ros.estimation.factors import StepDirection
+    monkeypatch.setattr(StepDirection, 'MIN_STEP_FRACTION', 1e-6 / (0.5 * 0.196))     # and the old 1 um floor
     sm, est, true = _restart_at(loop, k, monkeypatch)
     assert _length(est[after]) / _length(true[after]) < 0.05      # measured 1e-7: standing still
 

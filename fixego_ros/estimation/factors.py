@@ -207,14 +207,24 @@ class StepDirection:
     vergence measurement; but that loop was 3.8 cm with no direction factor at all, and the point-level loop of
     ``test_smoother`` comes out x0.87 long instead of x0.97, and twice the gauge's length unaided. The smoother
     adds it for keyframes only (stop 32): with it on every frame the same 30 Hz loop was 12.3 / 29.5 cm and a
-    30 Hz circle 20.6 / 50.0 cm (mean / terminal), keyframes only 5.2 / 10.2 and 1.6 / 2.3."""
+    30 Hz circle 20.6 / 50.0 cm (mean / terminal), keyframes only 5.2 / 10.2 and 1.6 / 2.3.
+
+    The residual divides the graph's relative translation by its length, floored at ``MIN_STEP_FRACTION`` of the
+    nominal step over the interval. A rig that starts off, or a frame predicted at rest, puts the step's
+    linearisation point at (nearly) zero length, where an unfloored unit vector has a Jacobian of 1 / length: at
+    the 1e-6 m floor it was, that is an information of ~1e13 across the direction next to a scale of ~1, and GTSAM
+    calls such a system indeterminate (its Cholesky's 2^12 test). On a simulated paper loop whose first step was too
+    short to show parallax, the window then anchored the next pose five times and restarted the graph, and the
+    estimate stood still for 0.6 s while the rig moved off (11.5 cm mean; 2.0 cm with the floor). Below the floor
+    the factor only pulls the step's sideways part towards zero, gently."""
 
     MIN_SIGMA_RAD = math.radians(0.5)
     MAX_SIGMA_RAD = math.radians(30.0)     # a direction less certain than this is not added
-    MIN_LENGTH_M = 1e-6                    # the graph's relative translation at least this long (else no error)
+    MIN_STEP_FRACTION = 0.1                # the length floor, as a share of the nominal step over the interval
 
-    def __init__(self, cauchy_k: float) -> None:
+    def __init__(self, cauchy_k: float, nominal_speed: float) -> None:
         self.robust = gtsam.noiseModel.mEstimator.Cauchy.Create(cauchy_k)
+        self.nominal_speed = nominal_speed
 
     def sigma(self, step: Pose, covariance: np.ndarray) -> float | None:
         """Angular std of the solved direction (rad), floored; None when it is not worth a factor."""
@@ -229,10 +239,16 @@ class StepDirection:
         sigma = max(math.sqrt(max(spread, 0.0)) / n, self.MIN_SIGMA_RAD)
         return sigma if sigma <= self.MAX_SIGMA_RAD else None
 
-    def factor(self, ref: int, frame: int, step: Pose, covariance: np.ndarray) -> gtsam.NonlinearFactor | None:
+    def min_length(self, dt: float) -> float:
+        """The length floor of the residual (m) for a step over ``dt`` seconds (at least 1 um)."""
+        return max(self.MIN_STEP_FRACTION * self.nominal_speed * dt, 1e-6)
+
+    def factor(self, ref: int, frame: int, step: Pose, covariance: np.ndarray,
+               dt: float) -> gtsam.NonlinearFactor | None:
         sigma = self.sigma(step, covariance)
         if sigma is None:
             return None
+        floor = self.min_length(dt)
         u = np.asarray(step.t, float) / float(np.linalg.norm(step.t))
         basis = np.linalg.svd(u.reshape(1, 3))[2][1:]          # (2, 3): orthonormal, across u
         keys = [pose_key(ref), pose_key(frame)]
@@ -241,7 +257,7 @@ class StepDirection:
             H1, H2, Ht = _jac(6, 6), _jac(6, 6), _jac(3, 6)
             rel = values.atPose3(keys[0]).between(values.atPose3(keys[1]), H1, H2)
             t = rel.translation(Ht)
-            length = max(float(np.linalg.norm(t)), self.MIN_LENGTH_M)
+            length = max(float(np.linalg.norm(t)), floor)
             d = t / length
             if H is not None:
                 J = basis @ ((np.eye(3) - np.outer(d, d)) / length) @ Ht      # d e / d rel (2 x 6)

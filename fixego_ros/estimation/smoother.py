@@ -163,7 +163,7 @@ class Smoother:
                                    self.TWIST_MIN_SPEED * c.nominal_speed)
         f = rig.camera('right').fx
         self.steps = TwoFrameStep(c.step_floor_px / f, c.nominal_speed, c.step_cauchy_k)
-        self.direction = StepDirection(c.step_cauchy_k)
+        self.direction = StepDirection(c.step_cauchy_k, c.nominal_speed)
         self.held_speed = HeldSpeed(self.HOLD_SPEED_SIGMA, c.nominal_speed)
         self.vergence = Vergence()
         self.speed_step = SpeedStep()
@@ -336,7 +336,8 @@ class Smoother:
             # mm) whose solved direction is biased, and it reuses its keyframe's rays (docs/results.md "Stop 32");
             # so has a step over shared tracks from the newest frame
             keyframe_step = obs.keyframe and stepped is obs
-            direction = self.direction.factor(ref.index, i, tf.pose, tf.covariance) if keyframe_step else None
+            direction = (self.direction.factor(ref.index, i, tf.pose, tf.covariance, obs.stamp - ref.stamp)
+                         if keyframe_step else None)
             if direction is not None:
                 up.graph.add(direction)
         self._add_speed(i, obs.stamp, ref, tf, up)
