@@ -17,7 +17,8 @@ from pathlib import Path
 import numpy as np
 
 MODULES = ['fixego_ros.bench.core', 'fixego_ros.bench.flow', 'fixego_ros.bench.render', 'fixego_ros.bench.servo',
-           'fixego_ros.bench.joints', 'fixego_ros.bench.replay', 'fixego_ros.bench.accuracy', 'fixego_ros.bench.live']
+           'fixego_ros.bench.joints', 'fixego_ros.bench.replay', 'fixego_ros.bench.accuracy', 'fixego_ros.bench.seeds',
+           'fixego_ros.bench.live']
 
 
 def main(argv: list[str] | None = None) -> int:

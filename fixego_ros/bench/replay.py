@@ -39,7 +39,8 @@ def _big_bag() -> Path:
     return _cache['big']
 
 
-def _replay(path: Path, workers: int):
+def replay_bag(path: Path, workers: int):
+    """What ``fixego replay BAG`` does with default settings."""
     from fixego_ros.bags.reader import Bag
     from fixego_ros.geometry.rig import load_rig
     from fixego_ros.replay.run import ReplaySettings, ReplayTopics, bag_defaults, replay
@@ -68,7 +69,7 @@ def run() -> dict[str, float]:
     big = _big_bag()
     for workers in (1, 2):
         t0 = time.perf_counter()
-        res = _replay(big, workers)
+        res = replay_bag(big, workers)
         wall = time.perf_counter() - t0
         key = f'throughput_640x480_30hz.workers{workers}'
         out[f'{key}.realtime_factor'] = THROUGHPUT_S / wall
@@ -77,7 +78,7 @@ def run() -> dict[str, float]:
             out[f'{key}.{stage}_ms_median'] = float(np.median(ms))
             out[f'{key}.{stage}_ms_mean'] = float(np.mean(ms))
     for spec in SHIPPED:
-        res = _replay(BAGS_DIR / spec.name, 2)
+        res = replay_bag(BAGS_DIR / spec.name, 2)
         out[f'{spec.name}.realtime_factor'] = res.realtime_factor
         for label, poses in (('refined', res.poses), ('raw', res.poses_raw)):
             trajectory_figures(out, f'{spec.name}.{label}', res.stamps, poses, res)
