@@ -293,13 +293,17 @@ def test_frames_whose_keyframe_predates_the_graph_step_from_the_newest_frame(loo
     assert turned < 0.05 and sm.restarts == 0
 
 
+def _old_direction_floor(monkeypatch) -> None:
+    """The step-direction factor's length floor before stop 52: 1 um (at the loop's 5.1 Hz and the nominal speed)."""
+    from fixego_ros.estimation.factors import StepDirection
+    monkeypatch.setattr(StepDirection, 'MIN_STEP_FRACTION', 1e-6 / (_config().smoother.nominal_speed * 0.196))
+
+
 def test_a_first_step_without_parallax_does_not_make_the_window_indeterminate(loop, monkeypatch):
     """A rig that starts off slowly: its first step (0.8 cm at 5.1 Hz) shows no parallax and is stationary, so the
     next frame is predicted at rest and its direction factor linearised at a zero-length step. Unfloored, that made
     the window indeterminate: five anchoring repairs here (a simulated paper loop restarted its graph and stood
     still for 0.6 s, docs/results.md "Stop 52")."""
-    from fixego_ros.estimation.factors import StepDirection
-
     first = loop.observations[1]
     still = {side: dataclasses.replace(first.camera(side), flow_curr=first.camera(side).flow_prev)
              for side in ('right', 'left')}
@@ -312,7 +316,7 @@ def test_a_first_step_without_parallax_does_not_make_the_window_indeterminate(lo
     sm, results = run()
     assert results[1].status is StepStatus.STATIONARY
     assert sm.repairs == 0 and sm.restarts == 0 and all(r.pose.is_finite() for r in results)
-    monkeypatch.setattr(StepDirection, 'MIN_STEP_FRACTION', 1e-6 / (0.5 * 0.196))     # the old 1 um floor
+    _old_direction_floor(monkeypatch)
     sm, _ = run()
     assert sm.repairs + sm.restarts > 0                    # measured 5 repairs
 
@@ -433,8 +437,7 @@ def test_a_restarted_graph_moves_on_at_the_speed_it_had(loop, monkeypatch):
     monkeypatch.setattr(Smoother, '_carried_motion', lambda self: None)    # a restart at rest, as before
     sm, est, true = _restart_at(loop, k, monkeypatch)
     assert _length(est[after]) / _length(true[after]) > 0.5       # measured 0.76: the direction floor (stop 52)
-    from fixego_ros.estimation.factors import StepDirection
-    monkeypatch.setattr(StepDirection, 'MIN_STEP_FRACTION', 1e-6 / (0.5 * 0.196))     # and the old 1 um floor
+    _old_direction_floor(monkeypatch)                               # and the old floor
     sm, est, true = _restart_at(loop, k, monkeypatch)
     assert _length(est[after]) / _length(true[after]) < 0.05      # measured 1e-7: standing still
 

@@ -30,7 +30,7 @@ import numpy as np
 from fixego_ros.geometry.rig import Rig
 from fixego_ros.geometry.rotation import Pose
 from fixego_ros.sim.render import project_points
-from fixego_ros.sim.servo_model import ServoParams, ServoState, quantized
+from fixego_ros.sim.servo_model import ServoParams, ServoState, quantized, reading_sigmas
 from fixego_ros.tracking.vergence import triangulate_fixation
 
 VERGENCE_MODES = ('off', 'physical', 'measurements')
@@ -129,8 +129,7 @@ def sample(rig: Rig, params: ServoParams, rig_pose: Pose, point: np.ndarray, ang
 
 def input_sigmas(params: ServoParams, pixel_sigma_px: float) -> tuple[np.ndarray, np.ndarray]:
     """(std of one quantised reading's error, std of one pixel's noise) over the 8 inputs of :func:`sample`."""
-    q = (np.radians([1.0 / params.pan_units_per_deg, 1.0 / params.tilt_units_per_deg]) / math.sqrt(12.0)
-         if params.quantize else np.zeros(2))
+    q = reading_sigmas(params)
     reading = np.array([q[0], q[1], 0.0, 0.0, q[0], q[1], 0.0, 0.0])
     pixel = np.array([0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 1.0, 1.0]) * pixel_sigma_px
     return reading, pixel
