@@ -62,6 +62,20 @@ def failed_variable(error: RuntimeError) -> int | None:
     return int(found.group(1)) if found else None
 
 
+def _at_its_point(factor: gtsam.LinearContainerFactor, theta: gtsam.Values) -> gtsam.LinearContainerFactor:
+    """A marginal factor as ISAM2 keeps it (linear, about the frozen linearisation point of its variables: ISAM2
+    never relinearises them) made to carry that point, so that a new ISAM2 may relinearise them. Copied as it is,
+    the new ISAM2 moved their linearisation point and the factor kept pulling the same delta: the window lost its
+    anchor and floated away (a recorded demo: every pose moved 1.1-1.3 m in one repair, docs/results.md "Stop 53")."""
+    point, keys = gtsam.Values(), factor.keys()
+    for k in keys:
+        if is_landmark(k):
+            point.insert(k, theta.atPoint3(k))
+        else:
+            point.insert(k, theta.atPose3(k))
+    return gtsam.LinearContainerFactor(factor.factor(), point)
+
+
 class FixedLagWindow:
     """Variables older than ``lag_s`` (by the stamp of their latest use) are marginalised out at each update."""
 
@@ -105,22 +119,32 @@ class FixedLagWindow:
             key = failed_variable(error)
             if key is None or not (is_landmark(key) or is_pose(key)):
                 raise error
-            drop, name = is_landmark(key), gtsam.Symbol(key).string()
+            name = gtsam.Symbol(key).string()
             factors, theta = self._isam.getFactorsUnsafe(), self._isam.getLinearizationPoint()
+            marginals = [factors.at(i) for i in range(factors.size())
+                         if isinstance(factors.at(i), gtsam.LinearContainerFactor)]
+            drop = is_landmark(key) and not any(key in list(m.keys()) for m in marginals)
             graph, pending = gtsam.NonlinearFactorGraph(), set(self._pending)
             for i in range(factors.size()):
                 factor = factors.at(i)
                 if factor is not None and i not in pending and not (drop and key in list(factor.keys())):
-                    graph.add(factor)
+                    graph.add(_at_its_point(factor, theta) if isinstance(factor, gtsam.LinearContainerFactor)
+                              else factor)
             if drop:
                 theta.erase(key)
                 self._stamps.pop(key, None)
                 self.repairs.append(f'dropped {name}')
             else:
                 rotation, position = self.REPAIR_SIGMAS       # 10x firmer each time the same variable fails again
-                sigmas = np.array([rotation] * 3 + [position] * 3) / 10.0 ** anchored[key]
+                scale = 10.0 ** anchored[key]
                 anchored[key] += 1
-                graph.add(gtsam.PriorFactorPose3(key, theta.atPose3(key), gtsam.noiseModel.Diagonal.Sigmas(sigmas)))
+                if is_landmark(key):
+                    prior = gtsam.PriorFactorPoint3(key, theta.atPoint3(key),
+                                                    gtsam.noiseModel.Isotropic.Sigma(3, position / scale))
+                else:
+                    prior = gtsam.PriorFactorPose3(key, theta.atPose3(key), gtsam.noiseModel.Diagonal.Sigmas(
+                        np.array([rotation] * 3 + [position] * 3) / scale))
+                graph.add(prior)
                 self.repairs.append(f'anchored {name}')
             stamps = {k: s for k, s in self._stamps.items() if theta.exists(k)}
             self._stamps, self._views, self._pending = {}, _NO_VIEWS, []
