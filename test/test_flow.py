@@ -26,7 +26,7 @@ from fixego_ros.sim.run import resize_rig
 from fixego_ros.sim.trajectories import AREA_CENTRE, TRIPOD_HEIGHT, attitude
 from fixego_ros.sim.world import make_room
 from fixego_ros.tracking.fixation import NO_FIXATION_ID
-from fixego_ros.tracking.flow import FlowParams, track_flow
+from fixego_ros.tracking.flow import FlowParams, aligned, detect_corners, track_flow, track_points, valid_box
 
 # what these tests were written against (the dataclass defaults before they became the node's): the flow window
 # around the fixation with up to 150 corners, between consecutive frames
@@ -348,3 +348,48 @@ def test_a_camera_without_fixation_reaches_the_estimator_input_without_one(small
     assert back.left.fixation_ray is None and back.left.fixation_id == NO_FIXATION_ID
     assert back.right.fixation_id == 1 and len(back.left.flow_prev) == len(o.left.flow_prev)
     assert sync.stats.no_fixation == 1 and sync.stats.fixation_timeouts == 0 and sync.stats.stereo_frames == 2
+
+
+def _zoomed(tex: np.ndarray, s: float) -> tuple[np.ndarray, np.ndarray]:
+    """The middle of ``tex`` magnified ``s`` times about the image centre, and the 2x3 map of texture pixels into it."""
+    c = np.array([(W - 1) / 2, (H - 1) / 2])
+    C = np.array([(tex.shape[1] - 1) / 2, (tex.shape[0] - 1) / 2])
+    A = np.column_stack([np.eye(2) * s, c - s * C])
+    return cv2.warpAffine(tex, A, (W, H), flags=cv2.INTER_LINEAR), A
+
+
+def test_tracks_do_not_drift_off_their_points_while_the_scene_comes_closer():
+    """20 frames, each 2 % closer (x1.49 in all), tracked frame to frame. LK fits a translation to a window whose
+    content grows about the point, and settles off it towards the window's texture, the same way each frame: the
+    plain chain ends ~1 px off. From the previous image warped by the points' affine motion it does not add up."""
+    tex = texture(3, (3 * H, 3 * W))
+    p = FlowParams()
+    first, A0 = _zoomed(tex, 1.0)
+    start = detect_corners(first, valid_box(first.shape, 40), 60, p)
+    on_texture = start - A0[:, 2]
+    errors = {}
+    for how in ('plain', 'aligned'):
+        pts, img, alive, s = start.copy(), first, np.ones(len(start), bool), 1.0
+        for _ in range(20):
+            s *= 1.02
+            nxt, A = _zoomed(tex, s)
+            if how == 'plain':
+                flow = track_points(img, nxt, pts, p, pts)
+            else:
+                warped, moved, landed = aligned(img, nxt, pts, p, pts)
+                flow = track_points(warped, nxt, moved, p, landed)
+            alive &= flow.ok
+            pts, img = flow.curr_px, nxt
+        assert alive.sum() >= 0.6 * len(start)
+        errors[how] = float(np.median(np.linalg.norm(pts - (on_texture * s + A[:, 2]), axis=1)[alive]))
+    assert errors['plain'] > 0.5            # the effect is there ...
+    assert errors['aligned'] < 0.15         # ... and gone
+
+
+def test_alignment_needs_enough_points_and_otherwise_changes_nothing(pair):
+    a, b = pair
+    pts = np.array([[100.0, 100.0], [150.0, 120.0], [200.0, 90.0]])
+    warped, moved, landed = aligned(a, b, pts, FlowParams(), pts + 1.0)
+    assert warped is a
+    np.testing.assert_array_equal(moved, pts)
+    np.testing.assert_array_equal(landed, pts + 1.0)

@@ -68,6 +68,7 @@ from fixego_ros.tracking.flow import (
     FlowParams,
     FlowTracks,
     PointFlow,
+    aligned,
     detect_corners,
     square_box,
     track_points,
@@ -388,7 +389,8 @@ class StereoFrontEnd:
             return None
         p = self.params
         guess = self._predict(side, tracks, now.pan, now.tilt, R_pred)
-        flow = track_points(last.gray, now.gray, tracks.px, p, guess)
+        warped, start, landed = aligned(last.gray, now.gray, tracks.px, p, guess)
+        flow = track_points(warped, now.gray, start, p, landed)
         if before is not None:
             if flow.counts.kept <= before.flow.counts.kept:
                 return replace(before, retry=True)

@@ -317,6 +317,58 @@ def track_points(prev: np.ndarray, curr: np.ndarray, pts: np.ndarray, p: FlowPar
     return PointFlow(q1, kept, counts)
 
 
+# :func:`aligned` - the affine of the points' motion: fitted from at least this many points, on a grid of this step
+ALIGN_MIN_POINTS = 8
+ALIGN_STEP = 1e-6
+
+
+def _fit_affine(a: np.ndarray, b: np.ndarray) -> np.ndarray | None:
+    """2x3 least-squares affine map of pixels ``a`` (N, 2) onto ``b``, once more without the pairs off it by over
+    1 px and three times the median; None with too few pairs."""
+    keep = np.ones(len(a), bool)
+    A = None
+    for _ in range(2):
+        if keep.sum() < ALIGN_MIN_POINTS:
+            return None
+        X = np.column_stack([a[keep], np.ones(int(keep.sum()))])
+        A = np.linalg.lstsq(X, b[keep], rcond=None)[0].T
+        r = np.linalg.norm(a @ A[:, :2].T + A[:, 2] - b, axis=1)
+        keep = r <= max(1.0, 3.0 * float(np.median(r[keep])))
+    return A
+
+
+def aligned(prev: np.ndarray, curr: np.ndarray, pts: np.ndarray, p: FlowParams, guess: np.ndarray | None = None
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """``prev`` warped onto ``curr`` by the affine that the points' motion fits, where ``pts`` lie in it, and where
+    they land in ``curr`` (the start for :func:`track_points` from there; ``guess`` where a point was not found).
+    The affine comes from one forward LK at half resolution (from ``guess``); without enough points, ``prev``,
+    ``pts`` and ``guess`` as they are.
+
+    Why: LK fits a translation to a window. When the scene comes closer the window's content grows about the point,
+    and LK settles off it, towards the window's texture, by a few hundredths of a pixel a frame, the same way for
+    the same point. Frame to frame those add up: on the simulator's 5.1 Hz loop, tracks were off their scene points
+    by 0.3 px after 8-16 frames and 0.6 px after more, and that bent the trajectory (docs/results.md "Stop 53").
+    Tracked from the warped image, the window's content has the size it has now, and the drift is 0.13 / 0.19 px."""
+    pts = np.asarray(pts, np.float64).reshape(-1, 2)
+    g = pts if guess is None else np.where(np.isfinite(guess), guess, pts).reshape(-1, 2)
+    if len(pts) < ALIGN_MIN_POINTS:
+        return prev, pts, guess
+    small_prev, small_curr = cv2.pyrDown(prev), cv2.pyrDown(curr)
+    lk = {'winSize': (p.lk_win, p.lk_win), 'maxLevel': max(p.lk_levels - 1, 0), 'criteria': _CRITERIA,
+          'flags': cv2.OPTFLOW_USE_INITIAL_FLOW}
+    p1, st, _ = cv2.calcOpticalFlowPyrLK(small_prev, small_curr, (pts / 2).astype(np.float32).reshape(-1, 1, 2),
+                                         (g / 2).astype(np.float32).reshape(-1, 1, 2), **lk)
+    found = 2.0 * p1.reshape(-1, 2).astype(np.float64)
+    ok = st.ravel().astype(bool) & np.all(np.isfinite(found), axis=1)
+    A = _fit_affine(pts[ok], found[ok])
+    if A is None or not np.all(np.isfinite(A)):
+        return prev, pts, guess
+    A = np.round(A / ALIGN_STEP) * ALIGN_STEP       # the BLAS kernel's last bits must not move the warp's rounding
+    h, w = prev.shape
+    warped = cv2.warpAffine(prev, A, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    return warped, pts @ A[:, :2].T + A[:, 2], np.where(ok[:, None], found, g)
+
+
 def _patches(img: np.ndarray, pts: np.ndarray, half: int) -> np.ndarray:
     """(N, (2h+1)^2) bilinear samples of ``img`` around sub-pixel points, all in one cv2.remap."""
     off = np.arange(-half, half + 1, dtype=np.float32)
