@@ -39,14 +39,15 @@ def _big_bag() -> Path:
     return _cache['big']
 
 
-def replay_bag(path: Path, workers: int):
-    """What ``fixego replay BAG`` does with default settings."""
+def replay_bag(path: Path, workers: int, observe=None):
+    """What ``fixego replay BAG`` does with default settings (``observe``: :func:`~fixego_ros.replay.run.replay`'s)."""
     from fixego_ros.bags.reader import Bag
     from fixego_ros.geometry.rig import load_rig
     from fixego_ros.replay.run import ReplaySettings, ReplayTopics, bag_defaults, replay
     rig = load_rig(path / 'rig.yaml')
     bag = Bag(path)      # the bag's own vergence measurements (and fixations), as ``fixego replay`` takes them
-    return replay(bag, rig, ReplaySettings.from_getters(rig, **bag_defaults(bag, ReplayTopics())), workers=workers)
+    return replay(bag, rig, ReplaySettings.from_getters(rig, **bag_defaults(bag, ReplayTopics())), workers=workers,
+                  observe=observe)
 
 
 def trajectory_figures(out: dict[str, float], key: str, stamps, poses, res) -> None:

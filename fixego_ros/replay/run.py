@@ -59,7 +59,7 @@ import numpy as np
 from fixego_ros.bags.reader import Bag, DecodeError
 from fixego_ros.estimation.backend import Backend, final_revisions, make_backend
 from fixego_ros.estimation.config import EstimatorConfig
-from fixego_ros.estimation.frames import STAMP_TOLERANCE_S
+from fixego_ros.estimation.frames import STAMP_TOLERANCE_S, FrameObservation
 from fixego_ros.geometry.rig import SIDES, Rig
 from fixego_ros.geometry.rotation import Pose, rig_pose_to_base_link
 from fixego_ros.interrupt import sigint_ignored
@@ -523,9 +523,11 @@ def intrinsics_from_bag(bag: Bag, rig: Rig, topics: ReplayTopics = ReplayTopics(
 
 
 def replay(bag: Bag, rig: Rig, settings: ReplaySettings, topics: ReplayTopics = ReplayTopics(),
-           progress: Callable[[int], None] | None = None, workers: int = 1) -> ReplayResult:
+           progress: Callable[[int], None] | None = None, workers: int = 1,
+           observe: Callable[[FrameObservation], FrameObservation] | None = None) -> ReplayResult:
     """Run the pipeline over ``bag``; ``progress(images_done)`` is called as it goes. ``workers=2`` runs
-    the estimator in a second process (same output, faster on two cores)."""
+    the estimator in a second process (same output, faster on two cores). ``observe`` sees each front-end
+    observation and returns what the estimator gets (diagnostics: :mod:`fixego_ros.bench.oracle`)."""
     speed_topic = settings.speed.topic
     recorded = settings.fixations is FixationSource.RECORDED
     check_topics(bag, topics, speed_topic, settings.vergence_topic, settings.fixations)
@@ -585,7 +587,7 @@ def replay(bag: Bag, rig: Rig, settings: ReplaySettings, topics: ReplayTopics = 
                    for side, c in frame.cameras.items()}
         obs = frontend.process(frame.stamp, samples)
         clock('flow', t0)
-        estimator.submit(frame.stamp, obs)
+        estimator.submit(frame.stamp, obs if observe is None else observe(obs))
         last_frame = frame.stamp
         res.counts['frames'] += 1
 

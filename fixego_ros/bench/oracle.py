@@ -1,0 +1,197 @@
+"""The simulator's truth against what the front end hands the estimator: a diagnostic of where the error comes from.
+
+A seed of the ``paper`` recipe (:mod:`fixego_ros.bench.seeds`) is simulated again for its true rig poses and head
+angles, and its bag replayed as ``fixego replay`` does, with each observation looked at before the estimator gets it:
+
+* **drift**: each track's (and fixation's) scene point is ray-cast into the room at its first sighting, through the
+  true head angles, and projected at every later frame; the angle to the front end's ray (through the true angles
+  too), in pixels, by the number of frames since the track began. Frame-to-frame LK drifted 0.6 px after 16 frames
+  (docs/results.md "Stop 53").
+* **exact rays**: the estimator gets those projections instead of the front end's rays, and the true head angles
+  instead of the readings: what the back end reaches on perfect observations of the same points.
+
+    python -m fixego_ros.bench.oracle [--seeds 1,2,3]
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from fixego_ros.estimation.frames import CameraFrame, FrameObservation
+from fixego_ros.geometry.rig import SIDES, Rig
+from fixego_ros.geometry.rotation import Pose
+from fixego_ros.sim.world import World
+
+AGES = ((1, 2), (2, 4), (4, 8), (8, 16), (16, 10**9))     # frames since the track began, [lo, hi)
+STAMP_DECIMALS = 4                                        # a bag stamp and a simulated one name the same frame
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+@dataclass
+class Truth:
+    """The simulated rig at each frame stamp: rig pose (world) and each head's true (pan, tilt)."""
+
+    rig: Rig
+    world: World
+    frames: dict[float, tuple[Pose, dict[str, tuple[float, float]]]]
+
+    def at(self, stamp: float) -> tuple[Pose, dict[str, tuple[float, float]]] | None:
+        return self.frames.get(round(stamp, STAMP_DECIMALS))
+
+
+def simulate(seed: int, out: Path) -> Truth:
+    """Write the ``paper`` recipe with ``seed`` to ``out`` and return its truth."""
+    from fixego_ros.bags.shipped import by_name
+    from fixego_ros.evaluation.tum import write_tum
+    from fixego_ros.geometry.rig import default_rig_path, load_rig
+    from fixego_ros.sim.bag_writer import write_bag
+    from fixego_ros.sim.run import Simulation, resize_rig
+    spec = by_name('paper')
+    settings = replace(spec.settings, seed=seed)
+    rig = resize_rig(load_rig(default_rig_path()), spec.width, spec.height)
+    frames = {round(settings.epoch + f.t, STAMP_DECIMALS): (f.rig_pose, {s: (st.pan, st.tilt) for s, st in
+                                                                         f.states.items()})
+              for f in Simulation(rig, settings).frames()}
+    sim = Simulation(rig, settings)
+    write_bag(out, rig, settings, progress=False, sim=sim)
+    write_tum(out / 'ground_truth.tum', [settings.epoch + t for t in sim.stamps], sim.ground_truth())
+    return Truth(rig, sim.world, frames)
+
+
+@dataclass
+class Oracle:
+    """``observe`` hook of :func:`~fixego_ros.replay.run.replay`: records each ray's drift; with ``exact`` hands
+    on the true projections (and the true head angles) instead."""
+
+    truth: Truth
+    exact: bool = False
+    points: dict[tuple, np.ndarray | None] = field(default_factory=dict)   # (side, kind, id) -> world point
+    seen: dict[tuple, int] = field(default_factory=dict)                   # ... -> frames seen before
+    drift: list[tuple[int, float]] = field(default_factory=list)          # (frames since the first, px)
+    readings: dict[tuple[float, str], np.ndarray] = field(default_factory=dict)   # each frame's cam_to_rig
+
+    def __call__(self, obs: FrameObservation) -> FrameObservation:
+        if self.truth.at(obs.stamp) is None:
+            return obs
+        cams = {side: self._camera(side, obs.camera(side), obs.stamp, obs.prev_stamp) for side in SIDES}
+        return replace(obs, right=cams['right'], left=cams['left']) if self.exact else obs
+
+    def _seen(self, side: str, stamp: float, cam_to_rig: np.ndarray, rays: np.ndarray) -> np.ndarray:
+        """``rays`` (rig frame, through ``cam_to_rig``: the readings) through the true head angles instead."""
+        _, angles = self.truth.at(stamp)
+        return _unit(rays @ cam_to_rig @ self.truth.rig.cam_to_rig(side, *angles[side]).T)
+
+    def _exact(self, side: str, stamp: float, point: np.ndarray) -> np.ndarray:
+        pose, _ = self.truth.at(stamp)
+        return _unit(pose.R.T @ (point - pose.t) - self.truth.rig.center(side))
+
+    def _camera(self, side: str, cam: CameraFrame | None, stamp: float, key_stamp: float | None
+                ) -> CameraFrame | None:
+        _, angles = self.truth.at(stamp)
+        if cam is None or side not in angles:
+            return cam
+        rig = self.truth.rig
+        self.readings[(round(stamp, STAMP_DECIMALS), side)] = cam.cam_to_rig
+        track_rays = np.asarray(cam.track_rays, float).reshape(-1, 3)
+        keys = [(side, 'track', int(i)) for i in cam.track_ids]
+        rays = list(track_rays)
+        fix = cam.fixation_ray
+        if fix is not None and np.all(np.isfinite(fix)):
+            keys.append((side, 'fixation', int(cam.fixation_id)))
+            rays.append(np.asarray(fix, float))
+        exact: dict[tuple, np.ndarray] = {}
+        if rays:
+            for key, seen in zip(keys, self._seen(side, stamp, cam.cam_to_rig, np.array(rays)), strict=True):
+                point = self._point(key, side, stamp, seen)
+                if point is None:
+                    continue
+                exact[key] = self._exact(side, stamp, point)
+                age = self.seen[key] = self.seen.get(key, -1) + 1
+                if age:
+                    self.drift.append((age, float(np.linalg.norm(np.cross(exact[key], seen))) * rig.camera(side).fx))
+        if not self.exact:
+            return cam
+        tracks = np.array([exact.get(k, r) for k, r in zip(keys, track_rays, strict=False)]).reshape(-1, 3)
+        fixation = exact.get((side, 'fixation', int(cam.fixation_id)), fix)
+        prev, curr = self._pairs(side, cam, stamp, key_stamp)
+        return replace(cam, cam_to_rig=rig.cam_to_rig(side, *angles[side]), track_rays=tracks, fixation_ray=fixation,
+                       flow_prev=prev, flow_curr=curr)
+
+    def _pairs(self, side: str, cam: CameraFrame, stamp: float, key_stamp: float | None
+               ) -> tuple[np.ndarray, np.ndarray]:
+        """The flow pairs keyframe -> now, exact: each pair's point ray-cast at the keyframe, projected at both."""
+        a = np.asarray(cam.flow_prev, float).reshape(-1, 3)
+        reading = self.readings.get((round(key_stamp, STAMP_DECIMALS), side)) if key_stamp is not None else None
+        if not len(a) or reading is None or self.truth.at(key_stamp) is None:
+            return np.zeros((0, 3)), np.zeros((0, 3))
+        prev, curr = [], []
+        for seen in self._seen(side, key_stamp, reading, a):
+            point = self._cast(side, key_stamp, seen)
+            if point is not None:
+                prev.append(self._exact(side, key_stamp, point))
+                curr.append(self._exact(side, stamp, point))
+        return np.array(prev).reshape(-1, 3), np.array(curr).reshape(-1, 3)
+
+    def _cast(self, side: str, stamp: float, ray_rig: np.ndarray) -> np.ndarray | None:
+        """Where ``ray_rig`` (rig frame at ``stamp``, true) from the camera centre meets the room."""
+        pose, _ = self.truth.at(stamp)
+        origin, direction = pose.apply(self.truth.rig.center(side)), pose.R @ ray_rig
+        distance, _ = self.truth.world.raycast(origin, direction)
+        return origin + distance * direction if np.isfinite(distance) else None
+
+    def _point(self, key: tuple, side: str, stamp: float, ray_rig: np.ndarray) -> np.ndarray | None:
+        if key not in self.points:
+            self.points[key] = self._cast(side, stamp, ray_rig)
+        return self.points[key]
+
+    def drift_table(self) -> dict[str, float]:
+        """Median and p90 drift (px) by :data:`AGES`."""
+        out: dict[str, float] = {}
+        if not self.drift:
+            return out
+        age, px = np.array(self.drift).T
+        for lo, hi in AGES:
+            m = (age >= lo) & (age < hi)
+            if m.any():
+                name = f'{lo}+' if hi > 10**6 else f'{lo}-{hi - 1}'
+                out[f'drift_px.{name}.median'] = float(np.median(px[m]))
+                out[f'drift_px.{name}.p90'] = float(np.percentile(px[m], 90))
+        return out
+
+
+def run_seed(seed: int) -> dict[str, float]:
+    """Drift of the front end's rays, and the trajectory figures with its rays and with exact ones."""
+    from fixego_ros.bench.replay import replay_bag, trajectory_figures
+    out: dict[str, float] = {}
+    with tempfile.TemporaryDirectory(prefix='fixego-oracle-') as tmp:
+        path = Path(tmp) / f'paper_{seed}'
+        truth = simulate(seed, path)
+        for exact in (False, True):
+            oracle = Oracle(truth, exact)
+            res = replay_bag(path, 1, observe=oracle)
+            trajectory_figures(out, 'exact' if exact else 'front_end', res.stamps, res.poses, res)
+            if not exact:
+                out.update(oracle.drift_table())
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog='python -m fixego_ros.bench.oracle', description=__doc__.split('\n')[0])
+    ap.add_argument('--seeds', default='1', help='comma-separated seeds of the paper recipe')
+    args = ap.parse_args(argv)
+    for seed in (int(s) for s in args.seeds.split(',')):
+        for k, v in run_seed(seed).items():
+            print(f'seed {seed} {k:36s} {v:8.3f}')
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())
