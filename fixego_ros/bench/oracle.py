@@ -48,21 +48,19 @@ class Truth:
 
 
 def simulate(seed: int, out: Path) -> Truth:
-    """Write the ``paper`` recipe with ``seed`` to ``out`` and return its truth."""
-    from fixego_ros.bags.shipped import by_name
-    from fixego_ros.evaluation.tum import write_tum
+    """Write the ``paper`` recipe with ``seed`` to ``out`` (as :mod:`.seeds` does) and return its truth. The truth
+    comes from a second run of the same seeded simulation: the bag writer keeps no head angles."""
+    from fixego_ros.bags.shipped import generate
+    from fixego_ros.bench.seeds import paper_spec
     from fixego_ros.geometry.rig import default_rig_path, load_rig
-    from fixego_ros.sim.bag_writer import write_bag
     from fixego_ros.sim.run import Simulation, resize_rig
-    spec = by_name('paper')
-    settings = replace(spec.settings, seed=seed)
+    spec = paper_spec(seed)
+    generate(spec, out)
     rig = resize_rig(load_rig(default_rig_path()), spec.width, spec.height)
-    frames = {round(settings.epoch + f.t, STAMP_DECIMALS): (f.rig_pose, {s: (st.pan, st.tilt) for s, st in
-                                                                         f.states.items()})
-              for f in Simulation(rig, settings).frames()}
-    sim = Simulation(rig, settings)
-    write_bag(out, rig, settings, progress=False, sim=sim)
-    write_tum(out / 'ground_truth.tum', [settings.epoch + t for t in sim.stamps], sim.ground_truth())
+    sim = Simulation(rig, spec.settings)
+    frames = {round(spec.settings.epoch + f.t, STAMP_DECIMALS): (f.rig_pose, {s: (st.pan, st.tilt) for s, st in
+                                                                              f.states.items()})
+              for f in sim.frames()}
     return Truth(rig, sim.world, frames)
 
 

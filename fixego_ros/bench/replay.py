@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -39,7 +40,7 @@ def _big_bag() -> Path:
     return _cache['big']
 
 
-def replay_bag(path: Path, workers: int, observe=None):
+def replay_bag(path: Path, workers: int, observe: Callable | None = None):
     """What ``fixego replay BAG`` does with default settings (``observe``: :func:`~fixego_ros.replay.run.replay`'s)."""
     from fixego_ros.bags.reader import Bag
     from fixego_ros.geometry.rig import load_rig

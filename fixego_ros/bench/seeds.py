@@ -30,15 +30,20 @@ FIGURES = ('mean_error_cm', 'terminal_error_cm', 'ate_sim3_cm', 'path_length_rat
 _results: dict[str, float] | None = None
 
 
+def paper_spec(seed: int):
+    """The shipped ``paper`` recipe with another simulator seed (a :class:`~fixego_ros.bags.shipped.ShippedBag`)."""
+    from fixego_ros.bags.shipped import by_name
+    spec = by_name('paper')
+    return replace(spec, settings=replace(spec.settings, seed=seed))
+
+
 def one_seed(seed: int) -> dict[str, float]:
     """Write the ``paper`` recipe with ``seed`` into a temporary folder and replay it; the trajectory figures."""
-    from fixego_ros.bags.shipped import by_name, generate
+    from fixego_ros.bags.shipped import generate
     from fixego_ros.bench.replay import replay_bag, trajectory_figures
-    spec = by_name('paper')
-    spec = replace(spec, settings=replace(spec.settings, seed=seed))
     with tempfile.TemporaryDirectory(prefix='fixego-seeds-') as tmp:
         path = Path(tmp) / f'paper_{seed}'
-        generate(spec, path)
+        generate(paper_spec(seed), path)
         res = replay_bag(path, 1)
     out: dict[str, float] = {}
     trajectory_figures(out, 'refined', res.stamps, res.poses, res)

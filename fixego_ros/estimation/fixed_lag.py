@@ -121,13 +121,13 @@ class FixedLagWindow:
                 raise error
             name = gtsam.Symbol(key).string()
             factors, theta = self._isam.getFactorsUnsafe(), self._isam.getLinearizationPoint()
-            marginals = [factors.at(i) for i in range(factors.size())
-                         if isinstance(factors.at(i), gtsam.LinearContainerFactor)]
+            pending = set(self._pending)
+            kept = [f for f in (factors.at(i) for i in range(factors.size()) if i not in pending) if f is not None]
+            marginals = [f for f in kept if isinstance(f, gtsam.LinearContainerFactor)]
             drop = is_landmark(key) and not any(key in list(m.keys()) for m in marginals)
-            graph, pending = gtsam.NonlinearFactorGraph(), set(self._pending)
-            for i in range(factors.size()):
-                factor = factors.at(i)
-                if factor is not None and i not in pending and not (drop and key in list(factor.keys())):
+            graph = gtsam.NonlinearFactorGraph()
+            for factor in kept:
+                if not (drop and key in list(factor.keys())):
                     graph.add(_at_its_point(factor, theta) if isinstance(factor, gtsam.LinearContainerFactor)
                               else factor)
             if drop:

@@ -348,7 +348,7 @@ def aligned(prev: np.ndarray, curr: np.ndarray, pts: np.ndarray, p: FlowParams, 
     and LK settles off it, towards the window's texture, by a few hundredths of a pixel a frame, the same way for
     the same point. Frame to frame those add up: on the simulator's 5.1 Hz loop, tracks were off their scene points
     by 0.3 px after 8-16 frames and 0.6 px after more, and that bent the trajectory (docs/results.md "Stop 53").
-    Tracked from the warped image, the window's content has the size it has now, and the drift is 0.13 / 0.19 px."""
+    Tracked from the warped image, the window's content has the size it has now, and the drift is 0.12 / 0.20 px."""
     pts = np.asarray(pts, np.float64).reshape(-1, 2)
     g = pts if guess is None else np.where(np.isfinite(guess), guess, pts).reshape(-1, 2)
     if len(pts) < ALIGN_MIN_POINTS:
