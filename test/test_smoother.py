@@ -427,19 +427,18 @@ def test_a_restarted_graph_moves_on_at_the_speed_it_had(loop, monkeypatch):
     """Stop 35. A numerical failure starts a new graph; it used to begin at rest (its first step had a prior of zero
     motion), no landmark then had the parallax to enter and hold the scale, and the graph stayed at rest while the
     rig moved on (a recorded live run: 10 s standing still, 114 cm mean). It now starts with the old graph's
-    motion. Here the rig gets no vergence measurement after the failure at frame 30 (6 s in). Since stop 52 a graph
-    restarted at rest moves off as well, if slower: what held it was the step-direction factor at zero length."""
+    motion. Here the rig gets no vergence measurement after the failure at frame 30 (6 s in): 0.895 of the true
+    length over the next 14 frames under every OpenBLAS kernel.
+
+    Not asserted: what a graph restarted at rest does. It is bistable, and the kernel's last bits pick the branch
+    (stop 54, on an AVX-512 machine: 0.76 of the true length with the default kernel and SkylakeX, 0.005 under
+    Prescott, 0.03 under Haswell and Zen; with the step direction's floor before stop 52, 0.004, 3e-6 and 0.44). That
+    is why a restart carries the old graph's motion."""
     k = 30
     sm, est, true = _restart_at(loop, k, monkeypatch)
     after = slice(k + 1, k + 15)
     ratio = _length(est[after]) / _length(true[after])
-    assert sm.restarts == 1 and 0.6 < ratio < 1.4                  # measured 0.85
-    monkeypatch.setattr(Smoother, '_carried_motion', lambda self: None)    # a restart at rest, as before
-    sm, est, true = _restart_at(loop, k, monkeypatch)
-    assert _length(est[after]) / _length(true[after]) > 0.5       # measured 0.76: the direction floor (stop 52)
-    _old_direction_floor(monkeypatch)                               # and the old floor
-    sm, est, true = _restart_at(loop, k, monkeypatch)
-    assert _length(est[after]) / _length(true[after]) < 0.05      # measured 1e-7: standing still
+    assert sm.restarts == 1 and 0.8 < ratio < 1.0                  # measured 0.895
 
 
 def _swung(obs: FrameObservation, k: int, rng: np.random.Generator, prev: dict[str, np.ndarray],
