@@ -23,16 +23,12 @@ from pathlib import Path
 import numpy as np
 
 from fixego_ros.estimation.frames import CameraFrame, FrameObservation
-from fixego_ros.geometry.rig import SIDES, Rig
+from fixego_ros.geometry.rig import SIDES, Rig, normalize_rays
 from fixego_ros.geometry.rotation import Pose
 from fixego_ros.sim.world import World
 
 AGES = ((1, 2), (2, 4), (4, 8), (8, 16), (16, 10**9))     # frames since the track began, [lo, hi)
 STAMP_DECIMALS = 4                                        # a bag stamp and a simulated one name the same frame
-
-
-def _unit(v: np.ndarray) -> np.ndarray:
-    return v / np.linalg.norm(v, axis=-1, keepdims=True)
 
 
 @dataclass
@@ -85,11 +81,11 @@ class Oracle:
     def _seen(self, side: str, stamp: float, cam_to_rig: np.ndarray, rays: np.ndarray) -> np.ndarray:
         """``rays`` (rig frame, through ``cam_to_rig``: the readings) through the true head angles instead."""
         _, angles = self.truth.at(stamp)
-        return _unit(rays @ cam_to_rig @ self.truth.rig.cam_to_rig(side, *angles[side]).T)
+        return normalize_rays(rays @ cam_to_rig @ self.truth.rig.cam_to_rig(side, *angles[side]).T)
 
     def _exact(self, side: str, stamp: float, point: np.ndarray) -> np.ndarray:
         pose, _ = self.truth.at(stamp)
-        return _unit(pose.R.T @ (point - pose.t) - self.truth.rig.center(side))
+        return normalize_rays(pose.R.T @ (point - pose.t) - self.truth.rig.center(side))
 
     def _camera(self, side: str, cam: CameraFrame | None, stamp: float, key_stamp: float | None
                 ) -> CameraFrame | None:
