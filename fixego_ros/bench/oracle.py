@@ -9,8 +9,10 @@ angles, and its bag replayed as ``fixego replay`` does, with each observation lo
   (docs/results.md "Stop 53").
 * **exact rays**: the estimator gets those projections instead of the front end's rays, and the true head angles
   instead of the readings: what the back end reaches on perfect observations of the same points.
+* **exact rays + noise** (``--noise-px``): the same with white noise of that many pixels per axis on every ray (a
+  fixed random seed): how the back end degrades on small, unbiased errors (docs/results.md "Stop 55").
 
-    python -m fixego_ros.bench.oracle [--seeds 1,2,3]
+    python -m fixego_ros.bench.oracle [--seeds 1,2,3] [--noise-px 0.15]
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fixego_ros.bench.jitter import jittered
 from fixego_ros.estimation.frames import CameraFrame, FrameObservation
 from fixego_ros.geometry.rig import SIDES, Rig, normalize_rays
 from fixego_ros.geometry.rotation import Pose
@@ -67,6 +70,8 @@ class Oracle:
 
     truth: Truth
     exact: bool = False
+    noise_px: float = 0.0        # with ``exact``: white noise (px per axis) on each ray handed on
+    rng: np.random.Generator = field(default_factory=lambda: np.random.default_rng(0))
     points: dict[tuple, np.ndarray | None] = field(default_factory=dict)   # (side, kind, id) -> world point
     seen: dict[tuple, int] = field(default_factory=dict)                   # ... -> frames seen before
     drift: list[tuple[int, float]] = field(default_factory=list)          # (frames since the first, px)
@@ -113,11 +118,17 @@ class Oracle:
                     self.drift.append((age, float(np.linalg.norm(np.cross(exact[key], seen))) * rig.camera(side).fx))
         if not self.exact:
             return cam
-        tracks = np.array([exact.get(k, r) for k, r in zip(keys, track_rays, strict=False)]).reshape(-1, 3)
+        tracks = self._noisy(side, np.array([exact.get(k, r) for k, r in zip(keys, track_rays, strict=False)]))
         fixation = exact.get((side, 'fixation', int(cam.fixation_id)), fix)
-        prev, curr = self._pairs(side, cam, stamp, key_stamp)
+        if fixation is not None and np.all(np.isfinite(fixation)):
+            fixation = self._noisy(side, np.asarray(fixation, float))[0]
+        prev, curr = (self._noisy(side, a) for a in self._pairs(side, cam, stamp, key_stamp))
         return replace(cam, cam_to_rig=rig.cam_to_rig(side, *angles[side]), track_rays=tracks, fixation_ray=fixation,
                        flow_prev=prev, flow_curr=curr)
+
+    def _noisy(self, side: str, rays: np.ndarray) -> np.ndarray:
+        """``rays`` (N, 3) with ``noise_px`` of white noise per axis; as they are without noise."""
+        return jittered(rays, self.noise_px / self.truth.rig.camera(side).fx, self.rng)
 
     def _pairs(self, side: str, cam: CameraFrame, stamp: float, key_stamp: float | None
                ) -> tuple[np.ndarray, np.ndarray]:
@@ -161,17 +172,21 @@ class Oracle:
         return out
 
 
-def run_seed(seed: int) -> dict[str, float]:
-    """Drift of the front end's rays, and the trajectory figures with its rays and with exact ones."""
+def run_seed(seed: int, noise_px: float = 0.0) -> dict[str, float]:
+    """Drift of the front end's rays, and the trajectory figures with its rays, with exact ones and (``noise_px``
+    > 0) with exact ones plus that much white noise."""
     from fixego_ros.bench.replay import replay_bag, trajectory_figures
     out: dict[str, float] = {}
+    runs = [('front_end', False, 0.0), ('exact', True, 0.0)]
+    if noise_px > 0:
+        runs.append((f'exact_noise_{noise_px:g}px', True, noise_px))
     with tempfile.TemporaryDirectory(prefix='fixego-oracle-') as tmp:
         path = Path(tmp) / f'paper_{seed}'
         truth = simulate(seed, path)
-        for exact in (False, True):
-            oracle = Oracle(truth, exact)
+        for name, exact, noise in runs:
+            oracle = Oracle(truth, exact, noise)
             res = replay_bag(path, 1, observe=oracle)
-            trajectory_figures(out, 'exact' if exact else 'front_end', res.stamps, res.poses, res)
+            trajectory_figures(out, name, res.stamps, res.poses, res)
             if not exact:
                 out.update(oracle.drift_table())
     return out
@@ -180,9 +195,13 @@ def run_seed(seed: int) -> dict[str, float]:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog='python -m fixego_ros.bench.oracle', description=__doc__.split('\n')[0])
     ap.add_argument('--seeds', default='1', help='comma-separated seeds of the paper recipe')
+    ap.add_argument('--noise-px', type=float, default=0.0,
+                    help='also run exact rays with this much white noise (px per axis; 0: not)')
     args = ap.parse_args(argv)
+    if not (np.isfinite(args.noise_px) and args.noise_px >= 0):
+        ap.error('--noise-px must be finite and >= 0')
     for seed in (int(s) for s in args.seeds.split(',')):
-        for k, v in run_seed(seed).items():
+        for k, v in run_seed(seed, args.noise_px).items():
             print(f'seed {seed} {k:36s} {v:8.3f}')
     return 0
 
