@@ -6,9 +6,16 @@ import gtsam
 import numpy as np
 import pytest
 
-from fixego_ros.estimation.factors import ConstantTwist, HeldSpeed, StepDirection, TwoFrameStep
+from fixego_ros.estimation.factors import (
+    ConstantTwist,
+    ForwardMotion,
+    HeldSpeed,
+    ScaleGauge,
+    StepDirection,
+    TwoFrameStep,
+)
 from fixego_ros.estimation.keys import pose_key
-from fixego_ros.geometry.rotation import Pose
+from fixego_ros.geometry.rotation import Pose, exp_so3
 
 TWIST = ConstantTwist(rotation_sigma=0.1, translation_sigma=0.05, speed_sigma=0.3, min_speed=0.05)
 
@@ -156,6 +163,43 @@ def test_step_direction_stays_gentle_at_a_step_of_no_length():
     assert np.linalg.norm(factor.unwhitenedError(values)) == pytest.approx(1e-6 / floor, rel=1e-3)
     above = _pair(np.random.default_rng(6), np.array([0.0, 0.3, 0.3]))         # above the floor: the angle, 45 deg
     assert np.linalg.norm(factor.unwhitenedError(above)) == pytest.approx(np.sin(np.pi / 4), rel=1e-6)
+
+
+def test_forward_motion_leaves_a_step_along_the_heading_free_and_charges_a_sideways_one():
+    """The motion model: along the rig's forward axis (z) any length is free; on an arc the chord, which lies along
+    the heading half way through the turn, is free too; a step turned away from it costs its angle."""
+    forward = ForwardMotion(np.radians(5.0), StepDirection(cauchy_k=1.0, nominal_speed=0.5))
+    rng = np.random.default_rng(8)
+    straight = forward.factor(0, 1, np.zeros(3), dt=0.2)
+    for length in (0.02, 0.1, 1.0):
+        assert np.linalg.norm(straight.unwhitenedError(_pair(rng, np.array([0.0, 0.0, length])))) < 1e-9
+    sideways = _pair(rng, 0.1 * np.array([np.sin(0.2), 0.0, np.cos(0.2)]))
+    assert np.linalg.norm(straight.unwhitenedError(sideways)) == pytest.approx(np.sin(0.2), rel=1e-6)
+    # an arc turning 0.3 rad about the vertical (rig y): the chord points 0.15 rad off the first heading
+    turn = np.array([0.0, 0.3, 0.0])
+    chord = 0.1 * (exp_so3(turn / 2) @ np.array([0.0, 0.0, 1.0]))
+    arc = forward.factor(0, 1, turn, dt=0.2)
+    assert np.linalg.norm(arc.unwhitenedError(_pair(rng, chord))) < 1e-9
+    assert np.linalg.norm(straight.unwhitenedError(_pair(rng, chord))) == pytest.approx(np.sin(0.15), rel=1e-6)
+    assert forward.heading(turn) == pytest.approx(chord / 0.1)
+
+
+def test_scale_gauge_holds_the_nominal_length_in_log_space():
+    """Before a scale aid: the nominal step is free, a factor e either way costs one sigma, and a shrink towards
+    rest costs ever more (1 % costs ln 100 sigmas: a linear 100 % prior charged it one), finitely at zero length."""
+    gauge = ScaleGauge(sigma=1.4, nominal_speed=0.5)
+    factor = gauge.factor(0, 1, dt=0.2)                           # nominal 0.1 m
+    rng = np.random.default_rng(9)
+    for direction in rng.normal(size=(3, 3)):
+        values = _pair(rng, 0.1 * direction / np.linalg.norm(direction))
+        assert abs(factor.unwhitenedError(values)[0]) < 1e-9
+    assert factor.unwhitenedError(_pair(rng, np.array([0.0, 0.0, 0.1 * np.e])))[0] == pytest.approx(1.0)
+    assert factor.unwhitenedError(_pair(rng, np.array([0.0, 0.0, 0.001])))[0] == pytest.approx(-np.log(100.0))
+    at_rest = factor.unwhitenedError(_pair(rng, np.zeros(3)))[0]
+    assert at_rest == pytest.approx(np.log(ScaleGauge.MIN_FRACTION))
+    values = _pair(np.random.default_rng(10), np.array([0.02, -0.01, 0.06]))
+    A, _ = factor.linearize(values).jacobian()
+    np.testing.assert_allclose(A, _numeric_jacobian(factor, values, 1.4, poses=2), atol=1e-5)
 
 
 def test_held_speed_jacobian_matches_central_differences():

@@ -76,14 +76,14 @@ def _length(x: np.ndarray) -> float:
 
 
 def test_vergence_measurements_make_the_loop_metric(loop):
-    """The path length comes out near right (the scale is measured). The shape on this point-level scene is the
-    known weak case (README "Back end": ~18 cm mean after 12 s, against 2 cm on the shipped paper bag), so the
-    position bound here is generous. The length was within 3 % until stop 31; the step-direction factor and the
-    looser speed floor that fixed the live starts from rest leave it at x0.87 here (docs/results.md "Stop 31")."""
+    """The path length comes out near right (the scale is measured). The shape on this point-level scene was the
+    known weak case, ~18 cm mean after 12 s (a yaw of the rig looks like a sideways translation to both narrow
+    cameras); the forward-motion prior pins that mode: 3.0 cm, length x0.95 (x0.91 without it; docs/results.md
+    "Stop 55")."""
     results, est, true = _replay(Smoother(RIG, _config()), loop)
     err = np.linalg.norm(est - true, axis=1)
-    assert err.mean() < 0.3, err.mean()
-    assert abs(_length(est) / _length(true) - 1.0) < 0.2
+    assert err.mean() < 0.1, err.mean()
+    assert abs(_length(est) / _length(true) - 1.0) < 0.1
     assert all(np.all(np.isfinite(r.pose_covariance)) for r in results)
     assert results[-1].scale_observed and 'vergence' in results[-1].scale_note
     assert results[0].status is StepStatus.INIT and all(r.placed for r in results)
@@ -91,15 +91,16 @@ def test_vergence_measurements_make_the_loop_metric(loop):
 
 def test_without_an_aid_the_scale_is_unobserved_and_said_so(loop):
     """The nominal speed sets the gauge: the path follows the nominal length, not the true one, and the results say
-    the scale is unobserved, with a position covariance to match. (Since stop 31's step-direction factor the gauge
-    comes out ~1.9x the nominal length on this scene, 1.05x before: the length is a gauge either way.)"""
+    the scale is unobserved, with a position covariance to match. (The length is a gauge: 1.05x the nominal on this
+    scene before stop 31's step-direction factor, ~1.9x after it, 0.65x with stop 55's forward-motion prior, whose
+    log-space length gauge keeps it from shrinking further: 0.23x without.)"""
     results, est, true = _replay(Smoother(RIG, _config(nominal_speed=1.0)), loop, vergence=False)
     assert not any(r.scale_observed for r in results)
     assert 'unobserved' in results[-1].scale_note
     assert results[-1].pose_covariance[3, 3] > 1.0
     duration = loop.stamps[-1] - loop.stamps[0]
     assert _length(est) > 1.5 * _length(true)              # the true speed is ~0.3 m/s, the nominal 1 m/s
-    assert 0.7 * duration < _length(est) < 2.5 * duration     # the nominal length's order, whatever the truth
+    assert 0.5 * duration < _length(est) < 2.5 * duration     # the nominal length's order, whatever the truth
 
 
 def test_a_speed_source_makes_the_loop_metric(loop):
@@ -309,15 +310,18 @@ def test_a_first_step_without_parallax_does_not_make_the_window_indeterminate(lo
              for side in ('right', 'left')}
     frames = [loop.observations[0], dataclasses.replace(first, **still), *loop.observations[2:10]]
 
-    def run() -> tuple[Smoother, list]:
-        sm = Smoother(RIG, _config())
+    def run(**smoother) -> tuple[Smoother, list]:
+        sm = Smoother(RIG, _config(**smoother))
         return sm, [sm.update(obs) for obs in frames]
 
     sm, results = run()
     assert results[1].status is StepStatus.STATIONARY
     assert sm.repairs == 0 and sm.restarts == 0 and all(r.pose.is_finite() for r in results)
     _old_direction_floor(monkeypatch)
-    sm, _ = run()
+    # (stop 55's forward-motion prior and log-space length gauge each keep this window determinate too: the old
+    # floor is shown without them)
+    monkeypatch.setattr(Smoother, 'SCALE_GAUGE_SIGMA', 1e9)
+    sm, _ = run(forward_sigma_deg=0.0)
     assert sm.repairs + sm.restarts > 0                    # measured 5 repairs
 
 
@@ -459,10 +463,10 @@ def _swung(obs: FrameObservation, k: int, rng: np.random.Generator, prev: dict[s
     return dataclasses.replace(obs, right=cams['right'], left=cams['left'])
 
 
-def _gap_length_ratio(loop, gap: range) -> float:
+def _gap_length_ratio(loop, gap: range, **smoother) -> float:
     """The loop with vergence measurements, both heads swinging back over the frames of ``gap``: estimated over true
     path length across the gap."""
-    sm = Smoother(RIG, _config())
+    sm = Smoother(RIG, _config(**smoother))
     rng, noise = np.random.default_rng(3), np.random.default_rng(13)
     prev: dict[str, np.ndarray] = {}
     path: dict[float, np.ndarray] = {}
@@ -490,7 +494,10 @@ def test_frames_no_landmark_places_keep_the_speed_the_landmarks_measured(loop, m
     gap = range(25, 45)
     assert 0.6 < _gap_length_ratio(loop, gap) < 1.4                        # measured 0.86
     monkeypatch.setattr(Smoother, '_hold_speed', lambda self, i, stamp, up: None)
-    assert _gap_length_ratio(loop, gap) < 0.5                               # measured 0.21: the speed decays
+    # the forward-motion prior (stop 55) alone also holds it here (0.98): HeldSpeed is shown without it, and without
+    # the log-space gauge, which a graph whose landmarks never placed a frame (this stand-in records none) keeps
+    monkeypatch.setattr(Smoother, 'SCALE_GAUGE_SIGMA', 1e9)
+    assert _gap_length_ratio(loop, gap, forward_sigma_deg=0.0) < 0.5       # measured 0.21: the speed decays
 
 
 def _blind_gap(loop, gap: range) -> tuple[list, np.ndarray, np.ndarray]:

@@ -7,8 +7,11 @@ coplanarity solve from its keyframe as a between factor (:class:`.factors.TwoFra
 length at a nominal speed with a 100 % sigma until a scale aid has been used, then 10x weaker), a constant-twist
 prior over three frames (:class:`.factors.ConstantTwist`; once the scale is measured its speed change is relative,
 so it does not pull the scale), and whatever scale aid there is: a vergence measurement on the right fixation landmark
-(:class:`.factors.Vergence`) or a speed source's translation (:class:`.factors.SpeedStep`). Variables
-older than the lag are marginalised out.
+(:class:`.factors.Vergence`) or a speed source's translation (:class:`.factors.SpeedStep`), and a motion model:
+the step along the rig's forward axis (:class:`.factors.ForwardMotion`, ``smoother_forward_sigma_deg``; it pins the
+yaw that both narrow cameras see as a sideways translation) and, before a scale aid, its length near the nominal
+speed in log space (:class:`.factors.ScaleGauge`, so the window cannot shrink to rest). Variables older than the lag
+are marginalised out.
 
 Why this shape (issue 16, README "Back end"): the rays alone leave the scale free on straights and arcs; the
 nominal-speed gauge keeps it deterministic until a vergence measurement fixes it, and the landmarks carry that
@@ -32,8 +35,10 @@ from fixego_ros.estimation.covariance import VAR_MAX, checked_measurement
 from fixego_ros.estimation.factors import (
     CameraMount,
     ConstantTwist,
+    ForwardMotion,
     HeldSpeed,
     Projection,
+    ScaleGauge,
     SpeedStep,
     StepDirection,
     TwoFrameStep,
@@ -146,6 +151,7 @@ class Smoother:
     COLD_START_GAIN = 0.5     # a cold-started step replaces the warm one below this fraction of its cost
     MIN_DEPTH_M = 0.3         # a point triangulated closer than this to its first view waits or enters far
     MARGINAL_PERIOD_S = 0.5   # the newest pose's marginal covariance is computed at most this often (stamps)
+    SCALE_GAUGE_SIGMA = 1.4   # before a scale aid: each step's length at the nominal speed within a factor e^1.4 = 4
 
     def __init__(self, rig: Rig, config: EstimatorConfig | None = None, marginals: bool = True) -> None:
         """``marginals``: give each result the newest pose's marginal covariance (``/fixego/odom`` needs it). Without,
@@ -164,6 +170,9 @@ class Smoother:
         f = rig.camera('right').fx
         self.steps = TwoFrameStep(c.step_floor_px / f, c.nominal_speed, c.step_cauchy_k)
         self.direction = StepDirection(c.step_cauchy_k, c.nominal_speed)
+        self.forward = ForwardMotion(math.radians(c.forward_sigma_deg), self.direction) \
+            if c.forward_sigma_deg > 0 else None
+        self.gauge = ScaleGauge(self.SCALE_GAUGE_SIGMA, c.nominal_speed)
         self.held_speed = HeldSpeed(self.HOLD_SPEED_SIGMA, c.nominal_speed)
         self.vergence = Vergence()
         self.speed_step = SpeedStep()
@@ -340,6 +349,8 @@ class Smoother:
                          if keyframe_step else None)
             if direction is not None:
                 up.graph.add(direction)
+        if ref is not None:
+            self._add_motion_model(i, obs.stamp, ref, tf, pose0, up)
         self._add_speed(i, obs.stamp, ref, tf, up)
         self._add_motion_prior(i, obs.stamp, up)
         self._hold_speed(i, obs.stamp, up)
@@ -557,6 +568,25 @@ class Smoother:
                 up.graph.add(factor)
                 up.observations += 1
         return index
+
+    def _add_motion_model(self, i: int, stamp: float, ref: _Frame, tf: TwoFrameResult | None, pose0: Pose,
+                          up: _Update) -> None:
+        """The step ``ref`` -> frame along the rig's forward axis (:class:`.factors.ForwardMotion`; its rotation from
+        the two-frame solve, else from the placement), and its length near the nominal speed in log space
+        (:class:`.factors.ScaleGauge`) until a scale aid has been used and, in a graph that did not inherit a motion
+        from a restart, the landmarks have placed a frame (a vergence measurement at the very start holds one point,
+        not the window: the bench's walk with vergence shrank to rest at 0.2 s without the gauge), and only when the
+        rays saw the rig move and no stationary step came within the lag (on a recorded demo that stands still until
+        its first vergence measurement, the gauge on every step moved the rig 15 cm in the first second, and on the
+        steps the jitter of the joint readings makes look like motion 1.2 cm more than without it)."""
+        dt = stamp - ref.stamp
+        if self.forward is not None:
+            rotation = tf.pose.rvec() if self._good(tf) else (ref.pose.inverse() @ pose0).rvec()
+            up.graph.add(self.forward.factor(ref.index, i, rotation, dt))
+        moving = self._good(tf) and tf.status is not StepStatus.STATIONARY and stamp - self._stood > self.settings.lag_s
+        unheld = not self.scale_observed or (self._carry is None and not self._placed)
+        if unheld and moving:
+            up.graph.add(self.gauge.factor(ref.index, i, dt))
 
     def _add_speed(self, i: int, stamp: float, ref: _Frame | None, tf: TwoFrameResult | None, up: _Update) -> None:
         if ref is None or not self._speed.stamps:

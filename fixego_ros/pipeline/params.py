@@ -299,6 +299,9 @@ ESTIMATOR_PARAMS: Table = _table(
     _num('smoother_step_cauchy', 1.0, 'smoother: Cauchy threshold of the two-frame step factors (sigmas)', gt=0.0),
     _num('smoother_mount_rotation_sigma', 4e-4, 'smoother: how far a camera may sit from its pan/tilt readings (rad)',
          gt=0.0),
+    _num('smoother_forward_sigma_deg', 5.0, 'smoother: motion model, the rig moves along its forward axis (rig z) '
+                                            'within this std (deg, Cauchy-robust); 0 = off (a rig that moves sideways)',
+         ge=0.0, lt=90.0),
     _bool('constant_speed', True, "every step at one speed (refinement 'local'): the trajectory's shape without "
                                   "the lever arm's unreliable lengths, and a deterministic gauge for the scale the "
                                   'rays leave free; the scale stays unobserved (nominal speed) until a vergence '
@@ -599,6 +602,7 @@ def estimator_config(g: Getter, rig: Rig) -> EstimatorConfig:
                                     step_floor_px=float(g('smoother_step_floor_px')),
                                     step_cauchy_k=float(g('smoother_step_cauchy')),
                                     mount_rotation_sigma=float(g('smoother_mount_rotation_sigma')),
+                                    forward_sigma_deg=float(g('smoother_forward_sigma_deg')),
                                     nominal_speed=float(g('speed_nominal'))))
     except ValueError as e:
         raise _config_error('estimator', e) from None
