@@ -26,17 +26,3 @@ def test_track_drift_is_reported_by_age_and_stays_small(seed1):
     assert medians[-1] < 0.4                      # 16+ frames: 0.2 px since the alignment (0.62 before)
     assert all(seed1[f'drift_px.{a}.p90'] >= m for a, m in zip(ages, medians, strict=True))
 
-
-def test_the_noise_option_perturbs_each_ray_by_the_pixels_asked_and_nothing_without():
-    import numpy as np
-
-    from fixego_ros.bench.oracle import Oracle, Truth
-    from fixego_ros.geometry.rig import default_rig_path, load_rig, normalize_rays
-    rig = load_rig(default_rig_path())
-    rays = normalize_rays(np.random.default_rng(3).normal([0.0, 0.0, 1.0], 0.05, (4000, 3)))
-    assert np.array_equal(Oracle(Truth(rig, None, {}), True)._noisy('right', rays), rays)
-    noisy = Oracle(Truth(rig, None, {}), True, noise_px=0.15)._noisy('right', rays)
-    off_px = np.linalg.norm(np.cross(noisy, rays), axis=1) * rig.camera('right').fx
-    # two axes of 0.15 px white noise: the offset is Rayleigh, median 0.15 * sqrt(2 ln 2) = 0.177 px
-    assert 0.16 < float(np.median(off_px)) < 0.19
-    assert np.allclose(np.linalg.norm(noisy, axis=1), 1.0)

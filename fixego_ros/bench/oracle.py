@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fixego_ros.bench.jitter import jittered
+from fixego_ros.bench.jitter import RayJitter
 from fixego_ros.estimation.frames import CameraFrame, FrameObservation
 from fixego_ros.geometry.rig import SIDES, Rig, normalize_rays
 from fixego_ros.geometry.rotation import Pose
@@ -70,8 +70,6 @@ class Oracle:
 
     truth: Truth
     exact: bool = False
-    noise_px: float = 0.0        # with ``exact``: white noise (px per axis) on each ray handed on
-    rng: np.random.Generator = field(default_factory=lambda: np.random.default_rng(0))
     points: dict[tuple, np.ndarray | None] = field(default_factory=dict)   # (side, kind, id) -> world point
     seen: dict[tuple, int] = field(default_factory=dict)                   # ... -> frames seen before
     drift: list[tuple[int, float]] = field(default_factory=list)          # (frames since the first, px)
@@ -118,17 +116,11 @@ class Oracle:
                     self.drift.append((age, float(np.linalg.norm(np.cross(exact[key], seen))) * rig.camera(side).fx))
         if not self.exact:
             return cam
-        tracks = self._noisy(side, np.array([exact.get(k, r) for k, r in zip(keys, track_rays, strict=False)]))
+        tracks = np.array([exact.get(k, r) for k, r in zip(keys, track_rays, strict=False)]).reshape(-1, 3)
         fixation = exact.get((side, 'fixation', int(cam.fixation_id)), fix)
-        if fixation is not None and np.all(np.isfinite(fixation)):
-            fixation = self._noisy(side, np.asarray(fixation, float))[0]
-        prev, curr = (self._noisy(side, a) for a in self._pairs(side, cam, stamp, key_stamp))
+        prev, curr = self._pairs(side, cam, stamp, key_stamp)
         return replace(cam, cam_to_rig=rig.cam_to_rig(side, *angles[side]), track_rays=tracks, fixation_ray=fixation,
                        flow_prev=prev, flow_curr=curr)
-
-    def _noisy(self, side: str, rays: np.ndarray) -> np.ndarray:
-        """``rays`` (N, 3) with ``noise_px`` of white noise per axis; as they are without noise."""
-        return jittered(rays, self.noise_px / self.truth.rig.camera(side).fx, self.rng)
 
     def _pairs(self, side: str, cam: CameraFrame, stamp: float, key_stamp: float | None
                ) -> tuple[np.ndarray, np.ndarray]:
@@ -184,8 +176,9 @@ def run_seed(seed: int, noise_px: float = 0.0) -> dict[str, float]:
         path = Path(tmp) / f'paper_{seed}'
         truth = simulate(seed, path)
         for name, exact, noise in runs:
-            oracle = Oracle(truth, exact, noise)
-            res = replay_bag(path, 1, observe=oracle)
+            oracle = Oracle(truth, exact)
+            jitter = RayJitter(truth.rig, noise)            # the exact rays with noise: what the oracle hands on
+            res = replay_bag(path, 1, observe=(lambda obs, o=oracle, j=jitter: j(o(obs))) if noise else oracle)
             trajectory_figures(out, name, res.stamps, res.poses, res)
             if not exact:
                 out.update(oracle.drift_table())

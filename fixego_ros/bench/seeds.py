@@ -52,14 +52,12 @@ def one_seed(seed: int, draws: int = DRAWS) -> list[dict[str, float]]:
     from fixego_ros.bags.shipped import generate
     from fixego_ros.bench.jitter import RayJitter
     from fixego_ros.bench.replay import replay_bag, trajectory_figures
-    from fixego_ros.geometry.rig import default_rig_path, load_rig
-    from fixego_ros.sim.run import resize_rig
-    spec = paper_spec(seed)
-    rig = resize_rig(load_rig(default_rig_path()), spec.width, spec.height)
+    from fixego_ros.geometry.rig import load_rig
     figures = []
     with tempfile.TemporaryDirectory(prefix='fixego-seeds-') as tmp:
         path = Path(tmp) / f'paper_{seed}'
-        generate(spec, path)
+        generate(paper_spec(seed), path)
+        rig = load_rig(path / 'rig.yaml')             # the rig the replay uses (the bag's resolution)
         for draw in range(draws):
             res = replay_bag(path, 1, observe=RayJitter(rig, JITTER_PX, draw) if draw else None)
             out: dict[str, float] = {}

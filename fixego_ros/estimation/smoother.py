@@ -9,9 +9,9 @@ prior over three frames (:class:`.factors.ConstantTwist`; once the scale is meas
 so it does not pull the scale), and whatever scale aid there is: a vergence measurement on the right fixation landmark
 (:class:`.factors.Vergence`) or a speed source's translation (:class:`.factors.SpeedStep`), and a motion model:
 the step along the rig's forward axis (:class:`.factors.ForwardMotion`, ``smoother_forward_sigma_deg``; it pins the
-yaw that both narrow cameras see as a sideways translation) and, before a scale aid, its length near the nominal
-speed in log space (:class:`.factors.ScaleGauge`, so the window cannot shrink to rest). Variables older than the lag
-are marginalised out.
+yaw that both narrow cameras see as a sideways translation) and, until the scale is held, its length near the
+nominal speed in log space (:class:`.factors.ScaleGauge`, so the window cannot shrink to rest). Variables older than
+the lag are marginalised out.
 
 Why this shape (issue 16, README "Back end"): the rays alone leave the scale free on straights and arcs; the
 nominal-speed gauge keeps it deterministic until a vergence measurement fixes it, and the landmarks carry that
