@@ -11,10 +11,11 @@ from fixego_ros.estimation.factors import (
     ForwardMotion,
     HeldSpeed,
     ScaleGauge,
+    SpeedStep,
     StepDirection,
     TwoFrameStep,
 )
-from fixego_ros.estimation.keys import pose_key
+from fixego_ros.estimation.keys import pose_key, speed_scale_key
 from fixego_ros.geometry.rotation import Pose, exp_so3
 
 TWIST = ConstantTwist(rotation_sigma=0.1, translation_sigma=0.05, speed_sigma=0.3, min_speed=0.05)
@@ -231,3 +232,30 @@ def test_camera_mount_adds_the_readings_sigma_to_its_own():
     assert np.allclose(mount.factor(0, 'right', np.eye(3), np.zeros(3)).noiseModel().sigmas()[:3], 4e-4)
     sigmas = mount.factor(0, 'right', np.eye(3), np.zeros(3), reading_sigma=3e-3).noiseModel().sigmas()
     np.testing.assert_allclose(sigmas, [np.hypot(4e-4, 3e-3)] * 3 + [1e-4] * 3)
+
+
+def test_speed_step_measures_the_step_times_the_sources_scale():
+    """The step keyframe -> frame (in the keyframe's frame) is the integrated speed times the source's scale ``k``:
+    a wheel radius 2 % long reads 2 % far, and k = 1 / 1.02 explains it. Jacobians (both poses and k) against
+    central differences."""
+    speed = SpeedStep(scale_sigma=0.05)
+    d = np.array([0.01, -0.02, 0.2])
+    values = _pair(np.random.default_rng(12), d / 1.02)
+    values.insert(speed_scale_key(0), 1.0 / 1.02)
+    cov = np.eye(3) * 1e-4
+    factor = speed.factor(0, 1, d, cov, graph=0)
+    np.testing.assert_allclose(factor.unwhitenedError(values), 0.0, atol=1e-12)
+    held = speed.factor(0, 1, d, cov)                                 # no variable: the scale held at 1
+    np.testing.assert_allclose(held.unwhitenedError(values), d / 1.02 - d, atol=1e-12)
+    assert speed.factor(0, 1, d, cov, scale=1.0 / 1.02).unwhitenedError(values) == pytest.approx(np.zeros(3), abs=1e-12)
+    values.update(speed_scale_key(0), 0.97)
+    A, _ = factor.linearize(values).jacobian()
+    poses = _numeric_jacobian(factor, values, 0.01, poses=2)
+    errs = []
+    for sign in (1.0, -1.0):
+        v = gtsam.Values(values)
+        v.update(speed_scale_key(0), 0.97 + sign * 1e-6)
+        errs.append(np.asarray(factor.unwhitenedError(v)))
+    dk = (errs[0] - errs[1]) / 2e-6 / 0.01
+    np.testing.assert_allclose(A, np.column_stack([poses, dk]), atol=1e-5)
+    assert SpeedStep(scale_sigma=0.0).factor(0, 1, d, cov, graph=0).keys() == [pose_key(0), pose_key(1)]

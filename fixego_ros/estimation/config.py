@@ -35,6 +35,7 @@ class SmootherConfig:
     iterations: int = 2                 # extra ISAM2 updates per frame (relinearisation)
     min_resection: int = 6              # observations of existing landmarks needed to place a frame by them
     forward_sigma_deg: float = 5.0      # motion model: the rig moves along its forward axis, this std (0 = off)
+    speed_scale_sigma: float = 0.05     # prior std of the speed source's scale (its wheel radius error; 0 = exact)
 
     def __post_init__(self) -> None:
         positive = ('lag_s', 'pixel_sigma_px', 'huber_k', 'mount_rotation_sigma', 'twist_rotation_sigma',
@@ -47,6 +48,8 @@ class SmootherConfig:
                 raise ValueError(f'{name} must be finite and > 0, got {v}')
         if not (math.isfinite(self.forward_sigma_deg) and 0.0 <= self.forward_sigma_deg < 90.0):
             raise ValueError(f'forward_sigma_deg must be in [0, 90), got {self.forward_sigma_deg}')
+        if not (math.isfinite(self.speed_scale_sigma) and 0.0 <= self.speed_scale_sigma <= 1.0):
+            raise ValueError(f'speed_scale_sigma must be in [0, 1], got {self.speed_scale_sigma}')
         if self.min_views < 2 or self.patient_views < self.min_views or self.iterations < 0 or self.min_resection < 3:
             raise ValueError('min_views must be >= 2, patient_views >= min_views, iterations >= 0, min_resection >= 3')
 

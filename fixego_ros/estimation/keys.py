@@ -2,7 +2,8 @@
 
 ``x<i>`` is the rig pose at frame ``i`` (rig frame at frame 0 as the world); ``c<2i+side>`` is one camera's
 optical frame at frame ``i`` (its pan/tilt makes it a variable of its own, tied to the rig by
-:class:`~fixego_ros.estimation.factors.CameraMount`); ``l<n>`` is a landmark (a tracked point or a fixation point).
+:class:`~fixego_ros.estimation.factors.CameraMount`); ``l<n>`` is a landmark (a tracked point or a fixation point);
+``k<g>`` is the scale of the speed source (its wheel radius error; a double), ``g`` counting its variables.
 """
 
 from __future__ import annotations
@@ -11,7 +12,7 @@ from enum import IntEnum
 from typing import NamedTuple
 
 import gtsam
-from gtsam.symbol_shorthand import C, L, X
+from gtsam.symbol_shorthand import C, K, L, X
 
 from fixego_ros.geometry.rig import SIDES
 
@@ -39,6 +40,10 @@ def camera_key(frame: int, side: str) -> int:
 
 def landmark_key(index: int) -> int:
     return L(index)
+
+
+def speed_scale_key(graph: int) -> int:
+    return K(graph)
 
 
 def is_landmark(key: int) -> bool:

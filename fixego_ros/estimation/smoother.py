@@ -60,7 +60,7 @@ from fixego_ros.estimation.frames import (
     tracks_of,
     with_track_flow,
 )
-from fixego_ros.estimation.keys import LandmarkId, LandmarkKind, camera_key, landmark_key, pose_key
+from fixego_ros.estimation.keys import LandmarkId, LandmarkKind, camera_key, landmark_key, pose_key, speed_scale_key
 from fixego_ros.estimation.speed_samples import SpeedSamples
 from fixego_ros.estimation.status import StepStatus
 from fixego_ros.estimation.twoframe import TwoFrameResult, TwoFrameSolver
@@ -175,7 +175,7 @@ class Smoother:
         self.gauge = ScaleGauge(self.SCALE_GAUGE_SIGMA, c.nominal_speed)
         self.held_speed = HeldSpeed(self.HOLD_SPEED_SIGMA, c.nominal_speed)
         self.vergence = Vergence()
-        self.speed_step = SpeedStep()
+        self.speed_step = SpeedStep(c.speed_scale_sigma)
         self._depth_prior = gtsam.noiseModel.Isotropic.Sigma(3, c.far_guess_m)    # landmarks seen from one place
         self.reset()
 
@@ -194,6 +194,8 @@ class Smoother:
         self._vergence_used = 0
         self._graph_start = 0
         self._stood = -math.inf    # stamp of the newest stationary step (the rig at rest)
+        self.speed_scale = 1.0     # the speed source's scale, as last estimated (carried into a new graph)
+        self._scale_keys = itertools.count()
         self.restarts = 0          # numerical failures (each starts a new graph at the last estimate)
         self.repairs = 0           # numerical failures the window repaired in place (FixedLagWindow)
         self.dropped = 0           # landmarks a pass left behind a camera that sees them (FixedLagWindow)
@@ -211,6 +213,8 @@ class Smoother:
         self._graph_start = self._index + 1       # first frame of this graph
         self._marginal: tuple[float, np.ndarray] | None = None     # (stamp, its frame's covariance) last computed
         self._placed: dict[int, float] = {}         # frames of this graph the landmarks placed: index -> stamp
+        self._scale_key: int | None = None          # the speed source's scale variable in this graph (None: not yet)
+        self._vergence_in_graph = False             # a vergence measurement entered this graph (metric depths)
 
     # ------------------------------------------------------------------------------------------- aids
     def add_velocity(self, stamp: float, v_rig: np.ndarray, cov_rig: np.ndarray) -> None:
@@ -248,6 +252,9 @@ class Smoother:
     def scale_note(self) -> str:
         if self._aids:
             note = 'scale from ' + ' and '.join(sorted(self._aids))
+            if self.speed_source_used and self.speed_step.scaled:
+                note += (f' (its scale estimated x{self.speed_scale:.3f})' if self._scale_key is not None else
+                         f' (its scale held at x{self.speed_scale:.3f} until a vergence measurement)')
             if self._vergence_used:
                 note += f' ({self._vergence_used} vergence measurement(s))'
         else:
@@ -595,8 +602,26 @@ class Smoother:
         speed = self._speed.translation(ref.stamp, stamp, rotation)
         if speed is None:
             return
-        up.graph.add(self.speed_step.factor(ref.index, i, speed[0], speed[1] + np.eye(3) * 1e-8))
+        up.graph.add(self.speed_step.factor(ref.index, i, speed[0], speed[1] + np.eye(3) * 1e-8,
+                                            self._speed_scale_variable(stamp, up), self.speed_scale))
         self._aids.add('the speed source')
+
+    def _speed_scale_variable(self, stamp: float, up: _Update) -> int | None:
+        """The index of this graph's speed-scale variable (created at the last estimate with its prior when missing:
+        first use, a new graph, or marginalised after the source fell silent for the lag), stamped ``stamp`` so it
+        stays in the window while the source speaks; None (the scale held at its last estimate) when it is taken as
+        exact, and until a vergence measurement has entered this graph: the rays alone would calibrate it, and their
+        scale is biased (issue 16's odometry over 16 seeds without vergence: paths 2-4 % short with it free, one seed
+        collapsing to 115 cm mean, against 0.85-1.94 cm held)."""
+        if not self.speed_step.scaled or not self._vergence_in_graph:
+            return None
+        if self._scale_key is None or not (self._estimate.exists(speed_scale_key(self._scale_key))
+                                           or up.values.exists(speed_scale_key(self._scale_key))):
+            self._scale_key = next(self._scale_keys)
+            up.values.insert(speed_scale_key(self._scale_key), float(self.speed_scale))
+            up.graph.add(self.speed_step.prior(self._scale_key, self.speed_scale))
+        up.stamps[speed_scale_key(self._scale_key)] = stamp
+        return self._scale_key
 
     def _add_motion_prior(self, i: int, stamp: float, up: _Update) -> None:
         """Constant twist over the last three frames of this graph; for its second frame a loose step prior (at rest
@@ -683,6 +708,7 @@ class Smoother:
             self._scale_measured = (p.stamp, math.sqrt(float(u @ p.cov @ u)) / max(distance, 1e-9))
             self._aids.add('the vergence step')
             self._vergence_used += 1
+            self._vergence_in_graph = True
         self._points = kept
 
     def _carried(self, p: _PendingPoint, up: _Update) -> tuple[_Frame | None, _PendingPoint]:
@@ -767,6 +793,10 @@ class Smoother:
         for lid in [lid for lid, k in self._landmarks.items()
                     if landmark_key(k) in gone or not self._estimate.exists(landmark_key(k))]:
             del self._landmarks[lid]
+        if self._scale_key is not None and self._estimate.exists(speed_scale_key(self._scale_key)):
+            k = self._estimate.atDouble(speed_scale_key(self._scale_key))
+            if math.isfinite(k) and k > 0.0:
+                self.speed_scale = k
         for f in self._frames:
             if f.index >= self._graph_start and self._estimate.exists(pose_key(f.index)):
                 pose = from_gtsam(self._estimate.atPose3(pose_key(f.index)))

@@ -302,6 +302,10 @@ ESTIMATOR_PARAMS: Table = _table(
     _num('smoother_forward_sigma_deg', 5.0, 'smoother: motion model, the rig moves along its forward axis (rig z) '
                                             'within this std (deg, Cauchy-robust); 0 = off (a rig that moves sideways)',
          ge=0.0, lt=90.0),
+    _num('smoother_speed_scale_sigma', 0.05, "smoother: prior std of the speed source's scale (a wheel radius off by "
+                                             'a percent, which its covariance does not show), estimated where vergence '
+                                             'measurements give the metric scale too; 0 = the source is exact',
+         ge=0.0, le=1.0),
     _bool('constant_speed', True, "every step at one speed (refinement 'local'): the trajectory's shape without "
                                   "the lever arm's unreliable lengths, and a deterministic gauge for the scale the "
                                   'rays leave free; the scale stays unobserved (nominal speed) until a vergence '
@@ -603,6 +607,7 @@ def estimator_config(g: Getter, rig: Rig) -> EstimatorConfig:
                                     step_cauchy_k=float(g('smoother_step_cauchy')),
                                     mount_rotation_sigma=float(g('smoother_mount_rotation_sigma')),
                                     forward_sigma_deg=float(g('smoother_forward_sigma_deg')),
+                                    speed_scale_sigma=float(g('smoother_speed_scale_sigma')),
                                     nominal_speed=float(g('speed_nominal'))))
     except ValueError as e:
         raise _config_error('estimator', e) from None
