@@ -348,6 +348,8 @@ def test_estimator_node_forwards_speed_samples_over_dds(ros_context, monkeypatch
         assert spin_until(ex, lambda: speed_status() is not None and 'receiving' in speed_status().message, 5.0)
         values = {kv.key: kv.value for kv in speed_status().values}
         assert values['samples'] == '2' and values['rejected_velocity'] == '1' and 'last_age_s' in values
+        # the smoother's scale of the source: held at 1 until a vergence measurement is in its graph
+        assert values['speed_scale'] == '1.0000' and values['speed_scale_estimated'] == 'False'
         # a frame: the scale status follows FrameResult.scale_observed / scale_note
         for k, o in enumerate(clean):
             o.prev_stamp = None

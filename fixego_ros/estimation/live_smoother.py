@@ -84,12 +84,14 @@ class SmootherState:
     restarts: int = 0
     repairs: int = 0
     dropped: int = 0
+    speed_scale: float = 1.0
+    speed_scale_estimated: bool = False
 
 
 def _state(smoother: Any, skipped: int, error: str) -> SmootherState:
     return SmootherState(smoother.scale_observed, smoother.scale_note(), smoother.scale_measurement,
                          smoother.speed_source_used, skipped, error, smoother.restarts, smoother.repairs,
-                         smoother.dropped)
+                         smoother.dropped, smoother.speed_scale, smoother.speed_scale_estimated)
 
 
 class _Server:
@@ -266,6 +268,15 @@ class LiveSmoother:
     @property
     def scale_observed(self) -> bool:
         return self._state.scale_observed
+
+    @property
+    def speed_scale(self) -> float:
+        """The speed source's scale as the smoother last estimated or held it (:attr:`Smoother.speed_scale`)."""
+        return self._state.speed_scale
+
+    @property
+    def speed_scale_estimated(self) -> bool:
+        return self._state.speed_scale_estimated
 
     def scale_note(self) -> str:
         return self._state.scale_note or (f'scale unobserved: steps at the nominal '

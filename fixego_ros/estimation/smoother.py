@@ -249,11 +249,16 @@ class Smoother:
     def scale_observed(self) -> bool:
         return bool(self._aids)
 
+    @property
+    def speed_scale_estimated(self) -> bool:
+        """Whether :attr:`speed_scale` is a variable of this graph (a vergence measurement is in it), not held."""
+        return self._scale_key is not None
+
     def scale_note(self) -> str:
         if self._aids:
             note = 'scale from ' + ' and '.join(sorted(self._aids))
             if self.speed_source_used and self.speed_step.scaled:
-                note += (f' (its scale estimated x{self.speed_scale:.3f})' if self._scale_key is not None else
+                note += (f' (its scale estimated x{self.speed_scale:.3f})' if self.speed_scale_estimated else
                          f' (its scale held at x{self.speed_scale:.3f} until a vergence measurement)')
             if self._vergence_used:
                 note += f' ({self._vergence_used} vergence measurement(s))'

@@ -614,6 +614,10 @@ class EstimatorNode(Node):
                                      f'no valid sample on {self.speed_topic} yet', values)
         age = self.get_clock().now().nanoseconds * 1e-9 - self.speed_last
         values['last_age_s'] = f'{age:.3f}'
+        scale = getattr(self.estimator, 'speed_scale', None)    # the smoother's: the source's scale (wheel radius)
+        if scale is not None:
+            values['speed_scale'] = f'{scale:.4f}'
+            values['speed_scale_estimated'] = bool(self.estimator.speed_scale_estimated)
         level, message = OK, f'receiving: {n} samples, last {age:.2f} s ago'
         behind = self.last.stamp - self.speed_last if self.last is not None else 0.0
         if behind > self.speed.max_age_s:
