@@ -192,6 +192,33 @@ def test_estimator_node_publishes_trajectory_resets_and_survives_bad_input(ros_c
         ex.shutdown()
 
 
+def test_estimator_node_counts_a_vergence_measurement_from_its_arrival(ros_context, clean_sequence, tmp_path):
+    """A measurement the node has received stops the "scale unmeasured" requests at once, before the back end has
+    used it (the live smoother takes it seconds later), and a reset forgets it (stop 56)."""
+    from geometry_msgs.msg import PoseWithCovarianceStamped
+
+    from fixego_ros.nodes.common import sec_to_stamp
+    rig, _, _ = clean_sequence
+    node = _synthetic_estimator_node(ros_context, rig, tmp_path, Parameter('refinement', value='local'))
+    try:
+        assert node._scale_measurement() is None
+        msg = PoseWithCovarianceStamped()
+        msg.header.stamp, msg.header.frame_id = sec_to_stamp(50.0), 'rig'
+        msg.pose.pose.position.z = 3.0
+        cov = np.zeros((6, 6))
+        cov[:3, :3] = np.diag([1e-4, 1e-4, 0.03 ** 2])
+        msg.pose.covariance = cov.ravel().tolist()
+        node._on_vergence(msg)
+        assert node.estimator.scale_measurement is None          # the local BA uses it with the frames to come
+        stamp, rel = node._scale_measurement()
+        assert stamp == 50.0 and rel == pytest.approx(0.01)
+        assert not node.scale_requests.due(51.0, node._scale_measurement(), False)
+        node._reset_trajectory()
+        assert node._scale_measurement() is None
+    finally:
+        node.destroy_node()
+
+
 def test_estimator_node_rejects_future_stamps_counts_disorder_and_resets_on_a_clock_jump(ros_context,
                                                                                         clean_sequence, tmp_path):
     """An observation an hour ahead is rejected (it used to be accepted, and every later one then dropped as out

@@ -61,6 +61,7 @@ from fixego_ros.estimation.frames import (
     with_track_flow,
 )
 from fixego_ros.estimation.keys import LandmarkId, LandmarkKind, camera_key, landmark_key, pose_key, speed_scale_key
+from fixego_ros.estimation.scale_requests import vergence_measurement
 from fixego_ros.estimation.speed_samples import SpeedSamples
 from fixego_ros.estimation.status import StepStatus
 from fixego_ros.estimation.twoframe import TwoFrameResult, TwoFrameSolver
@@ -708,9 +709,7 @@ class Smoother:
                 index = self._add_landmark(lid, frame.pose.apply(p.point), up, frame.stamp)
             up.stamps[landmark_key(index)] = self._frames[-1].stamp
             up.graph.add(self.vergence.factor(frame.index, index, p.point, p.cov))
-            distance = float(np.linalg.norm(p.point))
-            u = p.point / max(distance, 1e-9)
-            self._scale_measured = (p.stamp, math.sqrt(float(u @ p.cov @ u)) / max(distance, 1e-9))
+            self._scale_measured = vergence_measurement(p.stamp, p.point, p.cov)
             self._aids.add('the vergence step')
             self._vergence_used += 1
             self._vergence_in_graph = True

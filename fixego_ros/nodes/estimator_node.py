@@ -59,7 +59,7 @@ from std_srvs.srv import Trigger
 from fixego_ros.estimation.backend import make_backend
 from fixego_ros.estimation.frames import FrameResult
 from fixego_ros.estimation.live_smoother import LiveSmoother
-from fixego_ros.estimation.scale_requests import ScaleRequests
+from fixego_ros.estimation.scale_requests import Measurement, ScaleRequests, newest, vergence_measurement
 from fixego_ros.estimation.status import StepStatus
 from fixego_ros.geometry.frames import static_transforms
 from fixego_ros.geometry.rig import SIDES, default_rig_path, load_rig
@@ -200,6 +200,7 @@ class EstimatorNode(Node):
         self.pub_vergence_request = self.create_publisher(Empty, request_topic, RELIABLE_QOS) if request_topic else None
         self.scale_requests = ScaleRequests(float(g('vergence_request_rel_std')),
                                             float(g('vergence_request_min_interval_s')), float(g('scale_drift_per_s')))
+        self.vergence_received: Measurement | None = None   # the newest one given to the estimator (scale_requests)
         self.create_service(Trigger, '~/reset', self._srv_reset)
         self.diag_timer = self.create_timer(float(g('diagnostics_period_s')), self._publish_diagnostics)
         if self.path_period > 0:
@@ -320,8 +321,12 @@ class EstimatorNode(Node):
         self.last = res
         self._publish(msg.header.stamp, res)
         if self.pub_vergence_request is not None and self.scale_requests.due(
-                res.stamp, self.estimator.scale_measurement, self.estimator.speed_source_used):
+                res.stamp, self._scale_measurement(), self.estimator.speed_source_used):
             self.pub_vergence_request.publish(Empty())
+
+    def _scale_measurement(self) -> Measurement | None:
+        """The newest vergence measurement, received here or used by the back end (scale_requests' module docstring)."""
+        return newest(self.estimator.scale_measurement, self.vergence_received)
 
     def _stamp_problem(self, key: str, text: str) -> None:
         self.stats[key] += 1
@@ -375,6 +380,7 @@ class EstimatorNode(Node):
             self.stats['vergence_rejected'] = self.stats.get('vergence_rejected', 0) + 1
             self.once.warn('vergence', f'vergence measurement on {self.vergence_topic} dropped: {e}')
             return
+        self.vergence_received = newest(self.vergence_received, vergence_measurement(stamp, point, cov))
         self.stats['vergence'] = self.stats.get('vergence', 0) + 1
         self.get_logger().info(f'vergence: right fixation point at {float(np.linalg.norm(point)):.3f} m given to '
                                'the estimator')
@@ -536,6 +542,7 @@ class EstimatorNode(Node):
     # -------------------------------------------------------------------------------------- services
     def _reset_trajectory(self) -> None:
         self.estimator.reset()
+        self.vergence_received = None
         self.speed.reset()
         self.path.clear()
         self.path_raw.clear()
@@ -555,7 +562,7 @@ class EstimatorNode(Node):
         values: dict[str, object] = dict(self.stats)
         values['vergence_requests'] = self.scale_requests.count
         if self.last is not None:
-            std = self.scale_requests.rel_std(self.last.stamp, self.estimator.scale_measurement)
+            std = self.scale_requests.rel_std(self.last.stamp, self._scale_measurement())
             values['scale_rel_std'] = f'{std:.4f}' if math.isfinite(std) else 'unmeasured'
         values.update({f'steps_{k}': v for k, v in sorted(self.status_counts.items())})
         values.update(percentile_values('solve_ms', self.solve_ms or (0.0,)))
