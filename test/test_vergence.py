@@ -479,6 +479,23 @@ def test_a_request_during_a_step_waits_for_the_next_one():
     assert s.due(6.9) is None and s.due(7.0) == 'request'       # after the min interval
 
 
+def test_a_request_answered_by_the_running_steps_measurement_is_dropped():
+    """The estimator asks before it has received the start-up measurement: the step running then measures after the
+    request came, which answers it (at stop 55 the left head measured the same point a second time at rest). A
+    measurement stamped before the request, a failed step or one without a stamp leaves it pending."""
+    s = VergenceScheduler(VergenceSchedule(min_interval_s=5.0), now=0.0)
+    s.started(s.due(0.0), 0.0)
+    s.trigger('request', 0.5)
+    s.finished(True, 2.0, measured_at=1.2)
+    assert s.pending is None and s.answered == 1 and s.due(7.0) is None
+    for ok, measured_at in ((True, 0.4), (False, 1.2), (True, None)):
+        s = VergenceScheduler(VergenceSchedule(min_interval_s=5.0), now=0.0)
+        s.started(s.due(0.0), 0.0)
+        s.trigger('request', 0.5)
+        s.finished(ok, 2.0, measured_at=measured_at)
+        assert s.answered == 0 and s.due(7.0) in ('request', 'retry')
+
+
 def test_scheduler_min_interval_counts_from_steps_that_left_the_own_point():
     s = VergenceScheduler(VergenceSchedule(min_interval_s=5.0, retry_s=30.0), now=0.0)
     s.started(s.due(0.0), 0.0)

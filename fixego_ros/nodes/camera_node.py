@@ -642,7 +642,8 @@ class CameraNode(Node):
         if v.needs_reselect:
             self.tracker.request_reselect('vergence_end')
         ok = v.succeeded
-        self.scheduler.finished(ok, now, left_own_point=v.t_left is not None)
+        self.scheduler.finished(ok, now, left_own_point=v.t_left is not None,
+                                measured_at=v.result.stamp if v.result is not None else None)
         t = self.vergence_time
         t['last_interrupted_s'], t['last_away_s'] = v.interrupted_s, v.away_s
         t['max_interrupted_s'] = max(t['max_interrupted_s'], v.interrupted_s)
@@ -676,7 +677,8 @@ class CameraNode(Node):
         level, message = OK, self.vergence_state
         if s is not None:
             values.update({'attempts': s.attempts, 'successes': s.successes, 'failures': s.failures,
-                           'ignored_triggers': s.ignored, 'last_trigger': s.last_trigger,
+                           'ignored_triggers': s.ignored, 'requests_answered_by_running_step': s.answered,
+                           'last_trigger': s.last_trigger,
                            'last_failure': self.vergence_failure, 'last_timeline': self.vergence_timeline,
                            **{f'triggers_{k}': n for k, n in s.triggers.items()},
                            **{k: f'{x:.3f}' for k, x in self.vergence_time.items()}})

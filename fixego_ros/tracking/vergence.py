@@ -945,7 +945,9 @@ class VergenceScheduler:
     own fixation is interrupted for a bounded share of the time. A trigger during the min interval waits
     (triggers coalesce). One arriving while a step runs is ignored and counted, except a request: it asks for a
     measurement made after it (the estimator or ``fixego demo`` may have reset and forgotten the running step's),
-    so it waits for the next step. Plain data in, no clock of its own."""
+    so it waits for the next step, unless the running step's measurement is stamped after the request came (then
+    that one answers it: the estimator asked before it had received the start-up measurement, and the left head
+    measured the same point again at rest, docs/results.md "Stop 56"). Plain data in, no clock of its own."""
 
     def __init__(self, params: VergenceSchedule | None = None, now: float = 0.0) -> None:
         self.p = params or VergenceSchedule()
@@ -959,6 +961,8 @@ class VergenceScheduler:
         self.right_id: int | None = None
         self.triggers: dict[str, int] = dict.fromkeys(TRIGGERS, 0)
         self.triggers['start'] = 1
+        self.t_request: float | None = None     # when the newest request came while a step ran
+        self.answered = 0                       # such requests the running step's measurement answered
         self.ignored = 0
         self.attempts = self.successes = self.failures = 0
         self.last_trigger = ''
@@ -968,7 +972,7 @@ class VergenceScheduler:
         waits for the next step."""
         self.triggers[reason] = self.triggers.get(reason, 0) + 1
         if self.running and reason == 'request':
-            self.pending = reason
+            self.pending, self.t_request = reason, now
             return True
         if self.running:
             self.ignored += 1
@@ -1010,11 +1014,17 @@ class VergenceScheduler:
         self.attempts += 1
         self.last_trigger, self.t_last_start = reason, now
 
-    def finished(self, ok: bool, now: float, left_own_point: bool = True) -> None:
+    def finished(self, ok: bool, now: float, left_own_point: bool = True, measured_at: float | None = None) -> None:
         """The step is over (head back): success, or a failure to retry after the back-off. The min interval
         runs from the end of the last step that took the left head off its own point (one that failed before,
-        e.g. waiting for settled fixations, interrupted nothing)."""
+        e.g. waiting for settled fixations, interrupted nothing). ``measured_at``: the stamp of the step's
+        measurement; one at or after a request that came during the step answers it."""
         self.running = False
+        if (ok and self.pending == 'request' and measured_at is not None and self.t_request is not None
+                and measured_at >= self.t_request):
+            self.pending = None
+            self.answered += 1
+        self.t_request = None
         if left_own_point:
             self.t_last_end = now
         if ok:
