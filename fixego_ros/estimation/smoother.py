@@ -617,8 +617,8 @@ class Smoother:
         first use, a new graph, or marginalised after the source fell silent for the lag), stamped ``stamp`` so it
         stays in the window while the source speaks; None (the scale held at its last estimate) when it is taken as
         exact, and until a vergence measurement has entered this graph: the rays alone would calibrate it, and their
-        scale is biased (issue 16's odometry over 16 seeds without vergence: paths 2-4 % short with it free, one seed
-        collapsing to 115 cm mean, against 0.85-1.94 cm held)."""
+        scale scatters by percents (issue 16's odometry over 16 seeds without vergence: paths x0.962-1.006 with it
+        free, one seed collapsing to 115 cm mean, against x1.008-1.012 and 0.85-1.94 cm held)."""
         if not self.speed_step.scaled or not self._vergence_in_graph:
             return None
         if self._scale_key is None or not (self._estimate.exists(speed_scale_key(self._scale_key))
