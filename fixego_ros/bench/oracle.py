@@ -177,8 +177,8 @@ def run_seed(seed: int, noise_px: float = 0.0) -> dict[str, float]:
         truth = simulate(seed, path)
         for name, exact, noise in runs:
             oracle = Oracle(truth, exact)
-            jitter = RayJitter(truth.rig, noise)            # the exact rays with noise: what the oracle hands on
-            res = replay_bag(path, 1, observe=(lambda obs, o=oracle, j=jitter: j(o(obs))) if noise else oracle)
+            jitter = RayJitter(truth.rig, noise)            # noise on what the oracle hands on (none at 0 px)
+            res = replay_bag(path, 1, observe=lambda obs, o=oracle, j=jitter: j(o(obs)))
             trajectory_figures(out, name, res.stamps, res.poses, res)
             if not exact:
                 out.update(oracle.drift_table())

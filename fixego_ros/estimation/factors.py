@@ -1,8 +1,9 @@
 """The factors of the metric back end (:mod:`.smoother`), one class per kind of measurement.
 
 Each class holds its noise model and builds GTSAM factors for given keys. GTSAM's own factor types are used
-where one fits (projection, between); the two that have none are :class:`gtsam.CustomFactor` with analytic
-Jacobians (:class:`ConstantTwist`, :class:`StepDirection`, :class:`HeldSpeed`, :class:`Vergence`, :class:`SpeedStep`).
+where one fits (projection, between); the others are :class:`gtsam.CustomFactor` with analytic Jacobians
+(:class:`ConstantTwist`, :class:`StepDirection` and :class:`ForwardMotion` through it, :class:`ScaleGauge`,
+:class:`HeldSpeed`, :class:`Vergence`, :class:`SpeedStep`).
 """
 
 from __future__ import annotations
@@ -401,10 +402,10 @@ class SpeedStep:
     def scaled(self) -> bool:
         return self.scale_sigma > 0.0
 
-    def prior(self, graph: int, k: float = 1.0, sigma: float | None = None) -> gtsam.NonlinearFactor:
-        """The scale's prior: ``k`` with ``sigma`` (default :attr:`scale_sigma`)."""
-        s = self.scale_sigma if sigma is None else sigma
-        return gtsam.PriorFactorDouble(speed_scale_key(graph), float(k), gtsam.noiseModel.Isotropic.Sigma(1, s))
+    def prior(self, graph: int, k: float = 1.0) -> gtsam.NonlinearFactor:
+        """The scale's prior: ``k`` with :attr:`scale_sigma`."""
+        return gtsam.PriorFactorDouble(speed_scale_key(graph), float(k),
+                                       gtsam.noiseModel.Isotropic.Sigma(1, self.scale_sigma))
 
     def factor(self, ref: int, frame: int, translation: np.ndarray, covariance: np.ndarray,
                graph: int | None = None, scale: float = 1.0) -> gtsam.NonlinearFactor:

@@ -1020,8 +1020,7 @@ class VergenceScheduler:
         e.g. waiting for settled fixations, interrupted nothing). ``measured_at``: the stamp of the step's
         measurement; one at or after a request that came during the step answers it."""
         self.running = False
-        if (ok and self.pending == 'request' and measured_at is not None and self.t_request is not None
-                and measured_at >= self.t_request):
+        if ok and self.t_request is not None and measured_at is not None and measured_at >= self.t_request:
             self.pending = None
             self.answered += 1
         self.t_request = None
