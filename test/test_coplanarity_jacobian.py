@@ -10,6 +10,7 @@ from fixego_ros.estimation.coplanarity import (
     numeric_jacobian,
     sampson_residuals,
     sampson_residuals_jacobian,
+    sampson_residuals_jacobians,
 )
 from fixego_ros.geometry.rotation import exp_so3
 
@@ -70,3 +71,18 @@ def test_cached_transposes_are_contiguous_copies():
         assert arr.flags.c_contiguous and np.array_equal(arr, src.T)
         assert getattr(pairs, name) is arr                      # computed once
     assert np.array_equal(pairs.aT_cyclic, pairs.a.T[[0, 1, 2, 0, 1]])
+
+
+def test_batched_jacobians_are_those_of_single_motions_bit_for_bit():
+    """The solver refines its starts side by side; a batch must not change a single bit of any of them."""
+    rng = np.random.default_rng(3)
+    pairs = random_pairs(rng)
+    Rs = np.stack([exp_so3(rng.normal(size=3) * 0.1) for _ in range(5)])
+    Ts = rng.normal(size=(5, 3)) * 0.2
+    Ts[2] = 0.0                                     # one with no baseline of its own (lever arm only)
+    r, J = sampson_residuals_jacobians(Rs, Ts, pairs)
+    assert r.shape == (5, len(pairs)) and J.shape == (5, len(pairs), 6)
+    for k in range(5):
+        rk, Jk = sampson_residuals_jacobian(Rs[k], Ts[k], pairs)
+        assert np.array_equal(r[k], rk) and np.array_equal(J[k], Jk)
+        assert np.allclose(rk, sampson_residuals(Rs[k], Ts[k], pairs), rtol=0, atol=1e-14)

@@ -7,7 +7,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from fixego_ros.estimation.coplanarity import RayPairs, sampson_residuals_jacobian
+from fixego_ros.estimation.coplanarity import RayPairs, sampson_residuals_jacobian, sampson_residuals_jacobians
 from fixego_ros.estimation.frames import fixations_of, step_pairs
 from fixego_ros.estimation.status import StepStatus
 from fixego_ros.estimation.twoframe import (
@@ -17,6 +17,7 @@ from fixego_ros.estimation.twoframe import (
     SolverConfig,
     TwoFrameSolver,
     levenberg_marquardt,
+    levenberg_marquardt_many,
     robust_loss,
 )
 from fixego_ros.experiments.point_scene import PRESETS, PointScene, random_motion_sequence
@@ -233,3 +234,27 @@ def test_lm_survives_non_finite_residuals():
     assert np.linalg.norm(sol.T - start.t) < 1e-3
     assert levenberg_marquardt(lambda R, T: (np.full(3, np.nan), np.zeros((3, 6))), np.eye(3), np.zeros(3),
                                x_scale) is None
+
+
+def test_starts_refined_side_by_side_take_exactly_their_own_steps():
+    """``levenberg_marquardt_many`` evaluates the running starts together; each ends where it ends alone (same
+    bits, same evaluations), whether it converges early, runs out of evaluations or starts non-finite."""
+    truth, pairs, sigma = problem(2, 0.5)
+    scaled = RayPairs(pairs.a, pairs.b, pairs.centers, pairs.weights / sigma)
+    x_scale = np.r_[np.full(3, 1e-2), np.full(3, 0.05)]
+    starts = [(truth.R, truth.t, x_scale), (perturbed(truth).R, perturbed(truth).t, x_scale),
+              (np.eye(3), np.array([0.0, 0.0, 0.05]), x_scale), (np.eye(3), np.array([0.05, 0.0, 0.0]), 'jac'),
+              (np.eye(3), np.array([np.nan, 0.0, 0.0]), x_scale)]
+    batch_sizes = []
+
+    def many(Rs, Ts):
+        batch_sizes.append(len(Rs))
+        return sampson_residuals_jacobians(Rs, Ts, scaled)
+
+    together = levenberg_marquardt_many(many, starts, 'huber', 3.0, 1e-7, 25)
+    assert together[-1] is None and batch_sizes[0] == len(starts) and len(set(batch_sizes)) > 1
+    for (R0, T0, xs), sol in zip(starts[:-1], together[:-1], strict=True):
+        alone = levenberg_marquardt(lambda R, T: sampson_residuals_jacobian(R, T, scaled), R0, T0, xs, 'huber',
+                                    3.0, 1e-7, 25)
+        assert sol.nfev == alone.nfev and sol.message == alone.message
+        assert np.array_equal(sol.R, alone.R) and np.array_equal(sol.T, alone.T) and sol.cost == alone.cost

@@ -120,48 +120,57 @@ def sampson_residuals_jacobian(R: np.ndarray, T: np.ndarray, pairs: RayPairs) ->
     alpha = 1/D + 2 e^2/D^3 and beta = e/D^3; and d b' = delta x b', d t_c = dT + delta x (R c).
     Vectors are (3, N) or, for cross products, (5, N) with rows x, y, z, x, y (``_CYCLIC``).
     """
+    r, J = sampson_residuals_jacobians(R[None], np.asarray(T, dtype=float)[None], pairs)
+    return r[0], J[0]
+
+
+def sampson_residuals_jacobians(Rs: np.ndarray, Ts: np.ndarray, pairs: RayPairs) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`sampson_residuals_jacobian` of K motions at once (``Rs`` (K, 3, 3), ``Ts`` (K, 3)): residuals (K, N)
+    and Jacobians (K, N, 6), bit for bit those of K single calls. The two-frame solver refines its starts side by
+    side: one call over ten motions costs about three over one (150 pairs: 150 against 48 us)."""
     a, ae, c = pairs.aT, pairs.aT_cyclic, pairs.cT
-    n_rows = a.shape[1]
-    R5 = R.take(_CYCLIC, axis=0)
-    be = R5 @ pairs.bT                                                 # b', cyclic rows
+    K, n_rows = len(Rs), a.shape[1]
+    R5 = Rs[:, _CYCLIC]
+    be = R5 @ pairs.bT                                                 # (K, 5, N): b', cyclic rows
     Rce = R5 @ c                                                       # R c, cyclic rows
-    tc = Rce[:3] - c
-    tc += np.asarray(T, dtype=float)[:, None]
-    u = np.sqrt(np.einsum('in,in->n', tc, tc))
+    tc = Rce[:, :3] - c
+    tc += np.asarray(Ts, dtype=float)[:, :, None]
+    u = np.sqrt(np.einsum('kin,kin->kn', tc, tc))
     small = u <= EPS if u.min() <= EPS else None     # no baseline: th = t_c / EPS, as in the residuals
     if small is not None:
         u[small] = EPS
-    th = tc / u
-    te = th.take(_CYCLIC, axis=0)
-    V = np.empty((3, 3, n_rows))                                        # n, b', a
-    np.subtract(ae[1:4] * be[2:5], ae[2:5] * be[1:4], out=V[0])
-    V[1] = be[:3]
-    V[2] = a
-    S = np.einsum('kin,in->kn', V, th)                                  # e, b'.th, a.th
+    th = tc / u[:, None]
+    te = th[:, _CYCLIC]
+    V = np.empty((K, 3, 3, n_rows))                                     # n, b', a
+    np.subtract(ae[1:4] * be[:, 2:5], ae[2:5] * be[:, 1:4], out=V[:, 0])
+    V[:, 1] = be[:, :3]
+    V[:, 2] = a
+    S = np.einsum('kjin,kin->kjn', V, th)                               # e, b'.th, a.th
     D2 = 2.0 - _D2_COEF @ (S * S)                                       # 2 - 2e^2 - (b'.th)^2 - (a.th)^2
     clamped = D2 <= 1e-18 if D2.min() <= 1e-18 else None    # D held at its floor: no derivative through it
     if clamped is not None:
         D2[clamped] = 1e-18
     inv_d = 1.0 / np.sqrt(D2)
-    e = S[0]
+    e = S[:, 0]
     beta = e * inv_d**3
     if clamped is not None:
         beta[clamped] = 0.0
-    C = S * beta                                                        # beta e, beta b'.th, beta a.th
-    C[0] = inv_d + 2.0 * C[0]                                           # alpha
-    gt = np.einsum('kn,kin->in', C, V)             # dr/dth = alpha n + beta (b'.th b' + a.th a)
-    along = np.einsum('in,in->n', th, gt)
+    C = S * beta[:, None]                                               # beta e, beta b'.th, beta a.th
+    C[:, 0] = inv_d + 2.0 * C[:, 0]                                     # alpha
+    gt = np.einsum('kjn,kjin->kin', C, V)          # dr/dth = alpha n + beta (b'.th b' + a.th a)
+    along = np.einsum('kin,kin->kn', th, gt)
     if small is not None:
         along[small] = 0.0                   # th = t_c / EPS is not a unit vector: nothing to project out
-    g = (gt - th * along) / u                                           # dr/dt_c (projected, over |t_c|)
-    gb = C[0] * (te[1:4] * ae[2:5] - te[2:5] * ae[1:4]) + C[1] * th     # dr/db' = alpha th x a + beta b'.th th
-    ge, gbe = g.take(_CYCLIC, axis=0), gb.take(_CYCLIC, axis=0)
-    J = np.empty((6, n_rows))
-    J[:3] = be[1:4] * gbe[2:5] - be[2:5] * gbe[1:4] + Rce[1:4] * ge[2:5] - Rce[2:5] * ge[1:4]  # b'xg_b + Rcxg
-    J[3:] = g
+    g = (gt - th * along[:, None]) / u[:, None]                         # dr/dt_c (projected, over |t_c|)
+    gb = C[:, 0, None] * (te[:, 1:4] * ae[2:5] - te[:, 2:5] * ae[1:4]) + C[:, 1, None] * th  # dr/db'
+    ge, gbe = g[:, _CYCLIC], gb[:, _CYCLIC]
+    J = np.empty((K, 6, n_rows))
+    J[:, :3] = (be[:, 1:4] * gbe[:, 2:5] - be[:, 2:5] * gbe[:, 1:4]
+                + Rce[:, 1:4] * ge[:, 2:5] - Rce[:, 2:5] * ge[:, 1:4])     # b' x g_b + R c x g_{t_c}
+    J[:, 3:] = g
     w = pairs.weights
     J *= w
-    return w * e * inv_d, J.T
+    return w * e * inv_d, J.transpose(0, 2, 1)
 
 
 def numeric_jacobian(R0: np.ndarray, x: np.ndarray, pairs: RayPairs, h_rot: float = 1e-7,

@@ -12,7 +12,7 @@ the left camera's lever arm, so the covariance is part of the answer, not an aft
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Generator, Sequence
 from dataclasses import dataclass, field
 from enum import Enum
 
@@ -26,6 +26,7 @@ from fixego_ros.estimation.coplanarity import (
     numeric_jacobian,
     sampson_residuals,
     sampson_residuals_jacobian,
+    sampson_residuals_jacobians,
 )
 from fixego_ros.estimation.covariance import VAR_MAX, covariance_from_jacobian, residual_variance
 from fixego_ros.estimation.status import StepStatus
@@ -156,6 +157,7 @@ def canonical_starts(step: float) -> list[Pose]:
 # --- Levenberg-Marquardt over a rigid motion --------------------------------------------------------
 
 ResidualFn = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
+BatchResidualFn = ResidualFn        # (K, 3, 3), (K, 3) -> (K, m), (K, m, 6)
 
 
 def robust_loss(z: np.ndarray, loss: str) -> tuple[np.ndarray, np.ndarray]:
@@ -260,17 +262,56 @@ def levenberg_marquardt(fun: ResidualFn, R0: np.ndarray, T0: np.ndarray, x_scale
     ``tol * (tol + |x|)``, the scaled gradient below ``gtol``, or ``max_nfev`` residual evaluations.
     Returns None when the start itself is not finite.
     """
+
+    def one(Rs: np.ndarray, Ts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        r, J = fun(Rs[0], Ts[0])
+        return r[None], J[None]
+
+    return levenberg_marquardt_many(one, [(R0, T0, x_scale)], loss, f_scale, tol, max_nfev, gtol)[0]
+
+
+Start = tuple[np.ndarray, np.ndarray, 'np.ndarray | str']     # R0, T0, x_scale of one refinement
+
+
+def levenberg_marquardt_many(fun: BatchResidualFn, starts: Sequence[Start], loss: str = 'linear',
+                             f_scale: float = 1.0, tol: float = 1e-7, max_nfev: int = 60,
+                             gtol: float = 1e-8) -> list[LMResult | None]:
+    """:func:`levenberg_marquardt` from several starts side by side: each start takes exactly its own steps,
+    and the residuals of those still running are evaluated together, ``fun(Rs, Ts)`` giving (K, m) and
+    (K, m, 6). The cold starts of a two-frame solve are ten refinements of the same pairs; one call over all of
+    them costs about three over one."""
     if loss not in LOSSES:
         raise ValueError(f'loss must be one of {LOSSES}, got {loss!r}')
-    R, T = R0, np.array(T0, dtype=float)
+    for _, _, x_scale in starts:
+        if isinstance(x_scale, str) and x_scale != 'jac':
+            raise ValueError(f"x_scale must be an array or 'jac', got {x_scale!r}")
+    runs = [_lm_run(R0, T0, x_scale, loss, f_scale, tol, max_nfev, gtol) for R0, T0, x_scale in starts]
+    out: list[LMResult | None] = [None] * len(runs)
     with np.errstate(all='ignore'):
-        r, J = fun(R, T)
+        asked = {i: next(run) for i, run in enumerate(runs)}
+        while asked:
+            running = list(asked)
+            r, J = fun(np.stack([asked[i][0] for i in running]), np.stack([asked[i][1] for i in running]))
+            for k, i in enumerate(running):
+                try:
+                    asked[i] = runs[i].send((r[k], J[k]))
+                except StopIteration as done:
+                    out[i] = done.value
+                    del asked[i]
+    return out
+
+
+def _lm_run(R0: np.ndarray, T0: np.ndarray, x_scale: np.ndarray | str, loss: str, f_scale: float, tol: float,
+            max_nfev: int, gtol: float) -> Generator[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray],
+                                                     LMResult | None]:
+    """One refinement of :func:`levenberg_marquardt_many`: yields each motion whose residuals it needs and is
+    sent them back (under the caller's ``np.errstate``)."""
+    R, T = R0, np.array(T0, dtype=float)
+    r, J = yield R, T
     nfev = 1
     if not (np.all(np.isfinite(r)) and np.all(np.isfinite(J))):
         return None
     jac_scale = isinstance(x_scale, str)
-    if jac_scale and x_scale != 'jac':
-        raise ValueError(f"x_scale must be an array or 'jac', got {x_scale!r}")
     f2 = float(f_scale) ** 2
 
     def robust(r: np.ndarray) -> tuple[float, np.ndarray | None]:
@@ -290,69 +331,68 @@ def levenberg_marquardt(fun: ResidualFn, R0: np.ndarray, T0: np.ndarray, x_scale
     x_norm = math.sqrt(float(T @ T))
     lam = 0.0
     success, message = False, 'maximum number of residual evaluations reached'
-    with np.errstate(all='ignore'):
-        cost, w = robust(r)
-        if jac_scale:
-            d_inv = column_norms(J, w)
-            d_inv[d_inv == 0] = 1.0
-            d = 1.0 / d_inv
-        else:
-            d = np.asarray(x_scale, dtype=float)
-        radius = math.sqrt(float(np.sum((T / d[3:]) ** 2))) or 1.0
+    cost, w = robust(r)
+    if jac_scale:
+        d_inv = column_norms(J, w)
+        d_inv[d_inv == 0] = 1.0
+        d = 1.0 / d_inv
+    else:
+        d = np.asarray(x_scale, dtype=float)
+    radius = math.sqrt(float(np.sum((T / d[3:]) ** 2))) or 1.0
+    while nfev < max_nfev:
+        Jd = J * d
+        Jw = Jd if w is None else Jd * w[:, None]
+        H = Jw.T @ Jd
+        g = Jw.T @ r
+        if not math.isfinite(float(H.sum())):
+            message = 'non-finite Jacobian'
+            break
+        if not float(np.abs(g).max()) >= gtol:
+            success, message = True, 'gradient below gtol'
+            break
+        s_arr, V = _eigh(H)
+        s, gt = s_arr.tolist(), (g @ V).tolist()
+        done = False
         while nfev < max_nfev:
-            Jd = J * d
-            Jw = Jd if w is None else Jd * w[:, None]
-            H = Jw.T @ Jd
-            g = Jw.T @ r
-            if not math.isfinite(float(H.sum())):
-                message = 'non-finite Jacobian'
+            ht, lam, on_boundary = _trust_region_step(s, gt, radius, lam)
+            h_norm = math.sqrt(sum(v * v for v in ht))
+            if not math.isfinite(h_norm):
+                message, done = 'normal equations not solvable', True
                 break
-            if not float(np.abs(g).max()) >= gtol:
-                success, message = True, 'gradient below gtol'
-                break
-            s_arr, V = _eigh(H)
-            s, gt = s_arr.tolist(), (g @ V).tolist()
-            done = False
-            while nfev < max_nfev:
-                ht, lam, on_boundary = _trust_region_step(s, gt, radius, lam)
-                h_norm = math.sqrt(sum(v * v for v in ht))
-                if not math.isfinite(h_norm):
-                    message, done = 'normal equations not solvable', True
-                    break
-                step = (V @ ht) * d
-                R_new, T_new = exp_so3(step[:3].tolist()) @ R, T + step[3:]
-                r_new, J_new = fun(R_new, T_new)
-                cost_new, w_new = robust(r_new)
-                nfev += 1
-                if not math.isfinite(cost_new):
-                    radius = 0.25 * h_norm
-                    continue
-                reduction = cost - cost_new
-                predicted = -sum(gi * hi + 0.5 * si * hi * hi for gi, hi, si in zip(gt, ht, s, strict=True))
-                ratio = reduction / predicted if predicted > 0 else (1.0 if reduction == 0 == predicted else 0.0)
-                if ratio < 0.25:
-                    radius = 0.25 * h_norm
-                elif ratio > 0.75 and on_boundary:
-                    radius *= 2.0
-                small_step = math.sqrt(float(step @ step)) < tol * (tol + x_norm)
-                if reduction > 0:
-                    cost_old = cost
-                    R, T, r, J, cost, w = R_new, T_new, r_new, J_new, cost_new, w_new
-                    rot = rot + step[:3]
-                    x_norm = math.sqrt(float(rot @ rot + T @ T))
-                    if jac_scale:
-                        d_inv = np.maximum(column_norms(J, w), d_inv)
-                        d = 1.0 / d_inv
-                    if reduction < tol * cost_old and ratio > 0.25:
-                        success, message, done = True, 'relative cost decrease below tol', True
-                    elif small_step:
-                        success, message, done = True, 'step below tol', True
-                    break
-                if small_step:
+            step = (V @ ht) * d
+            R_new, T_new = exp_so3(step[:3].tolist()) @ R, T + step[3:]
+            r_new, J_new = yield R_new, T_new
+            cost_new, w_new = robust(r_new)
+            nfev += 1
+            if not math.isfinite(cost_new):
+                radius = 0.25 * h_norm
+                continue
+            reduction = cost - cost_new
+            predicted = -sum(gi * hi + 0.5 * si * hi * hi for gi, hi, si in zip(gt, ht, s, strict=True))
+            ratio = reduction / predicted if predicted > 0 else (1.0 if reduction == 0 == predicted else 0.0)
+            if ratio < 0.25:
+                radius = 0.25 * h_norm
+            elif ratio > 0.75 and on_boundary:
+                radius *= 2.0
+            small_step = math.sqrt(float(step @ step)) < tol * (tol + x_norm)
+            if reduction > 0:
+                cost_old = cost
+                R, T, r, J, cost, w = R_new, T_new, r_new, J_new, cost_new, w_new
+                rot = rot + step[:3]
+                x_norm = math.sqrt(float(rot @ rot + T @ T))
+                if jac_scale:
+                    d_inv = np.maximum(column_norms(J, w), d_inv)
+                    d = 1.0 / d_inv
+                if reduction < tol * cost_old and ratio > 0.25:
+                    success, message, done = True, 'relative cost decrease below tol', True
+                elif small_step:
                     success, message, done = True, 'step below tol', True
-                    break
-            if done:
                 break
+            if small_step:
+                success, message, done = True, 'step below tol', True
+                break
+        if done:
+            break
     return LMResult(R, T, r, J, cost, nfev, success, message)
 
 
@@ -456,18 +496,21 @@ class TwoFrameSolver:
               prior: MotionPrior | None = None) -> TwoFrameResult | None:
         """Refine every start; prefer solutions in front of the cameras, then the lowest cost."""
         best: TwoFrameResult | None = None
-        for start in starts:
-            best = self._better(best, self._refine(pairs, start, prior))
+        found = (self._minimise_lm(pairs, starts, prior) if self.config.backend == 'lm'
+                 else [self._minimise_scipy(pairs, start, prior) for start in starts])
+        for minimum in found:
+            best = self._better(best, self._result(pairs, minimum))
         return best
 
-    def _refine(self, pairs: RayPairs, start: Pose,
-                prior: MotionPrior | None = None) -> TwoFrameResult | None:
-        cfg = self.config
-        # fixed variable scaling (not 'jac': that inflates steps along the weakly observed scale)
-        x_scale = np.concatenate([np.full(3, 1e-2), np.full(3, max(np.linalg.norm(start.t), cfg.prior_step))])
-        found = (self._minimise_scipy if cfg.backend == 'scipy' else self._minimise_lm)(pairs, start, prior, x_scale)
+    def _x_scale(self, start: Pose) -> np.ndarray:
+        """Fixed variable scaling (not 'jac': that inflates steps along the weakly observed scale)."""
+        return np.concatenate([np.full(3, 1e-2), np.full(3, max(np.linalg.norm(start.t), self.config.prior_step))])
+
+    def _result(self, pairs: RayPairs, found: _Minimum | None) -> TwoFrameResult | None:
+        """A refinement's end point with its covariance, status and cheirality (None when it is not finite)."""
         if found is None:
             return None
+        cfg = self.config
         pose, success, message, rJ = found
         r, J = rJ if rJ is not None else sampson_residuals_jacobian(pose.R, pose.t, pairs)
         if not (np.all(np.isfinite(r)) and np.all(np.isfinite(J))):
@@ -482,32 +525,36 @@ class TwoFrameSolver:
         return TwoFrameResult(pose, status, r, cov, float(0.5 * np.sum(np.square(r / cfg.sigma))), len(pairs), msg,
                               cheirality(pose.R, pose.t, pairs))
 
-    def _minimise_lm(self, pairs: RayPairs, start: Pose, prior: MotionPrior | None,
-                     x_scale: np.ndarray) -> _Minimum | None:
-        """:func:`levenberg_marquardt` on the rays (and prior rows); also returns the rays' residuals and
-        Jacobian at the end point, which the covariance needs."""
+    def _minimise_lm(self, pairs: RayPairs, starts: list[Pose], prior: MotionPrior | None) -> list[_Minimum | None]:
+        """:func:`levenberg_marquardt_many` on the rays (and prior rows) from every start at once; each end point
+        also carries the rays' residuals and Jacobian there, which the covariance needs."""
         cfg = self.config
         scaled = pairs.reweighted(1.0 / cfg.sigma)      # residuals in units of sigma, with no per-call division
-        if prior is None:
-            def fun(R: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-                return sampson_residuals_jacobian(R, T, scaled)
-        else:
-            def fun(R: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-                r, J = sampson_residuals_jacobian(R, T, scaled)
-                r_p, J_p = prior.rows(T)
-                return np.concatenate([r, r_p]), np.vstack([J, J_p])
 
-        sol = levenberg_marquardt(fun, start.R, start.t, x_scale, cfg.loss, cfg.loss_scale, cfg.tol, cfg.max_nfev)
-        if sol is None or not (np.all(np.isfinite(sol.R)) and np.all(np.isfinite(sol.T))):
-            return None
+        def fun(Rs: np.ndarray, Ts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            r, J = sampson_residuals_jacobians(Rs, Ts, scaled)
+            if prior is None:
+                return r, J
+            rows = [prior.rows(T) for T in Ts]
+            return (np.concatenate([r, np.stack([r_p for r_p, _ in rows])], axis=1),
+                    np.concatenate([J, np.stack([J_p for _, J_p in rows])], axis=1))
+
+        sols = levenberg_marquardt_many(fun, [(p.R, p.t, self._x_scale(p)) for p in starts], cfg.loss,
+                                        cfg.loss_scale, cfg.tol, cfg.max_nfev)
         m = len(pairs)
-        return Pose(project_to_so3(sol.R), sol.T.copy()), sol.success, sol.message, (sol.r[:m] * cfg.sigma,
-                                                                                     sol.J[:m] * cfg.sigma)
+        out: list[_Minimum | None] = []
+        for sol in sols:
+            if sol is None or not (np.all(np.isfinite(sol.R)) and np.all(np.isfinite(sol.T))):
+                out.append(None)
+                continue
+            out.append((Pose(project_to_so3(sol.R), sol.T.copy()), sol.success, sol.message,
+                        (sol.r[:m] * cfg.sigma, sol.J[:m] * cfg.sigma)))
+        return out
 
-    def _minimise_scipy(self, pairs: RayPairs, start: Pose, prior: MotionPrior | None,
-                        x_scale: np.ndarray) -> _Minimum | None:
+    def _minimise_scipy(self, pairs: RayPairs, start: Pose, prior: MotionPrior | None) -> _Minimum | None:
         """The original path: scipy's trust-region reflective over ``x = [rotvec of R R0^T, T]``."""
         cfg = self.config
+        x_scale = self._x_scale(start)
         R0 = start.R
         scale = cfg.sigma
 
