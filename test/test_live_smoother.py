@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections import deque
 
 import numpy as np
@@ -269,16 +270,19 @@ def test_a_solved_step_without_translation_leaves_the_warm_start_finite(loop):
 
 
 def test_once_the_smoother_answers_a_frame_is_dead_reckoned_on_its_velocity_in_the_rig_frame():
-    """The live pose's cheap path (~0.3 ms, no solve): the rotation is the Kabsch fit of the rays, the translation
-    the smoother's newest velocity in the rig's own frame over the time since the keyframe, turned by half the
-    step's rotation. On an arc that velocity points along the rig's heading whichever way the rig faces. With the
-    smoother's newest frame over ``MAX_CARRY_S`` old the rotation comes from the solve, the translation still from
-    that velocity however far the smoother lags; too few rays for a rotation leave the frame to the solve."""
+    """The live pose's cheap path (~1 ms, no solve): the translation is the smoother's newest velocity in the rig's
+    own frame over the time since the keyframe, turned by half the step's rotation; the rotation is what the rays
+    give with that translation (Kabsch's fit, corrected for the near points' parallax). On an arc that velocity
+    points along the rig's heading whichever way the rig faces. With the smoother's newest frame over
+    ``MAX_CARRY_S`` old the rotation comes from the solve, the translation still from that velocity however far the
+    smoother lags; too few rays for a rotation leave the frame to the solve."""
     from fixego_ros.estimation.coplanarity import RayPairs
     from fixego_ros.estimation.live_smoother import _Recent
-    from fixego_ros.geometry.rotation import Pose, exp_so3, rot_y
+    from fixego_ros.estimation.twoframe import TwoFrameSolver, kabsch_rotation
+    from fixego_ros.geometry.rotation import Pose, exp_so3, rot_y, rotation_angle
 
     live = LiveSmoother.__new__(LiveSmoother)          # the parent's bookkeeping only: no child process
+    live.solver = TwoFrameSolver(SolverConfig(sigma=1.0 / F))
     # the smoother's newest motion: 0.2 s along an arc of the rig's heading (z forward, turning about y)
     turn = 0.1
     a = _Recent(0.0, Pose(rot_y(1.0), np.zeros(3)), Pose.identity(), {}, smoothed=True)
@@ -296,6 +300,14 @@ def test_once_the_smoother_answers_a_frame_is_dead_reckoned_on_its_velocity_in_t
     np.testing.assert_allclose(carried.pose.R, R, atol=1e-9)
     np.testing.assert_allclose(carried.pose.t, half @ [0.0, 0.0, 0.02], atol=1e-9)
     assert live._carried(ref, pairs, 0.2 + LiveSmoother.MAX_CARRY_S + 0.01) is None     # lagging: solved
+    # points 0.8-1.5 m away, all to one side: over the carried 2 cm forward their parallax leans one way, and
+    # Kabsch takes it for rotation
+    near = np.random.default_rng(1).uniform([0.3, -0.5, 0.8], [1.5, 0.5, 1.5], size=(60, 3))
+    moved = (near - carried.pose.t) @ R                 # the same points after the carried step
+    parallax = RayPairs.build([(near, moved, np.zeros(3), 1.0)])
+    kabsch = live._dead_reckoned(live._smoothed_span(), kabsch_rotation(parallax.a, parallax.b), 0.1)
+    assert rotation_angle(kabsch.R @ R.T) > math.radians(0.1)        # (measured: 0.44 deg; carried 0.0004)
+    assert rotation_angle(live._carried(ref, parallax, 0.4).pose.R @ R.T) < 0.1 * rotation_angle(kabsch.R @ R.T)
     late = live._dead_reckoned(live._smoothed_span(), R, 5.0)     # 5 s on the smoother's velocity: 1 m forward
     np.testing.assert_allclose(late.R, R, atol=1e-12)
     np.testing.assert_allclose(late.t, half @ [0.0, 0.0, 1.0], atol=1e-9)

@@ -258,3 +258,30 @@ def test_starts_refined_side_by_side_take_exactly_their_own_steps():
                                     3.0, 1e-7, 25)
         assert sol.nfev == alone.nfev and sol.message == alone.message
         assert np.array_equal(sol.R, alone.R) and np.array_equal(sol.T, alone.T) and sol.cost == alone.cost
+
+
+def test_rotation_given_the_translation_reads_parallax_that_kabsch_takes_for_rotation():
+    """A short step past near points: Kabsch's rotation absorbs their parallax; with the step's translation given,
+    the rays' rotation comes out right. A translation too short to see leaves Kabsch's answer, and one that does
+    not fit the rays cannot turn the rotation further than ``max_turn``."""
+    from fixego_ros.estimation.twoframe import kabsch_rotation, rotation_given_translation
+    rng = np.random.default_rng(4)
+    R, T = exp_so3([0.0, 0.01, 0.002]), np.array([0.03, 0.0, 0.1])      # 10 cm forward, 3 cm sideways
+    points = rng.uniform([-1.0, -0.5, 1.0], [1.0, 0.5, 2.0], size=(80, 3))
+    a = points / np.linalg.norm(points, axis=1, keepdims=True)
+    in_b = (points - T) @ R                     # the points in the rig frame after the step (x_t = R x_b + T)
+    b = in_b / np.linalg.norm(in_b, axis=1, keepdims=True)
+    pairs = RayPairs.build([(a, b, np.zeros(3), 1.0)])
+    sigma = 1.0 / 1727.0
+
+    def angle(Q):
+        return float(np.degrees(np.arccos(np.clip((np.trace(Q @ R.T) - 1.0) / 2.0, -1.0, 1.0))))
+
+    kabsch = kabsch_rotation(pairs.a, pairs.b)
+    assert angle(kabsch) > 0.5
+    assert angle(rotation_given_translation(pairs, kabsch, T, sigma, iterations=3)) < 1e-3
+    assert angle(rotation_given_translation(pairs, kabsch, T, sigma, iterations=1)) < 0.05
+    assert np.array_equal(rotation_given_translation(pairs, kabsch, T * 1e-4, sigma), kabsch)
+    assert np.array_equal(rotation_given_translation(pairs, kabsch, np.full(3, np.nan), sigma), kabsch)
+    wrong = rotation_given_translation(pairs, kabsch, np.array([1.0, 0.0, 0.0]), sigma, max_turn=np.radians(0.2))
+    assert np.degrees(np.arccos(np.clip((np.trace(wrong @ kabsch.T) - 1.0) / 2.0, -1.0, 1.0))) <= 0.2 + 1e-9

@@ -2,14 +2,14 @@
 
 GTSAM holds the GIL for a whole solve (50-120 ms per frame on this machine), so a smoother in a thread would still
 stall the node's callbacks, and one in the callback leaves frames without a pose. :class:`LiveSmoother` runs the
-:class:`~fixego_ros.estimation.smoother.Smoother` in a child process and answers each frame itself (~0.3 ms): the
+:class:`~fixego_ros.estimation.smoother.Smoother` in a child process and answers each frame itself (~1 ms): the
 smoother's newest velocity in the rig's frame carried to the frame's stamp, with the rotation the frame's rays
-give. When the smoother has fallen behind by over ``MAX_CARRY_S`` (or too few rays give the rotation), the
-rotation of the two-frame coplanarity solve keyframe -> frame (2-11 ms) with the same translation; before the
-smoother has answered, that solve alone, its length at the nominal speed, placed on the keyframe. The smoother's
-results revise the path as they arrive (the live pose stays continuous; corrections go to the path). The child
-takes every keyframe (later flow starts from them, so they must be in its graph) and the newest non-keyframe
-whenever it is idle.
+give with that translation. When the smoother has fallen behind by over ``MAX_CARRY_S`` (or too few rays give the
+rotation), the rotation of the two-frame coplanarity solve keyframe -> frame (2-11 ms) with the same translation;
+before the smoother has answered, that solve alone, its length at the nominal speed, placed on the keyframe. The
+smoother's results revise the path as they arrive (the live pose stays continuous; corrections go to the path).
+The child takes every keyframe (later flow starts from them, so they must be in its graph) and the newest
+non-keyframe whenever it is idle.
 
 Replay runs the same class with the smoother in the caller's process (``inline``): every keyframe goes into the graph,
 and another frame once 0.1 s has passed since the last one (:class:`_Inline`), so the output is deterministic and
@@ -47,7 +47,14 @@ from fixego_ros.estimation.frames import (
     step_pairs,
 )
 from fixego_ros.estimation.status import StepStatus
-from fixego_ros.estimation.twoframe import MIN_ROTATION_PAIRS, Fallback, TwoFrameResult, TwoFrameSolver, kabsch_rotation
+from fixego_ros.estimation.twoframe import (
+    MIN_ROTATION_PAIRS,
+    Fallback,
+    TwoFrameResult,
+    TwoFrameSolver,
+    kabsch_rotation,
+    rotation_given_translation,
+)
 from fixego_ros.geometry.rig import SIDES, Rig
 from fixego_ros.geometry.rotation import Pose, exp_so3, log_so3
 from fixego_ros.interrupt import sigint_ignored
@@ -223,7 +230,8 @@ class LiveSmoother:
     SPEED_WINDOW_S = 0.5   # the speed of the fast poses: the smoother's motion over about this long
     JOIN_S = 2.0           # bound on waiting for the child to stop
     ODOM_CONVERGENCE_S = 1.0   # time constant of the continuous pose closing its gap to the newest estimate
-    MAX_CARRY_S = 0.5      # the rays' rotation is trusted this far past the smoother's newest frame (then: solved)
+    MAX_CARRY_S = 0.5      # the rotation read with the carried velocity this far past the smoother's newest frame
+                           # (then solved: a stale velocity bends it)
 
     def __init__(self, rig: Rig, config: EstimatorConfig | None = None, inline: bool = False) -> None:
         """``inline``: the smoother in this process on every keyframe and one other frame per ``_Inline.MIN_GAP_S``,
@@ -551,16 +559,26 @@ class LiveSmoother:
         return (correction @ pose).normalized()
 
     def _carried(self, ref: _Recent, pairs: RayPairs, stamp: float) -> TwoFrameResult | None:
-        """The step ref -> frame dead reckoned (:meth:`_dead_reckoned`) with the rotation the rays give (Kabsch:
-        over one frame they are mostly rotation; ~0.3 ms against the solve's 2-11 ms on the loaded demo machine).
-        None before the smoother has answered, when its newest frame is over ``MAX_CARRY_S`` old, or with too few
-        rays: then the two-frame solve gives the rotation. Kabsch takes the parallax of a fast rig's near points for
-        rotation: on a 30 Hz walk at 1 m/s, dead reckoned on it with the smoother 2-5 s behind, the live heading
-        drifted 14 deg/s."""
+        """The step ref -> frame dead reckoned (:meth:`_dead_reckoned`) with the rotation the rays give with that
+        translation (:func:`~fixego_ros.estimation.twoframe.rotation_given_translation` from their Kabsch fit: one
+        Gauss-Newton step, ~0.5 ms, against the solve's 2-11 ms on the loaded demo machine). None before the
+        smoother has answered, when its newest frame is over ``MAX_CARRY_S`` old, or with too few rays: then the
+        two-frame solve gives the rotation. Kabsch alone takes the parallax of near points for rotation (on a 30 Hz
+        walk at 1 m/s, dead reckoned with the smoother 2-5 s behind, the live heading drifted 14 deg/s). Measured
+        with the smoother answering at once (``fixego sim`` 30 Hz bags, published poses; docs/results.md "Stop
+        57"): the loop 3.60 -> 3.02 cm mean, the walk 31.6 -> 16.7 cm. A stale velocity is worse than solving: with
+        the answers held back 1.5 s and no ``MAX_CARRY_S``, the walk went 31.6 -> 52.9 cm."""
         span = self._smoothed_span()
         if span is None or stamp - span[1].stamp > self.MAX_CARRY_S or len(pairs) < MIN_ROTATION_PAIRS:
             return None
-        step = self._dead_reckoned(span, kabsch_rotation(pairs.a, pairs.b), stamp - ref.stamp)
+        dt = stamp - ref.stamp
+        rays = kabsch_rotation(pairs.a, pairs.b)
+        reckoned = self._dead_reckoned(span, rays, dt)        # its translation, to read the rays' rotation with
+        if reckoned is None:
+            return None
+        solver = self.solver.config
+        step = self._dead_reckoned(span, rotation_given_translation(pairs, rays, reckoned.t, solver.sigma,
+                                                                    solver.loss_scale, iterations=1), dt)
         if step is None:
             return None
         return TwoFrameResult(step, StepStatus.CARRIED, n_constraints=len(pairs),
