@@ -2,7 +2,7 @@
 
 GTSAM holds the GIL for a whole solve (50-120 ms per frame on this machine), so a smoother in a thread would still
 stall the node's callbacks, and one in the callback leaves frames without a pose. :class:`LiveSmoother` runs the
-:class:`~fixego_ros.estimation.smoother.Smoother` in a child process and answers each frame itself (~1 ms): the
+:class:`~fixego_ros.estimation.smoother.Smoother` in a child process and answers each frame itself (~2 ms): the
 smoother's newest velocity in the rig's frame carried to the frame's stamp, with the rotation the frame's rays
 give with that translation. When the smoother has fallen behind by over ``MAX_CARRY_S`` (or too few rays give the
 rotation), the rotation of the two-frame coplanarity solve keyframe -> frame (2-11 ms) with the same translation;
