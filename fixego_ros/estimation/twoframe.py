@@ -114,8 +114,7 @@ def rotation_given_translation(pairs: RayPairs, R0: np.ndarray, T: np.ndarray, s
     for i in range(iterations + 1):
         with np.errstate(all='ignore'):
             r, J = sampson_residuals_jacobian(R, T, scaled)
-            w = f_scale / np.maximum(np.abs(r), f_scale)
-            cost = float((r * w) @ (r * (2.0 - w)))
+            cost, w = huber_cost(r, f_scale)
         if not cost < best:         # worse than the last rotation (or not finite): that one
             return R_prev
         if i == iterations:
@@ -196,6 +195,13 @@ def canonical_starts(step: float) -> list[Pose]:
 
 ResidualFn = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
 BatchResidualFn = ResidualFn        # (K, 3, 3), (K, 3) -> (K, m), (K, m, 6)
+
+
+def huber_cost(r: np.ndarray, f_scale: float) -> tuple[float, np.ndarray]:
+    """The Huber cost ``0.5 f_scale^2 sum rho`` of residuals ``r`` and their IRLS weights ``rho'``:
+    ``rho' = min(1, f/|r|)`` and ``f^2 rho = r^2 rho' (2 - rho')``."""
+    w = f_scale / np.maximum(np.abs(r), f_scale)
+    return 0.5 * float((r * w) @ (r * (2.0 - w))), w
 
 
 def robust_loss(z: np.ndarray, loss: str) -> tuple[np.ndarray, np.ndarray]:
@@ -356,9 +362,8 @@ def _lm_run(R0: np.ndarray, T0: np.ndarray, x_scale: np.ndarray | str, loss: str
         """Cost and IRLS weights (None: all 1); a non-finite r gives a non-finite cost."""
         if loss == 'linear':
             return 0.5 * float(r @ r), None
-        if loss == 'huber':            # rho' = min(1, f/|r|), f^2 rho = r^2 rho' (2 - rho')
-            w = f_scale / np.maximum(np.abs(r), f_scale)
-            return 0.5 * float((r * w) @ (r * (2.0 - w))), w
+        if loss == 'huber':
+            return huber_cost(r, f_scale)
         rho, w = robust_loss(r * r * (1.0 / f2), loss)
         return 0.5 * f2 * float(np.sum(rho)), w
 
