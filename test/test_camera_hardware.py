@@ -224,6 +224,26 @@ def test_feedforward_aims_where_the_point_will_be_at_the_next_command():
     assert abs(target.pan - profile.pan_units(math.degrees(wants[-1] + fitted * lead))) <= 1
 
 
+def test_a_seeded_rate_leads_a_new_point_before_its_images_give_one():
+    """A vergence step's partner point drifts with the right head: reset with that rate, the first target already
+    leads it (it was taken for still until four images had given a rate: up to 100 px behind on an arc); without a
+    seed the first target is the plain centring one."""
+    profile = PROFILES['evi_d30']
+    p = ServoParams(gain=1.0, deadband_px=0.0)
+    rate = math.radians(22.0)
+    pixel = (CAM.cx + 30.0, CAM.cy)
+    want = centring_angles(CAM, pixel, 0.0, 0.0)[0]
+    lead = 0.01 + p.lead_extra_s + 1.0 / p.max_command_rate_hz
+    servo = FixationServo(CAM, profile, p)
+    servo.reset((rate, 0.0))
+    seeded = servo.target(pixel, (0.0, 0.0), 0.0, 0.01)
+    assert abs(seeded.pan - profile.pan_units(math.degrees(want + rate * lead))) <= 1
+    servo.reset()
+    plain = servo.target(pixel, (0.0, 0.0), 0.0, 0.01)
+    assert abs(plain.pan - profile.pan_units(math.degrees(want))) <= 1
+    assert servo.rate == (0.0, 0.0)
+
+
 @pytest.mark.parametrize('world', [PanTiltCalibration(), INVERTED, PanTiltCalibration(-1.0, 1.0, 0.05, 0.0),
                                    PanTiltCalibration(1.0, -1.0, 0.0, -0.03)],
                          ids=['upright', 'inverted', 'pan_inverted_offset', 'tilt_inverted_offset'])

@@ -151,6 +151,22 @@ def test_history_bracket_and_before():
     assert h.before(2.0) == (1.0, 0.1, -0.1) and h.before(1.0) is None
 
 
+def test_history_rate_over_the_latest_window_or_what_there_is():
+    h = JointHistory()
+    assert h.rate(0.2) is None
+    for k in range(31):             # 30 Hz readings, pan at 0.4 rad/s, tilt at -0.1 rad/s
+        h.add(k / 30.0, 0.4 * k / 30.0, -0.1 * k / 30.0)
+        if k == 1:
+            assert h.rate(0.2) is None          # 33 ms of readings: under min_span_s
+        if k == 3:                              # 0.1 s of readings: the rate over what there is
+            t, rp, rt = h.rate(0.2)
+            assert t == 0.1 and rp == pytest.approx(0.4) and rt == pytest.approx(-0.1)
+    t, rp, rt = h.rate(0.2)
+    assert t == 1.0 and rp == pytest.approx(0.4) and rt == pytest.approx(-0.1)
+    h.add(1.1, 0.4 + 0.1, -0.1)     # a faster last 0.1 s counts only within the window
+    assert h.rate(0.1)[1] == pytest.approx(1.0) and 0.5 < h.rate(0.2)[1] < 0.9
+
+
 def test_interpolation_follows_a_command_that_arrives_between_two_readings():
     """A straight line between readings cuts the commanded path's corners: the head rests, gets a command and runs,
     or reaches its target and stops, between two readings. The commanded path is replayed instead, and what it

@@ -380,7 +380,7 @@ CAMERA_NODE_PARAMS: Table = _table(
                                     '/fixego/vergence_request and every vergence_period_s; the right node ignores it'),
     _num('vergence_period_s', 0.0, 'also a vergence step this often (s, from the start of the last); 0 = off', ge=0.0,
          le=86400.0, live=True),
-    _num('vergence_min_interval_s', 5.0, 'at least this long (s) from the end of a vergence step that left the own '
+    _num('vergence_min_interval_s', 2.0, 'at least this long (s) from the end of a vergence step that left the own '
                                          'fixation to the start of the next, whatever triggers it (bounds how often '
                                          'the own fixation is left)',
          ge=0.0, le=86400.0, live=True),
@@ -395,9 +395,9 @@ CAMERA_NODE_PARAMS: Table = _table(
                                         'EVI-D30, without a fixation', gt=0.0, le=360.0),
     _num('vergence_timeout_s', 5.0, 'bound from leaving the own fixation to the measurement; then the head returns',
          gt=0.0, le=3600.0),
-    _num('vergence_settle_px', 10.0, 'vergence: both fixations this close to their principal points (3 frames in a '
+    _num('vergence_settle_px', 60.0, 'vergence: both fixations this close to their principal points (3 frames in a '
                                      'row, then every averaged frame)', gt=0.0),
-    _num('vergence_max_rate_deg_s', 10.0, 'vergence: and both heads turning at most this fast (a moving head\'s '
+    _num('vergence_max_rate_deg_s', 60.0, 'vergence: and both heads turning at most this fast (a moving head\'s '
                                          'reading is quantised and its time uncertain)', gt=0.0, le=1000.0),
     _num('vergence_min_depth_m', 0.8, 'nearest depth searched along the right fixation ray', gt=0.0),
     _num('vergence_max_depth_m', 10.0, 'farthest depth searched along the right fixation ray', gt=0.0),
@@ -408,6 +408,9 @@ CAMERA_NODE_PARAMS: Table = _table(
                                          'correspondence per step: not reduced by averaging)', gt=0.0),
     _num('vergence_joint_sigma_deg', 0.033, 'vergence: reading noise of a moving head used for the covariance (EVI-D30 '
                                             'unit / sqrt 12; a head at rest reads exactly)', gt=0.0),
+    _num('vergence_timing_sigma_ms', 5.0, 'vergence: time uncertainty of a joint reading at an image stamp, times the '
+                                         "head's rate for the covariance (the demo's readings: -1.2 to +2.9 ms p10-p90 "
+                                         'while turning, docs/results.md "Stop 36")', gt=0.0, le=1000.0),
 )
 
 FLOW_NODE_PARAMS: Table = _table(

@@ -42,6 +42,19 @@ class JointHistory:
         with self._lock:
             return (self._t[-1], *self._q[-1]) if self._t else None
 
+    def rate(self, window_s: float, min_span_s: float = 0.05) -> tuple[float, float, float] | None:
+        """(time of the latest reading, pan rate, tilt rate) over the latest ``window_s`` of readings (fewer when
+        the history is younger, but at least ``min_span_s``); None without that."""
+        with self._lock:
+            if not self._t:
+                return None
+            t1, (p1, q1) = self._t[-1], self._q[-1]
+            i = bisect.bisect_left(list(self._t), t1 - window_s)
+            t0, (p0, q0) = self._t[i], self._q[i]
+            if t1 - t0 < min_span_s:
+                return None
+            return t1, (p1 - p0) / (t1 - t0), (q1 - q0) / (t1 - t0)
+
     def bracket(self, t: float) -> tuple[tuple[float, float, float], tuple[float, float, float]] | None:
         """The readings (t, pan, tilt) just at/before and at/after ``t`` (the same one twice when a reading is
         at ``t``); None outside the readings."""

@@ -33,7 +33,7 @@ import cv2
 import numpy as np
 
 from fixego_ros.geometry.rig import Rig
-from fixego_ros.tracking.servo import JointHistory, centring_angles
+from fixego_ros.tracking.servo import JointHistory
 
 
 @dataclass
@@ -49,11 +49,11 @@ class VergenceParams:
     min_angle_deg: float = 0.5       # vergence angle below this: rays too parallel to triangulate
     pixel_sigma_px: float = 0.3      # fixation pixel noise (each camera; one correspondence per step)
     joint_sigma_deg: float = 0.033   # joint reading noise (EVI-D30: 1 unit = 0.114 deg, /sqrt(12))
-    timing_sigma_s: float = 0.02     # time uncertainty of a reading at an image stamp (x head speed: its error)
+    timing_sigma_s: float = 0.005    # time uncertainty of a reading at an image stamp (x head speed: its error)
     select_px: float = 60.0          # a match this close to the centre is fixated directly (no centring move)
     max_turn_deg: float = 60.0       # no step when the left head would have to turn further (interruption bound)
-    settle_px: float = 10.0          # both fixations this close to their principal points ...
-    max_rate_deg_s: float = 10.0     # ... and both heads turning at most this fast (readings of fast heads are off)
+    settle_px: float = 60.0          # both fixations this close to their principal points ...
+    max_rate_deg_s: float = 60.0     # ... and both heads turning at most this fast (a fast head's reading is off)
     motion_window_s: float = 0.05    # head speed at a stamp: from its readings this long before and after
     settle_frames: int = 3           # ... for this many consecutive frames, then
     frames: int = 20                 # this many settled frames are averaged into one measurement
@@ -65,6 +65,11 @@ class VergenceParams:
     aim_settle_s: float = 0.04       # and an image this long after arriving is searched
     aim_timeout_s: float = 3.0       # one head move (aim, centring, return) may take this long (EVI-D30: 200 deg
                                      # at 80 deg/s is 2.5 s)
+    slew_deg_s: tuple[float, float] = (80.0, 50.0)  # the left head's fastest pan, tilt: a move's duration
+    move_latency_s: float = 0.12     # a move's duration beyond turn / slew (command and ACK, the readings that
+                                     # tell the head arrived, aim_settle_s, the image searched)
+    lead_window_s: float = 0.2       # the right head's rate (the lead of an aim on a turning rig) over this long
+    plan_angle_deg: float = 1.0      # no step when the right point's vergence is less (on an arc it only shrinks)
     stamp_slop_s: float = 0.02       # right fixation matched to a left image stamp within this
 
 
@@ -178,16 +183,16 @@ def epipolar_curve(rig: Rig, ray_r: np.ndarray, left_joints: tuple[float, float]
     return px, 1.0 / inv[front]
 
 
-def vergence_aims(rig: Rig, ray_r: np.ndarray, min_depth_m: float, max_depth_m: float,
-                  margin_px: float = 20.0, max_aims: int = 6) -> list[tuple[float, float]]:
-    """Left joint readings to visit so the epipolar curve of ``ray_r`` is covered: the inverse-depth range is
-    split into as few pieces as let each piece's curve fit in the image (``margin_px`` from the border)
+def vergence_aim_depths(rig: Rig, ray_r: np.ndarray, min_depth_m: float, max_depth_m: float,
+                        margin_px: float = 20.0, max_aims: int = 6) -> list[float]:
+    """Depths along ``ray_r`` to point the left head at so the ray's epipolar curve is covered: the inverse-depth
+    range is split into as few pieces as let each piece's curve fit in the image (``margin_px`` from the border)
     when the head points at the piece's middle; nearest pieces first."""
     cam = rig.left
     lo, hi = 1.0 / max_depth_m, 1.0 / min_depth_m
     for k in range(1, max_aims + 1):
         edges = np.linspace(hi, lo, k + 1)
-        aims, fits = [], True
+        depths, fits = [], True
         for a, b in itertools.pairwise(edges):
             mid = 0.5 * (a + b)
             q = rig.aim_readings('left', np.asarray(ray_r, float) / mid)
@@ -196,10 +201,17 @@ def vergence_aims(rig: Rig, ray_r: np.ndarray, min_depth_m: float, max_depth_m: 
                       and np.all(px[:, 0] <= cam.width - 1 - margin_px)
                       and np.all(px[:, 1] <= cam.height - 1 - margin_px))
             fits = fits and bool(inside)
-            aims.append(q)
+            depths.append(1.0 / mid)
         if fits or k == max_aims:
-            return aims
+            return depths
     return []
+
+
+def vergence_aims(rig: Rig, ray_r: np.ndarray, min_depth_m: float, max_depth_m: float,
+                  margin_px: float = 20.0, max_aims: int = 6) -> list[tuple[float, float]]:
+    """Left joint readings that point the head at :func:`vergence_aim_depths` along ``ray_r``."""
+    return [rig.aim_readings('left', np.asarray(ray_r, float) * d)
+            for d in vergence_aim_depths(rig, ray_r, min_depth_m, max_depth_m, margin_px, max_aims)]
 
 
 def _rotation_jacobian(rig: Rig, right_pixel, right_joints, left_joints, at_left: np.ndarray) -> np.ndarray:
@@ -359,7 +371,7 @@ def _joint_sigma(joint_sigma_rad: float, timing_sigma_s: float, rate: float, mov
 
 def average_samples(samples: list[VergenceSample], c_l: np.ndarray, pixel_sigma_rad: float, joint_sigma_rad: float,
                     min_angle_rad: float = math.radians(0.5), max_scatter: float = 5.0,
-                    timing_sigma_s: float = 0.02) -> AveragedFixation:
+                    timing_sigma_s: float = 0.005) -> AveragedFixation:
     """Combine frames into one measurement of the right fixation point. The rig may move meanwhile, so the
     distance is fitted as a line in time (each frame weighted by its first-order variance) and read at the
     frame nearest the weighted mean time; the point is that distance along that frame's right ray.
@@ -427,6 +439,7 @@ class Action:
     kind: str                                    # 'track' (as usual) | 'hold' (no tracking: head commanded)
     aim: tuple[float, float] | None = None       # 'hold': joint readings to drive the head to
     select: tuple[float, float] | None = None    # 'track': start a new fixation at this pixel first
+    rate: tuple[float, float] = (0.0, 0.0)       # with select: how fast its centring angles drift (rad/s)
     reselect: bool = False                       # 'track': select a new point as usual first (step over)
 
 
@@ -497,7 +510,8 @@ class VergenceStep:
         self.result: VergenceResult | None = None
         self.match: PartnerMatch | None = None
         self.home: tuple[float, float] | None = None
-        self._aims: list[tuple[float, float]] = []
+        self._aims: list[np.ndarray] = []     # rig-frame points to aim at, as seen at _t_plan
+        self._t_plan = 0.0
         self._aim: tuple[float, float] | None = None
         self._arrived: float | None = None
         self._rejections: list[str] = []
@@ -658,11 +672,16 @@ class VergenceStep:
         return True
 
     def _next_aim(self, now: float) -> None:
-        if not self._aims:
+        while self._aims:
+            aim = self._lead_aim(self._aims.pop(0), self._t_plan, now)
+            if self._reachable(aim):
+                break
+            self._rejections.append(f"aim {self._fmt(aim)} beyond the left head's range (the rig turns)")
+        else:
             why = '; '.join(self._rejections) or 'no aim covers the search range'
             self._fail(now, f'partner point not found ({why})')
             return
-        self._aim = self._aims.pop(0)
+        self._aim = aim
         self._arrived = None
         self.t_phase = now
         self.timeline.append(('aim', now))
@@ -673,24 +692,68 @@ class VergenceStep:
         (p0, p1), (t0, t1) = self.left_range
         return p0 <= aim[0] <= p1 and t0 <= aim[1] <= t1
 
-    def _plan_aims(self, ray_r: np.ndarray, home: tuple[float, float]) -> tuple[list[tuple[float, float]], str]:
-        """The aims in the left head's range and within ``max_turn_deg`` of ``home``: first where the right ray
-        is at the prior depth (the match then lands near the centre: no centring move), then those covering the
-        whole search range; or none and why."""
-        aims = vergence_aims(self.rig, ray_r, self.p.min_depth_m, self.p.max_depth_m,
-                             margin_px=self.p.patch_half + 4)
+    def _plan_aims(self, ray_r: np.ndarray, home: tuple[float, float]) -> tuple[list[np.ndarray], str]:
+        """The points along the right ray (rig frame) to aim the left head at, in its range and within
+        ``max_turn_deg`` of ``home``: first the one at the prior depth (the match then lands near the centre: no
+        centring move), then those covering the whole search range; or none and why. None either when the
+        point lies so near the baseline's line that its vergence is below ``plan_angle_deg``: on an arc the heads
+        turn towards that line, and a trigger the min interval held back came to a point already turned so far
+        that the step measured nothing (the demo's second arc: vergence 0.2-0.3 deg, docs/results.md "Stop 58")."""
+        depth = self.p.prior_depth_m or math.sqrt(self.p.min_depth_m * self.p.max_depth_m)
+        a = ray_r * depth - self.rig.center('right')
+        b = ray_r * depth - self.rig.c_L
+        angle = math.degrees(math.atan2(float(np.linalg.norm(np.cross(a, b))), float(a @ b)))
+        if angle < self.p.plan_angle_deg:
+            return [], (f'the right fixation point lies nearly along the baseline (vergence {angle:.2f} deg at '
+                        f'{depth:.1f} m < {self.p.plan_angle_deg:g} deg)')
+        depths = vergence_aim_depths(self.rig, ray_r, self.p.min_depth_m, self.p.max_depth_m,
+                                     margin_px=self.p.patch_half + 4)
         prior = self.p.prior_depth_m
         if prior is not None and self.p.min_depth_m < prior < self.p.max_depth_m:
-            aims.insert(0, self.rig.aim_readings('left', ray_r * prior))
-        aims = [a for a in aims if self._reachable(a)]
+            depths.insert(0, prior)
+        points = [ray_r * d for d in depths]
+        aims = [(x, self.rig.aim_readings('left', x)) for x in points]
+        aims = [(x, a) for x, a in aims if self._reachable(a)]
         if not aims:
             return [], "the right fixation point is beyond the left head's range"
-        turn = [max(abs(a[0] - home[0]), abs(a[1] - home[1])) for a in aims]
-        near = [a for a, d in zip(aims, turn, strict=True) if d <= math.radians(self.p.max_turn_deg)]
+        turn = [max(abs(a[0] - home[0]), abs(a[1] - home[1])) for _, a in aims]
+        near = [x for (x, _), d in zip(aims, turn, strict=True) if d <= math.radians(self.p.max_turn_deg)]
         if not near:
             return [], (f'the right fixation point is {math.degrees(min(turn)):.0f} deg away from where the left '
                         f'head looks (more than {self.p.max_turn_deg:g} deg: too long a trip)')
         return near, ''
+
+    # -------------------------------------------------------------------- aims on a turning rig
+    def _led(self, point: np.ndarray, t_seen: float, t_then: float) -> np.ndarray:
+        """Where a static scene point seen at ``point`` (rig frame) at ``t_seen`` will be at ``t_then``. The right
+        head holds its fixation point on its axis, so while the rig turns that point's direction turns with the
+        head: the point is turned about the right camera by the head's rotation from ``t_seen`` to ``t_then``,
+        extrapolated at its latest rate (at rest: the point itself). The rig's translation is left out (a few mm
+        over a move, against metres of depth)."""
+        rate = self.right_history.rate(self.p.lead_window_s)
+        q0 = self.right_history.latest()
+        if rate is None or q0 is None or (rate[1] == 0.0 and rate[2] == 0.0):
+            return point
+        t0, rp, rt = rate
+
+        def rot(t: float) -> np.ndarray:
+            return self.rig.cam_to_rig('right', q0[1] + rp * (t - t0), q0[2] + rt * (t - t0))
+
+        c = self.rig.center('right')
+        return c + rot(t_then) @ rot(t_seen).T @ (np.asarray(point, float) - c)
+
+    def _lead_aim(self, point: np.ndarray, t_seen: float, now: float) -> tuple[float, float]:
+        """Left joint readings that put ``point`` (seen at ``t_seen``) on the left axis when a move started
+        ``now`` ends: the move's duration is the turn at ``slew_deg_s`` (per axis) plus ``move_latency_s``, and
+        the point turns meanwhile (:meth:`_led`)."""
+        aim = self.rig.aim_readings('left', point)
+        latest = self.left_history.latest()
+        for _ in range(2):      # the duration depends on the aim: one refinement is enough
+            move = 0.0 if latest is None else max(math.degrees(abs(aim[k] - latest[k + 1])) / self.p.slew_deg_s[k]
+                                                  for k in (0, 1))
+            t_then = now + move + self.p.move_latency_s
+            aim = self.rig.aim_readings('left', self._led(point, t_seen, t_then))
+        return aim
 
     # -------------------------------------------------------------------- the left camera's frames
     def _action(self) -> Action:
@@ -710,9 +773,10 @@ class VergenceStep:
             if trip is None or home is None or self._waiting_for:
                 self._waiting_for = self._waiting_for or 'a right image with its fixation and joints'
                 return Action('track')
-            _, _, rpx, rid, rq = trip
+            tr, _, rpx, rid, rq = trip
             self._right_id = rid
             self._aims, why = self._plan_aims(_right_ray(self.rig, rpx, rq), (home[1], home[2]))
+            self._t_plan = tr
             if not self._aims:      # decided before the head leaves its own point
                 self._fail(now, why)
                 return Action('track')
@@ -750,7 +814,7 @@ class VergenceStep:
         trip = self._right_triple()
         if lq is None or trip is None:
             return self._action()
-        _, rimg, rpx, rid, rq = trip
+        tr, rimg, rpx, rid, rq = trip
         if rid != self._right_id:
             self._fail(now, 'the right camera re-selected its fixation point')
             return self._action()
@@ -769,7 +833,7 @@ class VergenceStep:
             if self.phase == 'centring':
                 self._fail(now, 'the partner point is not near the centre after centring it')
                 return self._action()
-            aim = centring_angles(self.rig.left, m.pixel, *lq, self.rig.pan_tilt_left)
+            aim = self._lead_aim(_right_ray(self.rig, rpx, rq) * m.depth_m, tr, now)
             if not self._reachable(aim):
                 self._fail(now, "the partner point is beyond the left head's range")
                 return self._action()
@@ -779,7 +843,10 @@ class VergenceStep:
         self._to('converging', now)
         self.t_fixating = now
         self.right_images.clear()
-        return Action('track', select=m.pixel)
+        point = _right_ray(self.rig, rpx, rq) * m.depth_m
+        dt = 0.1
+        a, b = (self.rig.aim_readings('left', self._led(point, tr, t + k * dt)) for k in (0, 1))
+        return Action('track', select=m.pixel, rate=((b[0] - a[0]) / dt, (b[1] - a[1]) / dt))
 
     def on_left_fixation(self, t: float, pixel: tuple[float, float] | None, fixation_id: int,
                          reselected: bool) -> None:
@@ -896,8 +963,14 @@ class VergenceStep:
         else:
             ray_r = _right_ray(self.rig, rf[1], rq)
             ray_l = self.rig.pixels_to_rig_rays('left', np.asarray(f.pixel, float).reshape(1, 2), *lq)[0]
-            out = VergenceSample(f.t, ray_r, ray_l, (lq[0], lq[1], rq[0], rq[1]), rf[1], f.pixel, (rm[0], lm[0]),
-                                 (rm[1], lm[1]))
+            angle = math.atan2(float(np.linalg.norm(np.cross(ray_r, ray_l))), float(ray_r @ ray_l))
+            if angle < math.radians(self.p.min_angle_deg):
+                # on an arc the heads turn towards the baseline's line, and the rays with them: the frames
+                # before still measure, so this one is left out rather than failing the step
+                out = f'rays nearly parallel (vergence {math.degrees(angle):.2f} deg < {self.p.min_angle_deg:g} deg)'
+            else:
+                out = VergenceSample(f.t, ray_r, ray_l, (lq[0], lq[1], rq[0], rq[1]), rf[1], f.pixel,
+                                     (rm[0], lm[0]), (rm[1], lm[1]))
         newest = self.right_fix[-1][0] if self.right_fix else -math.inf
         if abs(rf[0] - f.t) < 1e-6 or newest > f.t + self.p.stamp_slop_s:    # no closer partner message can come
             self._sample_cache[f.t] = out
@@ -930,7 +1003,7 @@ class VergenceStep:
 @dataclass
 class VergenceSchedule:
     period_s: float = 0.0          # > 0: a step at least this often (from the start of the last one)
-    min_interval_s: float = 5.0    # from the end of one step to the start of the next, whatever triggers it
+    min_interval_s: float = 2.0    # from the end of one step to the start of the next, whatever triggers it
     retry_s: float = 5.0           # after a failure, retry this much later (doubled per failure in a row) ...
     retry_max_s: float = 60.0      # ... up to this
 
