@@ -907,9 +907,12 @@ class VergenceStep:
             note = f' ({self._note})' if self._note else ''
             self._fail(now, f'the fixations did not settle within {self.p.hold_timeout_s:g} s{note}')
             return None
-        enough = len(samples) >= self.p.frames or (
-            self._t_settled is not None and now - self._t_settled > self.p.hold_timeout_s
-            and len(samples) >= min(self.p.frames, self.p.settle_frames))
+        # both heads standing still over the last settle_frames frames read exactly where they stand, and the
+        # pixel part is one correspondence (average_samples): more frames would add nothing, only interruption
+        n = min(self.p.frames, self.p.settle_frames)
+        still = len(samples) >= n and not any(any(s.moving) for s in samples[-n:])
+        enough = len(samples) >= self.p.frames or still or (
+            self._t_settled is not None and now - self._t_settled > self.p.hold_timeout_s and len(samples) >= n)
         if not enough:
             if not samples and not self._note:
                 self._note = 'no left frame matched with a right fixation and both joint states'
