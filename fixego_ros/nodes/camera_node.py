@@ -96,7 +96,7 @@ from fixego_ros.tracking.vergence import (
     VergenceStep,
 )
 from fixego_ros.visca.driver import ModelCheck, ViscaCamera, check_model
-from fixego_ros.visca.profiles import CameraProfile, get_profile
+from fixego_ros.visca.profiles import get_profile
 
 PARAMS = CAMERA_NODE_PARAMS
 # applied at run time: the tracker, the servo (and its loop thread) and the limit check read them per frame
@@ -105,11 +105,6 @@ LIVE_SERVO = ('servo_gain', 'servo_deadband_px', 'servo_move_time_s', 'servo_max
               'servo_feedforward')
 LIVE_NODE = ('limit_margin_deg', 'limit_swing_deg', 'limit_hold_max_s', 'joint_max_wait_s', 'joint_mode',
              'joint_predict_max_s', 'diagnostics_period_s')
-def _fastest(profile: CameraProfile) -> tuple[float, float]:
-    """The head's fastest pan and tilt (deg/s): how long a vergence step's head move takes."""
-    return profile.pan_speed_deg_s(profile.pan_speed_max), profile.tilt_speed_deg_s(profile.tilt_speed_max)
-
-
 # when vergence steps run (the scheduler's limits); the step itself is read-only
 LIVE_VERGENCE = ('vergence_period_s', 'vergence_min_interval_s', 'vergence_retry_s')
 MODEL_CHECK_TRIES = 3   # CAM_VersionInq attempts per connection before a silent camera counts as not answering
@@ -349,7 +344,7 @@ class CameraNode(Node):
             step.on_left_fixation(t, st.pixel, st.fixation_id, st.reselected)
             self._vergence_tick()
         if st.reselected:
-            self.servo.reset(act.rate if act is not None and act.select is not None else (0.0, 0.0))
+            self.servo.reset(act.rate if act is not None else (0.0, 0.0))
             self.get_logger().info(f'fixation {st.fixation_id} selected at ({st.pixel[0]:.1f}, '
                                    f'{st.pixel[1]:.1f}): {st.reason}')
         if not st.valid:
@@ -510,7 +505,7 @@ class CameraNode(Node):
                               max_rate_deg_s=float(g('vergence_max_rate_deg_s')),
                               max_turn_deg=float(g('vergence_max_turn_deg')),
                               timeout_s=float(g('vergence_timeout_s')), wait_timeout_s=float(g('vergence_wait_s')),
-                              slew_deg_s=_fastest(get_profile(str(g('profile')))))
+                              slew_deg_s=get_profile(str(g('profile'))).fastest_deg_s)
 
     @staticmethod
     def _vergence_schedule(g: Getter) -> VergenceSchedule:

@@ -104,6 +104,11 @@ def _perp_basis(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return e1, np.cross(v, e1)
 
 
+def ray_angle(a: np.ndarray, b: np.ndarray) -> float:
+    """Angle (rad) between two rays: atan2 of |a x b| and a . b, exact also for nearly parallel rays."""
+    return math.atan2(float(np.linalg.norm(np.cross(a, b))), float(a @ b))
+
+
 def triangulate_fixation(ray_r: np.ndarray, ray_l: np.ndarray, c_l: np.ndarray,
                          pixel_sigma_rad: float | tuple[float, float],
                          min_angle_rad: float = math.radians(0.5)) -> Triangulation:
@@ -118,7 +123,7 @@ def triangulate_fixation(ray_r: np.ndarray, ray_l: np.ndarray, c_l: np.ndarray,
     l = np.asarray(ray_l, float).reshape(3)
     l = l / np.linalg.norm(l)
     c = np.asarray(c_l, float).reshape(3)
-    angle = float(np.arctan2(np.linalg.norm(np.cross(r, l)), float(r @ l)))
+    angle = ray_angle(r, l)
     nan3 = np.full(3, np.nan)
     if angle < min_angle_rad:
         return Triangulation(nan3, math.nan, math.nan, angle, np.full((3, 3), np.nan), math.nan, False,
@@ -700,9 +705,7 @@ class VergenceStep:
         turn towards that line, and a trigger the min interval held back came to a point already turned so far
         that the step measured nothing (the demo's second arc: vergence 0.2-0.3 deg, docs/results.md "Stop 58")."""
         depth = self.p.prior_depth_m or math.sqrt(self.p.min_depth_m * self.p.max_depth_m)
-        a = ray_r * depth - self.rig.center('right')
-        b = ray_r * depth - self.rig.c_L
-        angle = math.degrees(math.atan2(float(np.linalg.norm(np.cross(a, b))), float(a @ b)))
+        angle = math.degrees(ray_angle(ray_r * depth - self.rig.center('right'), ray_r * depth - self.rig.c_L))
         if angle < self.p.plan_angle_deg:
             return [], (f'the right fixation point lies nearly along the baseline (vergence {angle:.2f} deg at '
                         f'{depth:.1f} m < {self.p.plan_angle_deg:g} deg)')
@@ -731,13 +734,15 @@ class VergenceStep:
         extrapolated at its latest rate (at rest: the point itself). The rig's translation is left out (a few mm
         over a move, against metres of depth)."""
         rate = self.right_history.rate(self.p.lead_window_s)
-        q0 = self.right_history.latest()
-        if rate is None or q0 is None or (rate[1] == 0.0 and rate[2] == 0.0):
+        if rate is None or (rate[1] == 0.0 and rate[2] == 0.0):
             return point
         t0, rp, rt = rate
+        q0 = self.right_history.at(t0, max_extrapolation_s=0.0)     # the reading the rate ends at
+        if q0 is None:
+            return point
 
         def rot(t: float) -> np.ndarray:
-            return self.rig.cam_to_rig('right', q0[1] + rp * (t - t0), q0[2] + rt * (t - t0))
+            return self.rig.cam_to_rig('right', q0[0] + rp * (t - t0), q0[1] + rt * (t - t0))
 
         c = self.rig.center('right')
         return c + rot(t_then) @ rot(t_seen).T @ (np.asarray(point, float) - c)
@@ -829,11 +834,12 @@ class VergenceStep:
                 self._next_aim(now)
             return self._action()
         cam = self.rig.left
+        point = _right_ray(self.rig, rpx, rq) * m.depth_m       # the match, in the rig frame at tr
         if math.hypot(m.pixel[0] - cam.cx, m.pixel[1] - cam.cy) > self.p.select_px:
             if self.phase == 'centring':
                 self._fail(now, 'the partner point is not near the centre after centring it')
                 return self._action()
-            aim = self._lead_aim(_right_ray(self.rig, rpx, rq) * m.depth_m, tr, now)
+            aim = self._lead_aim(point, tr, now)
             if not self._reachable(aim):
                 self._fail(now, "the partner point is beyond the left head's range")
                 return self._action()
@@ -843,7 +849,6 @@ class VergenceStep:
         self._to('converging', now)
         self.t_fixating = now
         self.right_images.clear()
-        point = _right_ray(self.rig, rpx, rq) * m.depth_m
         dt = 0.1
         a, b = (self.rig.aim_readings('left', self._led(point, tr, t + k * dt)) for k in (0, 1))
         return Action('track', select=m.pixel, rate=((b[0] - a[0]) / dt, (b[1] - a[1]) / dt))
@@ -966,7 +971,7 @@ class VergenceStep:
         else:
             ray_r = _right_ray(self.rig, rf[1], rq)
             ray_l = self.rig.pixels_to_rig_rays('left', np.asarray(f.pixel, float).reshape(1, 2), *lq)[0]
-            angle = math.atan2(float(np.linalg.norm(np.cross(ray_r, ray_l))), float(ray_r @ ray_l))
+            angle = ray_angle(ray_r, ray_l)
             if angle < math.radians(self.p.min_angle_deg):
                 # on an arc the heads turn towards the baseline's line, and the rays with them: the frames
                 # before still measure, so this one is left out rather than failing the step

@@ -124,6 +124,11 @@ class CameraProfile:
         return (min(max(int(pan), self.pan_min), self.pan_max), min(max(int(tilt), self.tilt_min), self.tilt_max))
 
     # speeds ----------------------------------------------------------------------------------------
+    @property
+    def fastest_deg_s(self) -> tuple[float, float]:
+        """The head's fastest pan and tilt (deg/s)."""
+        return self.pan_speeds_deg_s[-1], self.tilt_speeds_deg_s[-1]
+
     def pan_speed_deg_s(self, code: int) -> float:
         return self.pan_speeds_deg_s[_code(code, self.pan_speed_max, 'pan') - 1]
 
