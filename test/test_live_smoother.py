@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
+import signal
 from collections import deque
 
 import numpy as np
@@ -98,6 +100,28 @@ def test_a_busy_smoother_skips_non_keyframes_but_never_a_keyframe(loop, live):
     keyframes = {o.stamp for o in observations if o.keyframe}
     assert keyframes <= set(revised)
     assert set(revised) == {o.stamp for o in observations}
+
+
+def test_a_smoother_far_behind_still_revises_every_frame_of_the_path(loop, live, monkeypatch):
+    """Frames stay while the smoother may still revise them, beyond ``HISTORY_S``: here the child is stopped while
+    the whole run is sent (it is then seconds of stamps behind, as a demo's child on a busy machine, 7-14 s), and
+    its answers afterwards still reach every frame of the path."""
+    monkeypatch.setattr(LiveSmoother, 'HISTORY_S', 1.0)
+    observations = [dataclasses.replace(o, keyframe=(k % 4 == 0)) for k, o in enumerate(loop.observations)]
+    os.kill(live._process.pid, signal.SIGSTOP)
+    try:
+        results = [live.update(o) for o in observations]
+    finally:
+        os.kill(live._process.pid, signal.SIGCONT)
+    assert not any(r.revised for r in results)
+    revised = dict(live.drain(WAIT_S))
+    assert set(revised) == {o.stamp for o in observations}
+    assert live.smoothed_results + live.frames_skipped == len(observations)
+    monkeypatch.setattr(LiveSmoother, 'MAX_HISTORY_S', 1.0)      # the bound holds: a stalled child keeps no more
+    live.reset()
+    for o in observations:
+        live.update(o)
+    assert live._recent[-1].stamp - live._recent[0].stamp <= 1.0
 
 
 def test_behind_says_how_far_the_smoothers_newest_result_lags_the_newest_frame(loop, live):

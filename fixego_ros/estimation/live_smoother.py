@@ -226,7 +226,8 @@ class LiveSmoother:
     """The node's back end (same interface as :class:`~fixego_ros.estimation.smoother.Smoother`); :meth:`close`
     stops the child process (it also ends by itself when the parent exits)."""
 
-    HISTORY_S = 10.0       # frames kept as references (a keyframe can be this old at most)
+    HISTORY_S = 10.0       # frames kept as references (a keyframe can be this old at most) ...
+    MAX_HISTORY_S = 60.0   # ... and as long as the smoother may still revise them, up to this (a stalled child)
     SPEED_WINDOW_S = 0.5   # the speed of the fast poses: the smoother's motion over about this long
     JOIN_S = 2.0           # bound on waiting for the child to stop
     ODOM_CONVERGENCE_S = 1.0   # time constant of the continuous pose closing its gap to the newest estimate
@@ -433,7 +434,8 @@ class LiveSmoother:
         frame = _Recent(obs.stamp, pose, (raw_base @ step_raw).normalized(), fixations_of(obs), ref, step,
                         solved=solved)
         self._recent.append(frame)
-        while self._recent and self._recent[0].stamp < obs.stamp - self.HISTORY_S:
+        horizon = self._history_start(obs.stamp)
+        while self._recent and self._recent[0].stamp < horizon:
             self._recent.popleft().ref = None
         revised = self._take_revised()
         odom = self._odom_pose(pose, obs.stamp)
@@ -458,6 +460,19 @@ class LiveSmoother:
         self._sent_frames = 0
         self._answered = 0
         self._smoothed_stamp: float | None = None      # the newest frame the smoother answered
+
+    def _history_start(self, stamp: float) -> float:
+        """The oldest stamp kept: ``HISTORY_S`` back, or further while the smoother may still revise those frames
+        (its lag behind the newest frame it has answered, or every frame since a reset before its first answer), at
+        most ``MAX_HISTORY_S``. A revision only reaches the path through a frame kept here: the demo's child ran
+        7-14 s behind on a busy machine, and the path kept fast poses where the smoother had long revised them (up to
+        53 cm from the smoother's own estimate; docs/results.md "Stop 59")."""
+        start = stamp - self.HISTORY_S
+        if self.alive:
+            reach = (self._smoothed_stamp - self._config.smoother.lag_s if self._smoothed_stamp is not None
+                     else -math.inf)
+            start = min(start, reach)
+        return max(start, stamp - self.MAX_HISTORY_S)
 
     def _take_revised(self) -> tuple[tuple[float, Pose], ...]:
         """The revisions not handed out yet, oldest first; from now on the caller has them."""
