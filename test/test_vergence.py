@@ -25,7 +25,7 @@ from fixego_ros.tracking.vergence import (
     average_samples,
     find_partner_point,
     triangulate_fixation,
-    vergence_aims,
+    vergence_aim_depths,
 )
 
 
@@ -98,7 +98,8 @@ def _fixate_and_search(rig, world, renderer, pose, right_deg):
         lam, _ = world.raycast(pose.t, pose.R @ ray)
     X = pose.apply(lam * ray)
     p = VergenceParams()
-    lq = vergence_aims(rig, ray, p.min_depth_m, p.max_depth_m, p.patch_half + 4)[0]
+    depth = vergence_aim_depths(rig, ray, p.min_depth_m, p.max_depth_m, p.patch_half + 4)[0]
+    lq = rig.aim_readings('left', ray * depth)
     m = find_partner_point(renderer.render('right', pose, *rq), centre, rq, renderer.render('left', pose, *lq), lq,
                            rig, p)
     true_px = project_points(rig, 'left', pose, *lq, X[None])[0][0]

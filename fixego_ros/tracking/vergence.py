@@ -3,8 +3,9 @@ the known baseline. The rig's own metric scale aid, repeated while it runs.
 
 Pieces:
 
-* :func:`vergence_aims` - where to point the left head so the right fixation ray's epipolar curve (the
-  ray's points between ``min_depth_m`` and ``max_depth_m`` seen by the left camera) lies in its image.
+* :func:`vergence_aim_depths` - where along the right fixation ray to point the left head so the ray's
+  epipolar curve (its points between ``min_depth_m`` and ``max_depth_m`` seen by the left camera) lies in its
+  image.
 * :func:`find_partner_point` - the left pixel of the right camera's fixation point: NCC of the right's
   patch (warped by the rotation between the two cameras) along that curve, sub-pixel refinement (parabola
   along the curve, then ECC translation in 2-D), and an ambiguity check (margin to the second-best peak).
@@ -210,13 +211,6 @@ def vergence_aim_depths(rig: Rig, ray_r: np.ndarray, min_depth_m: float, max_dep
         if fits or k == max_aims:
             return depths
     return []
-
-
-def vergence_aims(rig: Rig, ray_r: np.ndarray, min_depth_m: float, max_depth_m: float,
-                  margin_px: float = 20.0, max_aims: int = 6) -> list[tuple[float, float]]:
-    """Left joint readings that point the head at :func:`vergence_aim_depths` along ``ray_r``."""
-    return [rig.aim_readings('left', np.asarray(ray_r, float) * d)
-            for d in vergence_aim_depths(rig, ray_r, min_depth_m, max_depth_m, margin_px, max_aims)]
 
 
 def _rotation_jacobian(rig: Rig, right_pixel, right_joints, left_joints, at_left: np.ndarray) -> np.ndarray:
@@ -477,7 +471,7 @@ class VergenceStep:
     """One vergence step of the left camera. Phases: ``waiting`` (until both fixations have settled - near their
     principal points, both heads turning slowly - and the right one has its image and joints; the left keeps its
     own point meanwhile), ``aiming`` (head driven to an aim - first where the
-    right ray is at ``prior_depth_m``, then those of :func:`vergence_aims` - and the partner point searched on an
+    right ray is at ``prior_depth_m``, then those of :func:`vergence_aim_depths` - and the partner point searched on an
     image taken after it arrived), ``centring`` (only for a match far from the centre: head driven straight at
     it, which is then found again), ``converging`` (the tracker holds the partner point, the usual servo centres
     it; once both fixations have settled, ``frames`` frames are averaged by :func:`average_samples` - or fewer, at
