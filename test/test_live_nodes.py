@@ -513,6 +513,10 @@ def test_demo_runs_every_node_as_a_process_and_writes_a_report(tmp_path):
     est_diag = report['diagnostics']['fixego estimator_node']
     assert est_diag['smoother_behind_s'] == '0.00' and float(est_diag['smoother_behind_s_p95']) >= 0.0
     assert 'after the last pose' in (out / 'report.txt').read_text()
+    # how each pose was made: every published frame counted once (carried, solved, predicted...)
+    steps = report['fast_pose_steps']
+    assert steps and sum(steps.values()) >= int(est_diag['published']) > 0, (steps, est_diag['published'])
+    assert 'fast poses by step' in (out / 'report.txt').read_text()
     # where the cores went: every node process (and the estimator's smoother child) measured, and the sum
     cpu = report['cpu_percent_of_one_core']
     nodes = ('sim_rig_node', 'right_camera_node', 'left_camera_node', 'flow_node', 'estimator_node')

@@ -133,6 +133,16 @@ def joint_errors(estimated: dict[float, tuple[float, float]], true: dict[float, 
     return out
 
 
+def fast_pose_steps(estimator_status: dict[str, str]) -> dict[str, int]:
+    """How the estimator made each frame's pose (its ``steps_<status>`` counters, most first). ``carried``: on the
+    smoother's velocity, while its newest answer is within ``LiveSmoother.MAX_CARRY_S`` of the frame (~0.5 ms);
+    ``ok`` / ``weak``: a two-frame solve, when the smoother is further behind (2-11 ms on the demo machine, the
+    estimator's largest per-frame cost, and the live pose's rotation then comes from it: docs/results.md "Stop 60")."""
+    steps = {k.removeprefix('steps_'): int(v) for k, v in estimator_status.items()
+             if k.startswith('steps_') and str(v).isdigit()}
+    return dict(sorted(steps.items(), key=lambda kv: -kv[1]))
+
+
 def write_report(out: Path, rec, t_start: float, run_args: dict[str, Any],
                  vergence_stamps: list[float] | None = None, cpu: dict[str, float] | None = None) -> dict[str, Any]:
     """Write ``estimate.live.tum`` (each pose as published), ``estimate.tum`` (the last path: the smoother's
@@ -164,6 +174,7 @@ def write_report(out: Path, rec, t_start: float, run_args: dict[str, Any],
         'paper_table1_cm': PAPER_TABLE1,
         'diagnostics': dict(rec.statuses),      # each node's last /diagnostics status
         'smoother_done_after_last_pose_s': rec.smoother_catch_up_s,
+        'fast_pose_steps': fast_pose_steps(rec.statuses.get('fixego estimator_node', {})),
         'vergence': vergence_summary(rec.statuses, list(vergence_stamps or []), t_start),
         'joint_error_deg': {side: joint_errors({t: q for t, q in rec.joints[side].items() if t >= t_start},
                                                rec.true_joints[side])
@@ -227,6 +238,9 @@ def write_report(out: Path, rec, t_start: float, run_args: dict[str, Any],
                      f'{est.get("smoother_behind_s_p95", "?")} s (last 300 frames); '
                      + (f'done {done:.1f} s after the last pose' if done is not None
                         else 'not done within the wait after the last pose (the path ends in fast poses)'))
+    if report['fast_pose_steps']:
+        lines.append('  fast poses by step (carried: on the smoother\'s velocity, it close behind; ok/weak: solved, '
+                     'it further behind): ' + ', '.join(f'{k} {v}' for k, v in report['fast_pose_steps'].items()))
     je = [f'{side} p50 {e["p50_deg"]:.3f}, p95 {e["p95_deg"]:.3f}, max {e["max_deg"]:.3f}'
           + (f', p95 {e["moving_p95_deg"]:.3f} while turning' if 'moving_p95_deg' in e else '')
           for side, e in report['joint_error_deg'].items() if e]
