@@ -30,7 +30,7 @@ from fixego_ros.estimation.coplanarity import (
 )
 from fixego_ros.estimation.covariance import VAR_MAX, covariance_from_jacobian, residual_variance
 from fixego_ros.estimation.status import StepStatus
-from fixego_ros.geometry.rotation import Pose, exp_so3, project_to_so3, rotation_angle
+from fixego_ros.geometry.rotation import Pose, exp_so3, project_to_so3, rotation_angle, rotation_from_svd
 
 LOSSES = ('linear', 'huber', 'soft_l1', 'cauchy', 'arctan')
 BACKENDS = ('lm', 'scipy')
@@ -93,8 +93,7 @@ def kabsch_rotation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Rotation R minimising sum |a_i - R b_i|^2 (rotation-only fit of ray pairs)."""
     H = b.T @ a
     U, _, Vt = np.linalg.svd(H)
-    d = np.sign(np.linalg.det(Vt.T @ U.T))
-    return Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
+    return rotation_from_svd(np.ascontiguousarray(Vt.T), U.T)
 
 
 def rotation_given_translation(pairs: RayPairs, R0: np.ndarray, T: np.ndarray, sigma: float, f_scale: float = 3.0,

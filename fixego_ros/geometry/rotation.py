@@ -64,13 +64,19 @@ def log_so3(R: np.ndarray) -> np.ndarray:
 
 
 def project_to_so3(R: np.ndarray) -> np.ndarray:
-    """Nearest rotation matrix (removes drift after many products).
-
-    ``u @ vt`` from the SVD, its last column of ``u`` flipped when that product is a reflection. The sign comes from
-    the product's cofactor determinant (exactly +-1 up to rounding for an orthogonal matrix), not from LAPACK's LU,
-    and the flip is a negation: the same bits as ``u @ diag(1, 1, sign(det)) @ vt`` at two thirds of its cost (every
-    pose that leaves the smoother's graph takes one: ~60,000 calls per captured demo run)."""
+    """Nearest rotation matrix (removes drift after many products)."""
     u, _, vt = np.linalg.svd(R)
+    return rotation_from_svd(u, vt)
+
+
+def rotation_from_svd(u: np.ndarray, vt: np.ndarray) -> np.ndarray:
+    """``u @ vt``, the last column of ``u`` flipped when that product is a reflection: the rotation nearest to a
+    matrix from its SVD factors (and Kabsch's fit from its cross-covariance's).
+
+    The sign comes from the product's cofactor determinant (exactly +-1 up to rounding for an orthogonal matrix),
+    not from LAPACK's LU, and the flip is a negation: the same bits as ``u @ diag(1, 1, sign(det)) @ vt`` at two
+    thirds of its cost (every pose that leaves the smoother's graph takes one: ~60,000 calls per captured demo run).
+    ``u`` C-contiguous, as that product's left factor was."""
     m = u @ vt
     (a, b, c), (d, e, f), (g, h, i) = m.tolist()
     if a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g) > 0.0:
