@@ -12,6 +12,7 @@ from scipy.spatial.transform import Rotation
 
 from fixego_ros.estimation.backend import make_backend
 from fixego_ros.estimation.config import EstimatorConfig
+from fixego_ros.estimation.factors import TwoFrameStep
 from fixego_ros.estimation.frames import CameraFrame, FrameObservation
 from fixego_ros.estimation.keys import LandmarkKind
 from fixego_ros.estimation.smoother import Smoother
@@ -513,7 +514,7 @@ def test_frames_no_landmark_places_keep_the_speed_the_landmarks_measured(loop, m
     measured before (HeldSpeed). Here 4 s (20 frames) of swing-backs with 0.3 deg reading errors."""
     gap = range(25, 45)
     assert 0.6 < _gap_length_ratio(loop, gap) < 1.4                        # measured 0.86
-    monkeypatch.setattr(Smoother, '_hold_speed', lambda self, i, stamp, up: None)
+    monkeypatch.setattr(Smoother, '_hold_speed', lambda self, i, stamp, tf, up: None)
     # the forward-motion prior (stop 55) alone also holds it here (0.98): HeldSpeed is shown without it, and without
     # the log-space gauge, which a graph whose landmarks never placed a frame (this stand-in records none) keeps
     monkeypatch.setattr(Smoother, 'SCALE_GAUGE_SIGMA', 1e9)
@@ -615,3 +616,55 @@ def test_the_marginal_is_computed_at_most_once_per_period_and_turned_with_the_fr
                                    atol=1e-15)
         shared += 1
     assert shared >= len(results) // 3
+
+
+def _move_then_stop(loop, k_stop: int, n_rest: int, **smoother) -> tuple[np.ndarray, np.ndarray]:
+    """The loop with vergence measurements up to frame ``k_stop``, where the rig stops and stands ``n_rest`` frames
+    (:meth:`LandmarkRun.standing`). The estimated (revised) positions at the stop and at each frame standing."""
+    sm = Smoother(RIG, _config(**smoother))
+    rng = np.random.default_rng(3)
+    path: dict[float, np.ndarray] = {}
+    last_fid = None
+    for k, obs in enumerate(loop.observations[:k_stop + 1]):
+        if obs.right.fixation_id != last_fid:
+            sm.add_fixation_point(obs.stamp, 'right', *_vergence(loop, k, 0.005, rng))
+        last_fid = obs.right.fixation_id
+        r = sm.update(obs)
+        path[r.stamp] = r.pose.t
+        path.update((s, p.t) for s, p in r.revised)
+    standing = loop.standing(k_stop, n_rest)
+    for k, obs in enumerate(standing):
+        r = sm.update(obs)
+        assert r.status is StepStatus.STATIONARY or k == 0
+        path[r.stamp] = r.pose.t
+        path.update((s, p.t) for s, p in r.revised)
+    return path[loop.stamps[k_stop]], np.array([path[o.stamp] for o in standing])
+
+
+def test_a_rig_that_stops_where_no_landmark_places_its_frames_stands_still(loop, monkeypatch):
+    """Stop 61. A rig that stops while both heads take new points: no landmark places the frames, and they kept the
+    speed the landmarks last measured (HeldSpeed) although the rays saw no parallax; the stationary step, its length
+    sigma inflated tenfold once a scale aid measured the scale, did not hold them. A live demo whose rig stood 2 s
+    after the loop ran on by 30 cm. A stationary step now holds the frame still at the nominal scale's sigma and
+    gets no held speed."""
+    at_stop, standing = _move_then_stop(loop, 40, 10)
+    assert np.linalg.norm(standing - at_stop, axis=1).max() < 0.05     # measured 0.024 (0.37 before)
+    monkeypatch.setattr(TwoFrameStep, 'factor', _old_stationary_step)
+    monkeypatch.setattr(Smoother, '_hold_speed', _held_even_at_rest)
+    at_stop, standing = _move_then_stop(loop, 40, 10)
+    assert np.linalg.norm(standing[-1] - at_stop) > 0.2          # ran on at the speed it had
+
+
+_NEW_STEP_FACTOR = TwoFrameStep.factor
+_NEW_HOLD_SPEED = Smoother._hold_speed
+
+
+def _old_stationary_step(self, ref, frame, step, covariance, dt, measured=False):
+    """Before stop 61: the stationary step's length sigma inflated like a moving one's once the scale is measured."""
+    if np.any(step.t) or not measured:
+        return _NEW_STEP_FACTOR(self, ref, frame, step, covariance, dt, measured)
+    return _NEW_STEP_FACTOR(self, ref, frame, step, covariance, dt * self.AIDED_LENGTH_SIGMA, measured)
+
+
+def _held_even_at_rest(self, i, stamp, tf, up):
+    return _NEW_HOLD_SPEED(self, i, stamp, None, up)

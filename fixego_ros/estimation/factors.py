@@ -173,7 +173,10 @@ class TwoFrameStep:
     Once one has (``measured``), the length sigma is ``AIDED_LENGTH_SIGMA`` nominal steps, so the gauge no longer
     competes with the measured scale: at 100 % it pulled each step towards the nominal 0.5 m/s wherever no track
     spans three frames, and the paper bag's steps came out 18 % long after the heads' swing-backs (README "Back
-    end"). Before any aid it is what sets the scale, so it stays at 100 % until then.
+    end"). Before any aid it is what sets the scale, so it stays at 100 % until then. A stationary step (no parallax
+    at all) holds the frame where it is at ``STATIONARY_LENGTH_SIGMA`` nominal steps whether or not the scale is
+    measured: inflated tenfold with the rest, it let a rig that stopped where no landmark placed the frames run on
+    at its last speed (docs/results.md "Stop 61").
     Cauchy-robust: a wrong solve with an optimistic covariance must not drag the trajectory. (The rotation
     covariance given the translation, tighter where the parallax is small, measured 3.3 / 23 cm on the paper bag
     against 2.5 / 21 cm with this one.)"""
@@ -198,7 +201,7 @@ class TwoFrameStep:
         cov[:3, :3] = self.rotation_covariance(covariance)
         length_sigma = self.nominal_speed * dt * (self.AIDED_LENGTH_SIGMA if measured else 1.0)
         if not np.any(step.t):          # stationary: the rays saw no parallax at all
-            length_sigma *= self.STATIONARY_LENGTH_SIGMA
+            length_sigma = self.nominal_speed * dt * self.STATIONARY_LENGTH_SIGMA
         cov[3:, 3:] = np.eye(3) * max(length_sigma, 1e-6) ** 2
         return gtsam.BetweenFactorPose3(pose_key(ref), pose_key(frame), to_gtsam(self.scaled(step, dt)),
                                         gtsam.noiseModel.Robust.Create(self.robust,

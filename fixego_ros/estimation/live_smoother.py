@@ -54,6 +54,7 @@ from fixego_ros.estimation.twoframe import (
     TwoFrameSolver,
     kabsch_rotation,
     rotation_given_translation,
+    stands_still,
 )
 from fixego_ros.geometry.rig import SIDES, Rig
 from fixego_ros.geometry.rotation import Pose, exp_so3, log_so3
@@ -414,12 +415,15 @@ class LiveSmoother:
                 predicted = self._predict(obs.stamp)
                 tf = self.solver.solve(pairs, initial=self._warm_start(ref, predicted, dt),
                                        fallback=Fallback.CLOSED_FORM)
-                if tf.status.usable and tf.pose.is_finite() and tf.cheirality >= 0.5:
+                if tf.status is StepStatus.STATIONARY:
+                    step = tf.pose          # the rays saw the rig stand, whatever speed the smoother last had
+                    pose = (ref.pose @ step).normalized()
+                elif tf.status.usable and tf.pose.is_finite() and tf.cheirality >= 0.5:
                     step = (self._dead_reckoned(self._smoothed_span(), tf.pose.R, dt)
                             or with_length(tf.pose, self._speed() * dt))
                     pose = (ref.pose @ step).normalized()
                     length = float(np.linalg.norm(tf.pose.t))
-                    if tf.status is not StepStatus.STATIONARY and length > 0.0:     # a direction to start from
+                    if length > 0.0:                    # a direction to start from
                         solved = tf.pose
                         self._heading = ref.pose.R @ tf.pose.t / length
                 else:
@@ -577,8 +581,10 @@ class LiveSmoother:
         """The step ref -> frame dead reckoned (:meth:`_dead_reckoned`) with the rotation the rays give with that
         translation (:func:`~fixego_ros.estimation.twoframe.rotation_given_translation` from their Kabsch fit: one
         Gauss-Newton step, ~0.5 ms, against the solve's 2-11 ms on the loaded demo machine). None before the
-        smoother has answered, when its newest frame is over ``MAX_CARRY_S`` old, or with too few rays: then the
-        two-frame solve gives the rotation. Kabsch alone takes the parallax of near points for rotation (on a 30 Hz
+        smoother has answered, when its newest frame is over ``MAX_CARRY_S`` old, with too few rays, or when the
+        rays show no parallax (:func:`~fixego_ros.estimation.twoframe.stands_still`): then the two-frame solve gives
+        the rotation, and a stationary step stands (a rig that stopped ran on at the smoother's last velocity:
+        docs/results.md "Stop 61"). Kabsch alone takes the parallax of near points for rotation (on a 30 Hz
         walk at 1 m/s, dead reckoned with the smoother 2-5 s behind, the live heading drifted 14 deg/s). Measured
         with the smoother answering at once (``fixego sim`` 30 Hz bags, published poses; docs/results.md "Stop
         57"): the loop 3.60 -> 3.02 cm mean, the walk 31.6 -> 16.7 cm. A stale velocity is worse than solving: with
@@ -588,6 +594,8 @@ class LiveSmoother:
             return None
         dt = stamp - ref.stamp
         rays = kabsch_rotation(pairs.a, pairs.b)
+        if stands_still(pairs, rays, self.solver.config.min_parallax):
+            return None         # the rig stands: the solve says so (stationary), whatever velocity the smoother had
         reckoned = self._dead_reckoned(span, rays, dt)        # its translation, to read the rays' rotation with
         if reckoned is None:
             return None

@@ -366,7 +366,7 @@ class Smoother:
             self._add_motion_model(i, obs.stamp, ref, tf, pose0, up)
         self._add_speed(i, obs.stamp, ref, tf, up)
         self._add_motion_prior(i, obs.stamp, up)
-        self._hold_speed(i, obs.stamp, up)
+        self._hold_speed(i, obs.stamp, tf, up)
         raw_base = ref.pose_raw if ref is not None else (self._frames[-1].pose_raw if self._frames else Pose.identity())
         frame = _Frame(i, obs.stamp, fix, pose0, (raw_base @ step_raw).normalized(), tracks_of(obs))
         if self._frames:
@@ -661,14 +661,18 @@ class Smoother:
         b = placed[-1]
         return float(np.linalg.norm(b.pose.t - a.pose.t)) / (b.stamp - a.stamp)
 
-    def _hold_speed(self, i: int, stamp: float, up: _Update) -> None:
+    def _hold_speed(self, i: int, stamp: float, tf: TwoFrameResult | None, up: _Update) -> None:
         """A frame the landmarks place is remembered; one they do not gets its step at their last speed
         (:class:`.factors.HeldSpeed`) once a scale aid has measured the scale (before, the steps hold the nominal
-        speed)."""
+        speed), unless its rays saw the rig stand (a stationary step ``tf``). A rig that stopped as both heads took
+        new points kept moving at the held speed: a live demo whose rig stood 2 s after the loop ran on by 30 cm
+        (docs/results.md "Stop 61")."""
         if up.observations >= self.settings.min_resection:
             self._placed[i] = stamp
             oldest = stamp - self.settings.lag_s - self.HISTORY_S
             self._placed = {k: s for k, s in self._placed.items() if s >= oldest}
+            return
+        if tf is not None and tf.status is StepStatus.STATIONARY:
             return
         recent = self._recent_frames()
         speed = self._held_speed() if self.scale_observed and recent else None

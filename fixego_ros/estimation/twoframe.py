@@ -96,6 +96,13 @@ def kabsch_rotation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return rotation_from_svd(np.ascontiguousarray(Vt.T), U.T)
 
 
+def stands_still(pairs: RayPairs, R: np.ndarray, min_parallax: float) -> bool:
+    """Whether the rotation ``R`` alone explains the pairs: their median rotation-compensated parallax (rad) is
+    below ``min_parallax``. Then no translation is observed, and the step is taken as the rig standing."""
+    parallax = np.linalg.norm(np.cross(pairs.a, pairs.b @ R.T), axis=1)
+    return float(np.median(parallax)) < min_parallax
+
+
 def rotation_given_translation(pairs: RayPairs, R0: np.ndarray, T: np.ndarray, sigma: float, f_scale: float = 3.0,
                                iterations: int = 3, max_turn: float = math.radians(2.0)) -> np.ndarray:
     """The rotation of a step whose translation ``T`` is known (e.g. a velocity carried over the step):
@@ -501,8 +508,7 @@ class TwoFrameSolver:
                                   message=f'{m} constraints for 6 unknowns')
         # zero flow: a pure rotation explains every pair exactly -> stationary (T unobservable, 0)
         R_rot = kabsch_rotation(pairs.a, pairs.b)
-        parallax = np.linalg.norm(np.cross(pairs.a, pairs.b @ R_rot.T), axis=1)
-        if float(np.median(parallax)) < cfg.min_parallax:
+        if stands_still(pairs, R_rot, cfg.min_parallax):
             return TwoFrameResult(Pose(R_rot, np.zeros(3)), StepStatus.STATIONARY, np.zeros(m),
                                   np.diag([cfg.sigma**2] * 3 + [VAR_MAX] * 3), 0.0, m,
                                   'no parallax: rotation only')

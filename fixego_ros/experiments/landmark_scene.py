@@ -13,7 +13,7 @@ runs in a fraction of a second per loop.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -66,6 +66,22 @@ class LandmarkRun:
     observations: list[FrameObservation]
     reselections: int
     fixation_points: list[dict[str, np.ndarray]]   # true fixation point of each camera, rig frame at the frame
+
+    def standing(self, k: int, n: int) -> list[FrameObservation]:
+        """``n`` frames after frame ``k`` (at its period) with the rig standing where it was at ``k`` while both
+        heads took new points as it stopped (the live demo's end): every track and fixation id new in each frame, so
+        no landmark seen before places them, and no flow."""
+        obs = self.observations[k]
+        dt = obs.stamp - self.observations[k - 1].stamp
+        frames = []
+        for j in range(1, n + 1):
+            new = 10 ** 6 * j
+            cams = {side: replace(cam, track_ids=cam.track_ids + new, fixation_id=cam.fixation_id + new,
+                                  flow_prev=cam.track_rays, flow_curr=cam.track_rays)
+                    for side, cam in (('right', obs.right), ('left', obs.left))}
+            stamp = obs.stamp + dt * j
+            frames.append(replace(obs, stamp=stamp, prev_stamp=stamp - dt, **cams))
+        return frames
 
 
 class LandmarkScene:
