@@ -48,6 +48,7 @@ SIM_NUMBERS = [
     *_numeric('--noise', 'nan inf -inf 1e308 -1 256'),
     *_numeric('--wheel-odom-std', '1e308 nan inf -1 11'),
     *_numeric('--rest', 'nan inf -1 601'),
+    *_numeric('--rest-end', 'nan inf -1 601'),
 ]
 # id -> (argv without --out, option the error names, refused value as typed or None, prog): one case each
 CASES: dict[str, tuple[list[str], str, str | None, str]] = {}
@@ -87,6 +88,7 @@ DEMO_NUMBERS = [
     *_numeric('--height', '-1 0'),
     *_numeric('--domain-id', '233 -1'),
     *_numeric('--seed', '-1 4294967296'),
+    *_numeric('--rest-end', 'nan -1 601'),
 ]
 for opt, raw, arg in DEMO_NUMBERS:
     CASES[f'demo{arg}'] = ([*DEMO, arg], opt, raw, 'fixego demo')

@@ -100,3 +100,19 @@ def test_a_rest_holds_the_first_pose_then_the_trajectory_follows_shifted():
         np.testing.assert_allclose(rested.pose_at(t + 2.5).matrix(), plain.pose_at(t).matrix(), atol=1e-9)
     assert rested.path_length() == pytest.approx(plain.path_length(), abs=1e-9)
     assert 'rest_s' not in SimSettings().to_dict() and SimSettings(rest_s=2.5).to_dict()['rest_s'] == 2.5
+
+
+def test_a_rest_at_the_end_holds_the_last_pose_after_the_trajectory():
+    plain = build_trajectory(SimSettings(steps=20))
+    both = build_trajectory(SimSettings(steps=20, rest_s=1.0, rest_end_s=2.5))
+    assert both.duration == pytest.approx(plain.duration + 3.5, abs=1e-9)
+    np.testing.assert_allclose(both.marks, plain.marks + 1.0, atol=1e-9)     # the marks stay the trajectory's
+    for t in (0.4, 3.7, plain.duration):
+        np.testing.assert_allclose(both.pose_at(t + 1.0).matrix(), plain.pose_at(t).matrix(), atol=1e-9)
+    end = plain.pose_at(plain.duration)
+    for t in (0.1, 1.3, 2.5, 9.0):
+        np.testing.assert_allclose(both.pose_at(plain.duration + 1.0 + t).matrix(), end.matrix(), atol=1e-12)
+    assert both.path_length() == pytest.approx(plain.path_length(), abs=1e-9)
+    assert 'rest_end_s' not in SimSettings().to_dict() and SimSettings(rest_end_s=2.5).to_dict()['rest_end_s'] == 2.5
+    with pytest.raises(ValueError, match='rest_end_s'):
+        SimSettings(rest_end_s=-1.0)

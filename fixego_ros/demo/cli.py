@@ -25,7 +25,7 @@ import numpy as np
 from fixego_ros.cli_options import ROS_DOMAIN_IDS, OptionError, check_float, check_int, one_line_errors, prepare_out_dir
 from fixego_ros.sim.cli import image_size, read_rig
 from fixego_ros.sim.run import DURATION_MAX, FPS_RANGE, SEED_MAX, SIZE_RANGE, resize_rig
-from fixego_ros.sim.trajectories import NAMES
+from fixego_ros.sim.trajectories import NAMES, REST_RANGE
 from fixego_ros.tracking.joint_prediction import MODES as JOINT_MODES
 
 PROG = 'fixego demo'
@@ -44,6 +44,9 @@ def register(subparsers) -> None:
     p.add_argument('--trajectory', choices=NAMES, default='paper', help='rig trajectory (default paper)')
     p.add_argument('--duration', type=float, default=0.0,
                    help=f'stop the trajectory after this many seconds, in [0, {DURATION_MAX:g}] (0: whole, default)')
+    p.add_argument('--rest-end', type=float, default=0.0, metavar='S',
+                   help=f'the rig stands still S s at its last pose after the trajectory, S in [{REST_RANGE[0]:g}, '
+                        f'{REST_RANGE[1]:g}] (default 0)')
     p.add_argument('--fps', type=float, default=30.0,
                    help=f'camera frame rate in [{FPS_RANGE[0]:g}, {FPS_RANGE[1]:g}] (default 30)')
     p.add_argument('--rig', type=Path, help='rig file (default config/rig.yaml)')
@@ -68,6 +71,7 @@ def check_args(args: argparse.Namespace):
     """Every option, before any process is started: the rig (resized when asked); raises OptionError (one line).
     ``--out`` is checked (and created) afterwards, by :func:`run`, once everything else is known to be usable."""
     check_float(args.duration, '--duration', 0.0, DURATION_MAX, unit='s', note=' (0: the whole trajectory)')
+    check_float(args.rest_end, '--rest-end', *REST_RANGE, unit='s')
     check_float(args.fps, '--fps', *FPS_RANGE, unit='frames per second')
     check_int(args.seed, '--seed', 0, SEED_MAX)
     check_float(args.ready_timeout, '--ready-timeout', 0.0, READY_TIMEOUT_MAX, lo_open=True, unit='s')
@@ -128,7 +132,8 @@ def _run(args: argparse.Namespace, out: Path, rig_path: Path, launcher) -> int:
     pty_file.unlink(missing_ok=True)
     common = {'rig_file': str(rig_path.resolve())}
     launcher.start(NodeSpec('sim_rig_node', 'fixego_ros.nodes.sim_rig_node', {
-        **common, 'trajectory': args.trajectory, 'duration': float(args.duration), 'fps': float(args.fps),
+        **common, 'trajectory': args.trajectory, 'duration': float(args.duration),
+        'rest_end_s': float(args.rest_end), 'fps': float(args.fps),
         'seed': args.seed, 'pty_file': str(pty_file.resolve()), 'wait_for_start': True, 'exit_at_end': True}))
     _say(args, f'fixego demo: simulated rig starting (trajectory {args.trajectory}); logs in {out / "logs"}')
     t_ready = time.monotonic()
@@ -253,7 +258,8 @@ def _path_length(args: argparse.Namespace) -> int:
     from fixego_ros.sim.trajectories import make_trajectory
 
     spec = ESTIMATOR_NODE_PARAMS['path_max_length']
-    frames = make_trajectory(args.trajectory, seed=args.seed, duration=args.duration or None).frame_count(args.fps)
+    frames = make_trajectory(args.trajectory, seed=args.seed, duration=args.duration or None).then_rest(
+        args.rest_end).frame_count(args.fps)
     return int(min(spec.max, max(int(spec.default), frames + math.ceil(10 * args.fps))))
 
 

@@ -232,6 +232,7 @@ class LiveSmoother:
     SPEED_WINDOW_S = 0.5   # the speed of the fast poses: the smoother's motion over about this long
     JOIN_S = 2.0           # bound on waiting for the child to stop
     ODOM_CONVERGENCE_S = 1.0   # time constant of the continuous pose closing its gap to the newest estimate
+    STAND_FRAMES = 3       # frames in a row whose rays show no parallax before the live pose stands (see _standing)
     MAX_CARRY_S = 0.5      # the rotation read with the carried velocity this far past the smoother's newest frame
                            # (then solved: a stale velocity bends it)
 
@@ -406,7 +407,8 @@ class LiveSmoother:
             # before, the two-frame solve (~2 ms warm; the cold starts cost ~16 ms, so a failed warm solve tries the
             # closed-form starts only, and a frame that still fails is predicted; the child solves it fully)
             pairs = step_pairs(self.rig, ref.fixation, obs, self._config.fixation_weight)
-            tf = self._carried(ref, pairs, obs.stamp)
+            standing = self._standing(pairs)
+            tf = None if standing else self._carried(ref, pairs, obs.stamp)
             if tf is not None:
                 step = tf.pose
                 pose = (ref.pose @ step).normalized()
@@ -415,7 +417,7 @@ class LiveSmoother:
                 predicted = self._predict(obs.stamp)
                 tf = self.solver.solve(pairs, initial=self._warm_start(ref, predicted, dt),
                                        fallback=Fallback.CLOSED_FORM)
-                if tf.status is StepStatus.STATIONARY:
+                if standing and tf.status is StepStatus.STATIONARY:
                     step = tf.pose          # the rays saw the rig stand, whatever speed the smoother last had
                     pose = (ref.pose @ step).normalized()
                 elif tf.status.usable and tf.pose.is_finite() and tf.cheirality >= 0.5:
@@ -423,7 +425,7 @@ class LiveSmoother:
                             or with_length(tf.pose, self._speed() * dt))
                     pose = (ref.pose @ step).normalized()
                     length = float(np.linalg.norm(tf.pose.t))
-                    if length > 0.0:                    # a direction to start from
+                    if tf.status is not StepStatus.STATIONARY and length > 0.0:     # a direction to start from
                         solved = tf.pose
                         self._heading = ref.pose.R @ tf.pose.t / length
                 else:
@@ -459,6 +461,7 @@ class LiveSmoother:
         self._state = SmootherState()
         self._pose_cov: np.ndarray | None = None
         self._heading: np.ndarray | None = None     # unit, world: the direction of the last solved moving step
+        self._still_frames = 0      # frames in a row whose rays showed no parallax
         self._odom: tuple[Pose, Pose, float] | None = None   # the last frame's odom correction, its pose, stamp
         self._index = -1
         self._sent_frames = 0
@@ -577,14 +580,23 @@ class LiveSmoother:
         self._odom = (correction, pose, stamp)
         return (correction @ pose).normalized()
 
+    def _standing(self, pairs: RayPairs) -> bool:
+        """Whether the rig stands: the rays of this frame and of the ``STAND_FRAMES`` - 1 before it show no parallax
+        (:func:`~fixego_ros.estimation.twoframe.stands_still`). Then the live pose stands; until stop 61 it went on
+        at the smoother's last velocity, as far as the smoother lagged (a demo whose rig stood 2 s after the loop:
+        /fixego/odom ran on by 45-55 cm). One such frame is not enough: on a 30 Hz bag 13 of 761 moving frames show
+        no parallax, each alone, and standing on every one let the demo's live pose lag the rig by up to 36 cm."""
+        still = len(pairs) >= MIN_ROTATION_PAIRS and stands_still(pairs, kabsch_rotation(pairs.a, pairs.b),
+                                                                  self.solver.config.min_parallax)
+        self._still_frames = self._still_frames + 1 if still else 0
+        return self._still_frames >= self.STAND_FRAMES
+
     def _carried(self, ref: _Recent, pairs: RayPairs, stamp: float) -> TwoFrameResult | None:
         """The step ref -> frame dead reckoned (:meth:`_dead_reckoned`) with the rotation the rays give with that
         translation (:func:`~fixego_ros.estimation.twoframe.rotation_given_translation` from their Kabsch fit: one
         Gauss-Newton step, ~0.5 ms, against the solve's 2-11 ms on the loaded demo machine). None before the
-        smoother has answered, when its newest frame is over ``MAX_CARRY_S`` old, with too few rays, or when the
-        rays show no parallax (:func:`~fixego_ros.estimation.twoframe.stands_still`): then the two-frame solve gives
-        the rotation, and a stationary step stands (a rig that stopped ran on at the smoother's last velocity:
-        docs/results.md "Stop 61"). Kabsch alone takes the parallax of near points for rotation (on a 30 Hz
+        smoother has answered, when its newest frame is over ``MAX_CARRY_S`` old, or with too few rays: then the
+        two-frame solve gives the rotation. Kabsch alone takes the parallax of near points for rotation (on a 30 Hz
         walk at 1 m/s, dead reckoned with the smoother 2-5 s behind, the live heading drifted 14 deg/s). Measured
         with the smoother answering at once (``fixego sim`` 30 Hz bags, published poses; docs/results.md "Stop
         57"): the loop 3.60 -> 3.02 cm mean, the walk 31.6 -> 16.7 cm. A stale velocity is worse than solving: with
@@ -594,8 +606,6 @@ class LiveSmoother:
             return None
         dt = stamp - ref.stamp
         rays = kabsch_rotation(pairs.a, pairs.b)
-        if stands_still(pairs, rays, self.solver.config.min_parallax):
-            return None         # the rig stands: the solve says so (stationary), whatever velocity the smoother had
         reckoned = self._dead_reckoned(span, rays, dt)        # its translation, to read the rays' rotation with
         if reckoned is None:
             return None

@@ -82,7 +82,7 @@ class SimRigNode(Node):
             rig = rig_with_hfov(rig, p['hfov_deg'])
         self.rig = rig
         self.trajectory = make_trajectory(p['trajectory'], speed=p['speed'] or None, seed=p['seed'],
-                                          duration=p['duration'] or None)
+                                          duration=p['duration'] or None).then_rest(p['rest_end_s'])
         t_build = time.monotonic()
         world = make_room(p['seed'], p['texel'])
         self.renderer = Renderer(world, rig, p['encoding'], p['noise_sigma'], p['seed'])

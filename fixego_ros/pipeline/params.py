@@ -31,6 +31,7 @@ from fixego_ros.pipeline.frontend import KeyframePolicy
 from fixego_ros.pipeline.odometry import SPEED_PARAMS as _SPEED_TEXTS
 from fixego_ros.pipeline.sync import SyncParams
 from fixego_ros.sim.trajectories import NAMES as TRAJECTORIES
+from fixego_ros.sim.trajectories import REST_RANGE
 from fixego_ros.tracking.fixation import FixationParams
 from fixego_ros.tracking.flow import PRESETS, FlowParams
 from fixego_ros.tracking.joint_prediction import MODES as JOINT_MODES
@@ -480,6 +481,8 @@ SIM_RIG_NODE_PARAMS: Table = _table(
     _str('trajectory', 'paper', f'trajectory: {", ".join(TRAJECTORIES)}', choices=TRAJECTORIES),
     _num('speed', 0.0, 'rig speed in m/s (0: the trajectory default)', ge=0.01, le=100.0, also=(0.0,)),
     _num('duration', 0.0, 'truncate the trajectory to this many seconds (0: whole)', ge=0.0, le=3600.0),
+    _num('rest_end_s', 0.0, 'the rig stands still this long at its last pose after the trajectory (s)',
+         ge=REST_RANGE[0], le=REST_RANGE[1]),
     _num('fps', 30.0, 'frame rate of both cameras', gt=0.0, le=1000.0),
     _num('time_scale', 1.0, 'trajectory seconds per wall-clock second (0 freezes the rig)', ge=0.0, le=1000.0),
     _str('rig_file', '', 'rig calibration file (empty: config/rig.yaml)'),

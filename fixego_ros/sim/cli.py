@@ -124,6 +124,9 @@ def register(subparsers) -> None:
     p.add_argument('--rest', type=float, default=0.0, metavar='S',
                    help=f'the rig stands still S s at its first pose before the trajectory (--duration and --steps '
                         f'count the trajectory), S in [{REST_RANGE[0]:g}, {REST_RANGE[1]:g}] (default 0)')
+    p.add_argument('--rest-end', type=float, default=0.0, metavar='S',
+                   help=f'the rig stands still S s at its last pose after the trajectory, S in [{REST_RANGE[0]:g}, '
+                        f'{REST_RANGE[1]:g}] (default 0)')
     p.add_argument('--texel', type=float, default=0.002,
                    help=f'texture resolution in m, in [{TEXEL_RANGE[0]:g}, {TEXEL_RANGE[1]:g}] (default 0.002)')
     p.add_argument('--wheel-odom-std', type=float, metavar='S',
@@ -165,6 +168,7 @@ def check_args(args: argparse.Namespace):
                               '(use --duration)')
     check_float(args.texel, '--texel', *TEXEL_RANGE, unit='m')
     check_float(args.rest, '--rest', *REST_RANGE, unit='s')
+    check_float(args.rest_end, '--rest-end', *REST_RANGE, unit='s')
     if args.wheel_odom_std is not None:
         check_float(args.wheel_odom_std, '--wheel-odom-std', 0.0, WHEEL_ODOM_STD_MAX, unit='m/s')
     elif args.wheel_odom_rate is not None or args.wheel_odom_bias:
@@ -182,9 +186,11 @@ def check_args(args: argparse.Namespace):
         rig = rig_with_hfov(rig, args.hfov)
     settings = SimSettings(trajectory=args.trajectory, seed=args.seed, fps=args.fps, encoding=args.encoding,
                            noise_sigma=args.noise, speed=args.speed, duration=args.duration, steps=args.steps,
-                           texel=args.texel, vergence=args.vergence, rest_s=args.rest)
+                           texel=args.texel, vergence=args.vergence, rest_s=args.rest,
+                           rest_end_s=args.rest_end)
     out = check_new_dir(args.out, '--out')     # the probe creates and removes the directory
-    frames = None if args.duration is None else math.floor((args.duration + args.rest) * args.fps + 1e-9) + 1
+    rests = args.rest + args.rest_end
+    frames = None if args.duration is None else math.floor((args.duration + rests) * args.fps + 1e-9) + 1
     if frames is None or (frames > MAX_FRAMES and args.trajectory != 'random'):   # (random lasts --duration)
         frames = build_trajectory(settings).frame_count(settings.fps)
     if frames > MAX_FRAMES:

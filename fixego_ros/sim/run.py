@@ -23,6 +23,7 @@ from fixego_ros.sim.trajectories import (
     DT,
     NAMES,
     PAPER_STEPS,
+    REST_RANGE,
     Trajectory,
     make_trajectory,
     relative_poses,
@@ -45,7 +46,6 @@ SIZE_RANGE = (24, 8192)          # px, image width and height
 HFOV_RANGE = (1.0, 170.0)        # deg, horizontal angle of view
 NOISE_RANGE = (0.0, NOISE_MAX)   # grey levels
 STEPS_RANGE = (0, PAPER_STEPS)   # paper loop step marks
-REST_RANGE = (0.0, 600.0)        # s standing still before the trajectory
 MAX_FRAMES = 1_000_000           # frames of one run (every pose is held in memory; 1000 fps x 3600 s would not fit)
 
 
@@ -71,6 +71,7 @@ class SimSettings:
     epoch: float = EPOCH
     vergence: str = 'off'
     rest_s: float = 0.0               # standing still before the trajectory
+    rest_end_s: float = 0.0           # standing still after it
 
     def __post_init__(self) -> None:
         problems = self.problems()
@@ -105,6 +106,7 @@ class SimSettings:
         if self.duration is not None:
             within('duration', self.duration, 0.0, DURATION_MAX, lo_open=True)
         within('rest_s', self.rest_s, *REST_RANGE)
+        within('rest_end_s', self.rest_end_s, *REST_RANGE)
         if self.steps is not None and not (isinstance(self.steps, numbers.Integral) and STEPS_RANGE[0] <= self.steps
                                            <= STEPS_RANGE[1]):
             out.append(f'steps must be an integer in {STEPS_RANGE[0]}..{STEPS_RANGE[1]}, got {self.steps!r}')
@@ -112,12 +114,14 @@ class SimSettings:
 
     def to_dict(self) -> dict:
         """The fields (``sim.yaml``, the bag's ``fixego_sim`` custom data); ``vergence`` only when it is not
-        ``off`` and ``rest_s`` only when not 0, so a bag without them keeps the record it had before the options."""
+        ``off`` and ``rest_s`` / ``rest_end_s`` only when not 0, so a bag without them keeps the record it had
+        before the options."""
         out = dataclasses.asdict(self)
         if out['vergence'] == 'off':
             del out['vergence']
-        if not out['rest_s']:
-            del out['rest_s']
+        for rest in ('rest_s', 'rest_end_s'):
+            if not out[rest]:
+                del out[rest]
         return out
 
 
@@ -146,7 +150,7 @@ def build_trajectory(s: SimSettings) -> Trajectory:
     traj = make_trajectory(s.trajectory, speed=s.speed, seed=s.seed, duration=s.duration)
     if s.steps is not None:
         traj = traj.truncated(steps_duration(traj, s.steps))
-    return traj.after_rest(s.rest_s)
+    return traj.after_rest(s.rest_s).then_rest(s.rest_end_s)
 
 
 @dataclass

@@ -28,6 +28,7 @@ PAPER_STEPS = 130   # step marks 0..PAPER_STEPS of the paper loop
 # the fine grid of a trajectory has at most this many samples (20000 s): a vanishing speed or a huge duration
 # would otherwise allocate without bound
 MAX_GRID_POINTS = 10_000_000
+REST_RANGE = (0.0, 600.0)        # s standing still before or after a trajectory (simulator options)
 TRIPOD_HEIGHT = 1.2
 HEAD_HEIGHT = 1.6
 # centre of the area every trajectory stays in (the room's boxes stand outside a 2 m radius of it)
@@ -90,13 +91,21 @@ class Trajectory:
     def after_rest(self, seconds: float) -> Trajectory:
         """The rig standing at the first pose for ``seconds`` (rounded to the grid), then this trajectory: a user
         who waits before walking, or a robot that starts late (the live demo's rig waited ~7 s in some runs)."""
+        return self._held(seconds, at_end=False)
+
+    def then_rest(self, seconds: float) -> Trajectory:
+        """This trajectory, then the rig standing at its last pose for ``seconds`` (rounded to the grid): a rig that
+        stops, where its heads have often just taken new points (docs/results.md "Stop 61")."""
+        return self._held(seconds, at_end=True)
+
+    def _held(self, seconds: float, at_end: bool) -> Trajectory:
         n = round(seconds / DT)
         if n <= 0:
             return self
 
         def held(v: np.ndarray) -> np.ndarray:
-            return np.concatenate([np.repeat(v[:1], n, axis=0), v])
-        marks = None if self.marks is None else self.marks + n * DT
+            return np.concatenate([v, np.repeat(v[-1:], n, axis=0)] if at_end else [np.repeat(v[:1], n, axis=0), v])
+        marks = self.marks if self.marks is None or at_end else self.marks + n * DT
         return replace(self, t=np.arange(len(self.t) + n) * DT, xyz=held(self.xyz), yaw=held(self.yaw),
                        pitch=held(self.pitch), roll=held(self.roll), marks=marks)
 
