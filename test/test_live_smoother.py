@@ -372,9 +372,9 @@ def test_the_published_pose_takes_up_a_revision_without_a_jump_and_converges_on_
 def test_a_rig_that_stops_stands_still_in_the_live_pose(loop, monkeypatch):
     """Stop 61. Once the smoother has answered, a frame's translation is its last velocity, dead reckoned; a rig that
     stopped kept that velocity in the live pose, for as long as the smoother lagged (a demo whose rig stood 2 s after
-    the loop: /fixego/odom ran on by 45-55 cm). Once ``STAND_FRAMES`` frames in a row show no parallax the live pose
-    stands, whether the smoother is close behind (the carried step) or far (the solved one). Here the smoother
-    answers until the stop, then goes silent, as the live child seconds behind."""
+    the loop: /fixego/odom moved 28-40 cm over the 2 s). Once ``STAND_FRAMES`` frames in a row show no parallax the
+    live pose stands, whether the smoother is close behind (the carried step) or far (the solved one). Here the
+    smoother answers until the stop, then goes silent, as the live child seconds behind."""
     def run() -> tuple[np.ndarray, np.ndarray]:
         live = LiveSmoother(RIG, EstimatorConfig(solver=SolverConfig(sigma=1.0 / F)), inline=True)
         results, _ = _feed(live, loop, wait=False)

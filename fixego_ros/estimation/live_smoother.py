@@ -584,8 +584,9 @@ class LiveSmoother:
         """Whether the rig stands: the rays of this frame and of the ``STAND_FRAMES`` - 1 before it show no parallax
         (:func:`~fixego_ros.estimation.twoframe.stands_still`). Then the live pose stands; until stop 61 it went on
         at the smoother's last velocity, as far as the smoother lagged (a demo whose rig stood 2 s after the loop:
-        /fixego/odom ran on by 45-55 cm). One such frame is not enough: on a 30 Hz bag 13 of 761 moving frames show
-        no parallax, each alone, and standing on every one let the demo's live pose lag the rig by up to 36 cm."""
+        /fixego/odom moved 28-40 cm over the 2 s). One such frame is not enough: on a 30 Hz bag 13 of 761 moving
+        frames show no parallax, each alone, and standing on every one let the demo's live pose lag the rig by up
+        to 36 cm."""
         still = len(pairs) >= MIN_ROTATION_PAIRS and stands_still(pairs, kabsch_rotation(pairs.a, pairs.b),
                                                                   self.solver.config.min_parallax)
         self._still_frames = self._still_frames + 1 if still else 0
