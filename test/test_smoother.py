@@ -484,23 +484,31 @@ def _swung(obs: FrameObservation, k: int, rng: np.random.Generator, prev: dict[s
     return dataclasses.replace(obs, right=cams['right'], left=cams['left'])
 
 
-def _gap_length_ratio(loop, gap: range, **smoother) -> float:
-    """The loop with vergence measurements, both heads swinging back over the frames of ``gap``: estimated over true
-    path length across the gap."""
-    sm = Smoother(RIG, _config(**smoother))
-    rng, noise = np.random.default_rng(3), np.random.default_rng(13)
-    prev: dict[str, np.ndarray] = {}
-    path: dict[float, np.ndarray] = {}
-    last_fid = None
-    for k, obs in enumerate(loop.observations):
-        if k in gap:
-            obs = _swung(obs, k, noise, prev, 0.3)
-        elif obs.right.fixation_id != last_fid:
+def _feed_path(sm: Smoother, frames, loop, rng: np.random.Generator, path: dict[float, np.ndarray]) -> list:
+    """Feed ``frames`` (the frame's index in ``loop``, or None for a frame made up, and its observation), with a
+    vergence measurement at each new right fixation of a frame of the loop; keeps the path in ``path`` as a caller
+    does (each result's pose, then its revisions); the results."""
+    results, last_fid = [], None
+    for k, obs in frames:
+        if k is not None and obs.right.fixation_id != last_fid:
             sm.add_fixation_point(obs.stamp, 'right', *_vergence(loop, k, 0.005, rng))
         last_fid = obs.right.fixation_id
         r = sm.update(obs)
+        results.append(r)
         path[r.stamp] = r.pose.t
         path.update((s, p.t) for s, p in r.revised)
+    return results
+
+
+def _gap_length_ratio(loop, gap: range, **smoother) -> float:
+    """The loop with vergence measurements, both heads swinging back over the frames of ``gap``: estimated over true
+    path length across the gap."""
+    noise = np.random.default_rng(13)
+    prev: dict[str, np.ndarray] = {}
+    frames = [(None, _swung(obs, k, noise, prev, 0.3)) if k in gap else (k, obs)
+              for k, obs in enumerate(loop.observations)]
+    path: dict[float, np.ndarray] = {}
+    _feed_path(Smoother(RIG, _config(**smoother)), frames, loop, np.random.default_rng(3), path)
     est = np.array([path[s] for s in loop.stamps])
     true = np.array([p.t for p in loop.poses])
     span = slice(gap.start, gap.stop + 1)
@@ -621,23 +629,11 @@ def test_the_marginal_is_computed_at_most_once_per_period_and_turned_with_the_fr
 def _move_then_stop(loop, k_stop: int, n_rest: int, **smoother) -> tuple[np.ndarray, np.ndarray]:
     """The loop with vergence measurements up to frame ``k_stop``, where the rig stops and stands ``n_rest`` frames
     (:meth:`LandmarkRun.standing`). The estimated (revised) positions at the stop and at each frame standing."""
-    sm = Smoother(RIG, _config(**smoother))
-    rng = np.random.default_rng(3)
-    path: dict[float, np.ndarray] = {}
-    last_fid = None
-    for k, obs in enumerate(loop.observations[:k_stop + 1]):
-        if obs.right.fixation_id != last_fid:
-            sm.add_fixation_point(obs.stamp, 'right', *_vergence(loop, k, 0.005, rng))
-        last_fid = obs.right.fixation_id
-        r = sm.update(obs)
-        path[r.stamp] = r.pose.t
-        path.update((s, p.t) for s, p in r.revised)
     standing = loop.standing(k_stop, n_rest)
-    for k, obs in enumerate(standing):
-        r = sm.update(obs)
-        assert r.status is StepStatus.STATIONARY or k == 0
-        path[r.stamp] = r.pose.t
-        path.update((s, p.t) for s, p in r.revised)
+    frames = [*enumerate(loop.observations[:k_stop + 1]), *((None, obs) for obs in standing)]
+    path: dict[float, np.ndarray] = {}
+    results = _feed_path(Smoother(RIG, _config(**smoother)), frames, loop, np.random.default_rng(3), path)
+    assert all(r.status is StepStatus.STATIONARY for r in results[k_stop + 2:])
     return path[loop.stamps[k_stop]], np.array([path[o.stamp] for o in standing])
 
 
