@@ -319,11 +319,12 @@ def test_once_the_smoother_answers_a_frame_is_dead_reckoned_on_its_velocity_in_t
     half = exp_so3(np.array([0.0, 0.01, 0.0]))
     rays = np.random.default_rng(0).normal(size=(30, 3)) + [0.0, 0.0, 4.0]
     pairs = RayPairs.build([(rays, rays @ R, np.zeros(3), 1.0)])        # b = R^T a: a pure rotation R
-    carried = live._carried(ref, pairs, 0.4)
+    pairs_rays = kabsch_rotation(pairs.a, pairs.b)
+    carried = live._carried(ref, pairs, pairs_rays, 0.4)
     assert carried.status is StepStatus.CARRIED and carried.status.usable
     np.testing.assert_allclose(carried.pose.R, R, atol=1e-9)
     np.testing.assert_allclose(carried.pose.t, half @ [0.0, 0.0, 0.02], atol=1e-9)
-    assert live._carried(ref, pairs, 0.2 + LiveSmoother.MAX_CARRY_S + 0.01) is None     # lagging: solved
+    assert live._carried(ref, pairs, pairs_rays, 0.2 + LiveSmoother.MAX_CARRY_S + 0.01) is None     # lagging: solved
     # points 0.8-1.5 m away, all to one side: over the carried 2 cm forward their parallax leans one way, and
     # Kabsch takes it for rotation
     near = np.random.default_rng(1).uniform([0.3, -0.5, 0.8], [1.5, 0.5, 1.5], size=(60, 3))
@@ -331,11 +332,13 @@ def test_once_the_smoother_answers_a_frame_is_dead_reckoned_on_its_velocity_in_t
     parallax = RayPairs.build([(near, moved, np.zeros(3), 1.0)])
     kabsch = live._dead_reckoned(live._smoothed_span(), kabsch_rotation(parallax.a, parallax.b), 0.1)
     assert rotation_angle(kabsch.R @ R.T) > math.radians(0.1)        # (measured: 0.44 deg; carried 0.0004)
-    assert rotation_angle(live._carried(ref, parallax, 0.4).pose.R @ R.T) < 0.1 * rotation_angle(kabsch.R @ R.T)
+    read = live._carried(ref, parallax, kabsch_rotation(parallax.a, parallax.b), 0.4)
+    assert rotation_angle(read.pose.R @ R.T) < 0.1 * rotation_angle(kabsch.R @ R.T)
     late = live._dead_reckoned(live._smoothed_span(), R, 5.0)     # 5 s on the smoother's velocity: 1 m forward
     np.testing.assert_allclose(late.R, R, atol=1e-12)
     np.testing.assert_allclose(late.t, half @ [0.0, 0.0, 1.0], atol=1e-9)
-    assert live._carried(ref, RayPairs.build([(rays[:5], rays[:5] @ R, np.zeros(3), 1.0)]), 0.4) is None
+    few = RayPairs.build([(rays[:5], rays[:5] @ R, np.zeros(3), 1.0)])
+    assert live._carried(ref, few, kabsch_rotation(few.a, few.b), 0.4) is None
     live._recent = deque([ref])                         # before the smoother has a motion: nothing to reckon on
     assert live._smoothed_span() is None and live._dead_reckoned(None, R, 0.1) is None
 
@@ -387,7 +390,7 @@ def test_a_rig_that_stops_stands_still_in_the_live_pose(loop, monkeypatch):
     at_stop, standing = run()
     assert 0.01 < np.linalg.norm(standing[n - 2] - at_stop) < 0.2         # on at the smoother's speed until then
     assert np.linalg.norm(standing[n - 1:] - standing[n - 2], axis=1).max() < 1e-9      # then it stands
-    monkeypatch.setattr(LiveSmoother, '_standing', lambda self, pairs: False)     # as before
+    monkeypatch.setattr(LiveSmoother, '_standing', lambda self, pairs, rays: False)     # as before
     at_stop, standing = run()
     assert np.linalg.norm(standing[-1] - at_stop) > 0.2        # ran on at the speed it had (measured 0.39 m)
 
@@ -396,7 +399,7 @@ def test_one_frame_without_parallax_does_not_stop_the_live_pose():
     """The stand needs ``STAND_FRAMES`` frames in a row without parallax: a frame with parallax starts the count
     again."""
     from fixego_ros.estimation.coplanarity import RayPairs
-    from fixego_ros.estimation.twoframe import TwoFrameSolver
+    from fixego_ros.estimation.twoframe import TwoFrameSolver, kabsch_rotation
 
     live = LiveSmoother.__new__(LiveSmoother)          # the parent's bookkeeping only: no child process
     live.solver = TwoFrameSolver(SolverConfig(sigma=1.0 / F))
@@ -405,4 +408,5 @@ def test_one_frame_without_parallax_does_not_stop_the_live_pose():
     still = RayPairs.build([(rays, rays, np.zeros(3), 1.0)])
     moved = RayPairs.build([(rays, rays - [0.0, 0.0, 0.3], np.zeros(3), 1.0)])
     frames = [still, still, moved, still, still, still, still]
-    assert [live._standing(p) for p in frames] == [False, False, False, False, False, True, True]
+    standing = [live._standing(p, kabsch_rotation(p.a, p.b)) for p in frames]
+    assert standing == [False, False, False, False, False, True, True]

@@ -407,8 +407,9 @@ class LiveSmoother:
             # before, the two-frame solve (~2 ms warm; the cold starts cost ~16 ms, so a failed warm solve tries the
             # closed-form starts only, and a frame that still fails is predicted; the child solves it fully)
             pairs = step_pairs(self.rig, ref.fixation, obs, self._config.fixation_weight)
-            standing = self._standing(pairs)
-            tf = None if standing else self._carried(ref, pairs, obs.stamp)
+            rays = kabsch_rotation(pairs.a, pairs.b)         # the rotation-only fit, read by both tests below
+            standing = self._standing(pairs, rays)
+            tf = None if standing else self._carried(ref, pairs, rays, obs.stamp)
             if tf is not None:
                 step = tf.pose
                 pose = (ref.pose @ step).normalized()
@@ -580,19 +581,18 @@ class LiveSmoother:
         self._odom = (correction, pose, stamp)
         return (correction @ pose).normalized()
 
-    def _standing(self, pairs: RayPairs) -> bool:
+    def _standing(self, pairs: RayPairs, rays: np.ndarray) -> bool:
         """Whether the rig stands: the rays of this frame and of the ``STAND_FRAMES`` - 1 before it show no parallax
         (:func:`~fixego_ros.estimation.twoframe.stands_still`). Then the live pose stands; until stop 61 it went on
         at the smoother's last velocity, as far as the smoother lagged (a demo whose rig stood 2 s after the loop:
         /fixego/odom moved 28-40 cm over the 2 s). One such frame is not enough: on a 30 Hz bag 13 of 761 moving
         frames show no parallax, each alone, and standing on every one let the demo's live pose lag the rig by up
-        to 36 cm."""
-        still = len(pairs) >= MIN_ROTATION_PAIRS and stands_still(pairs, kabsch_rotation(pairs.a, pairs.b),
-                                                                  self.solver.config.min_parallax)
+        to 36 cm. ``rays``: the pairs' Kabsch rotation."""
+        still = len(pairs) >= MIN_ROTATION_PAIRS and stands_still(pairs, rays, self.solver.config.min_parallax)
         self._still_frames = self._still_frames + 1 if still else 0
         return self._still_frames >= self.STAND_FRAMES
 
-    def _carried(self, ref: _Recent, pairs: RayPairs, stamp: float) -> TwoFrameResult | None:
+    def _carried(self, ref: _Recent, pairs: RayPairs, rays: np.ndarray, stamp: float) -> TwoFrameResult | None:
         """The step ref -> frame dead reckoned (:meth:`_dead_reckoned`) with the rotation the rays give with that
         translation (:func:`~fixego_ros.estimation.twoframe.rotation_given_translation` from their Kabsch fit: one
         Gauss-Newton step, ~0.5 ms, against the solve's 2-11 ms on the loaded demo machine). None before the
@@ -601,12 +601,12 @@ class LiveSmoother:
         walk at 1 m/s, dead reckoned with the smoother 2-5 s behind, the live heading drifted 14 deg/s). Measured
         with the smoother answering at once (``fixego sim`` 30 Hz bags, published poses; docs/results.md "Stop
         57"): the loop 3.60 -> 3.02 cm mean, the walk 31.6 -> 16.7 cm. A stale velocity is worse than solving: with
-        the answers held back 1.5 s and no ``MAX_CARRY_S``, the walk went 31.6 -> 52.9 cm."""
+        the answers held back 1.5 s and no ``MAX_CARRY_S``, the walk went 31.6 -> 52.9 cm. ``rays``: the pairs'
+        Kabsch rotation."""
         span = self._smoothed_span()
         if span is None or stamp - span[1].stamp > self.MAX_CARRY_S or len(pairs) < MIN_ROTATION_PAIRS:
             return None
         dt = stamp - ref.stamp
-        rays = kabsch_rotation(pairs.a, pairs.b)
         reckoned = self._dead_reckoned(span, rays, dt)        # its translation, to read the rays' rotation with
         if reckoned is None:
             return None
