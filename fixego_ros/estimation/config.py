@@ -15,7 +15,7 @@ from fixego_ros.estimation.twoframe import SolverConfig
 class SmootherConfig:
     """Options of the smoother (estimator_node's ``smoother_*`` parameters; pixels in pixels here)."""
 
-    lag_s: float = 3.0                  # variables older than this are marginalised
+    lag_s: float = 2.0                  # variables older than this are marginalised
     pixel_sigma_px: float = 1.0
     huber_k: float = 1.345              # projection residuals: Huber threshold in sigmas
     mount_rotation_sigma: float = 4e-4  # rad: how far a camera may sit from its pan/tilt readings
@@ -32,7 +32,7 @@ class SmootherConfig:
     step_floor_px: float = 3.0          # two-frame step rotation sigma floor (px of rotation)
     step_cauchy_k: float = 1.0          # two-frame step factors: Cauchy threshold in sigmas
     nominal_speed: float = 0.5          # m/s: the two-frame steps' length gauge until a scale aid measures it
-    iterations: int = 2                 # extra ISAM2 updates per frame (relinearisation)
+    iterations: int = 1                 # extra ISAM2 updates per frame (relinearisation)
     min_resection: int = 6              # observations of existing landmarks needed to place a frame by them
     forward_sigma_deg: float = 5.0      # motion model: the rig moves along its forward axis, this std (0 = off)
     speed_scale_sigma: float = 0.05     # prior std of the speed source's scale (its wheel radius error; 0 = exact)

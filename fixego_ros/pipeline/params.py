@@ -281,9 +281,9 @@ ESTIMATOR_PARAMS: Table = _table(
          live=True),
     _num('reject_translation_std', 1e6, 'm; a step whose translation std exceeds this is rejected (1e6: never)',
          gt=0.0, live=True),
-    _num('smoother_lag_s', 3.0, 'smoother: poses and landmarks older than this are marginalised (s); a vergence '
+    _num('smoother_lag_s', 2.0, 'smoother: poses and landmarks older than this are marginalised (s); a vergence '
                                 'measurement older than this when it arrives is not used', gt=0.0, le=60.0),
-    _num('smoother_iterations', 2, 'smoother: extra relinearisations per frame', ge=0, le=20),
+    _num('smoother_iterations', 1, 'smoother: extra relinearisations per frame', ge=0, le=20),
     _num('smoother_gate_px', 8.0, 'smoother: an observation farther than this from its landmark (after the pose-only '
                                   'placement of the frame) is left out (px)', gt=0.0),
     _num('smoother_min_parallax_deg', 0.5, 'smoother: a track enters the graph once its rays span this angle', gt=0.0,
