@@ -13,7 +13,7 @@ from fixego_ros.estimation.estimator import Estimator
 from fixego_ros.estimation.frames import CameraFrame, FrameObservation, fixations_of, step_pairs
 from fixego_ros.estimation.local_ba import BAProblem, BATerm, refine_latest
 from fixego_ros.estimation.status import StepStatus
-from fixego_ros.estimation.twoframe import Fallback, TwoFrameSolver
+from fixego_ros.estimation.twoframe import Fallback, SolverConfig, TwoFrameSolver
 from fixego_ros.experiments.point_scene import PRESETS, PointScene, random_motion_sequence
 from fixego_ros.geometry.rotation import Pose, exp_so3
 
@@ -102,6 +102,39 @@ def test_degenerate_inputs_give_status_not_exception():
     parallel = RayPairs.build([(np.tile([0, 0, 1.0], (10, 1)), np.tile([0, 0, 1.0], (10, 1)), np.zeros(3), 1.0)])
     res = solver.solve(parallel)
     assert res.pose.is_finite() and np.all(np.isfinite(res.covariance))
+
+
+def _two_heads(translation, left_error_rad: float, seed: int = 0) -> RayPairs:
+    """Ray pairs of both heads (1727 px cameras 0.2 m apart, looking 30 deg out to each side at points 1.5-4 m
+    away) over a rig step ``translation`` without rotation; the left head's reading at the second frame is off by
+    ``left_error_rad`` about its vertical, and every ray has 0.02 px of noise."""
+    rng = np.random.default_rng(seed)
+    groups = []
+    for x, yaw, error in ((0.1, 0.5, 0.0), (-0.1, -0.5, left_error_rad)):
+        center = np.array([x, 0.0, 0.0])
+        view = exp_so3([0.0, yaw, 0.0])
+        local = np.c_[rng.uniform(-0.15, 0.15, (60, 2)), np.ones(60)] * rng.uniform(1.5, 4.0, (60, 1))
+        points = center + local @ view.T
+        a = points - center
+        b = (points - np.asarray(translation) - center) @ exp_so3([0.0, error, 0.0])
+        noisy = [r / np.linalg.norm(r, axis=1, keepdims=True) + rng.normal(0.0, 0.02 / 1727.0, r.shape) for r in (a, b)]
+        groups.append((noisy[0], noisy[1], center, 1.0))
+    return RayPairs.build(groups)
+
+
+def test_a_rig_at_rest_whose_heads_read_differently_stands_still():
+    """Stop 62: the heads' readings are quantised independently (an EVI-D30 unit is 2 mrad), so a rig at rest
+    whose left head reads 1 mrad off between two frames left parallax under one rotation for both heads (1.7 px,
+    against the 0.3 px test), and the step was solved as a motion. Each head's own rotation explains its rays, and
+    the two differ by the readings' error: it stands. A 30 Hz step of a rig walking at 0.2 m/s does not."""
+    solver = TwoFrameSolver(SolverConfig())
+    at_rest = _two_heads(np.zeros(3), 1e-3)
+    assert solver.solve(at_rest).status is StepStatus.STATIONARY
+    assert TwoFrameSolver(SolverConfig(camera_parallax=0.0)).solve(at_rest).status is not StepStatus.STATIONARY
+    assert solver.solve(_two_heads(np.zeros(3), 4e-3)).status is not StepStatus.STATIONARY   # beyond the readings
+    for direction in ([1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, 1.0, 0.0]):
+        step = 0.2 / 30.0 * np.asarray(direction)
+        assert solver.solve(_two_heads(step, 0.0)).status is not StepStatus.STATIONARY
 
 
 def _ba_setup(seed, noise, true_prefix=False):

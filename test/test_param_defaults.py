@@ -85,7 +85,7 @@ def test_the_comparison_sees_nested_and_rig_derived_fields():
     rig = load_rig(default_rig_path())
     other = dataclasses.replace(rig, right=dataclasses.replace(rig.right, fx=500.0))
     diff = _differences(estimator_config(params_getter(ESTIMATOR_PARAMS), other), EstimatorConfig())
-    assert {d.split(':')[0] for d in diff} == {'solver.sigma', 'solver.min_parallax'}
+    assert {d.split(':')[0] for d in diff} == {'solver.sigma', 'solver.min_parallax', 'solver.camera_parallax'}
     assert SolverConfig().sigma == 1.0 / RIG.right.fx
     assert math.isclose(SolverConfig().min_parallax, 0.3 / RIG.right.fx)
 

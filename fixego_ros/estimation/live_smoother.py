@@ -588,7 +588,7 @@ class LiveSmoother:
         /fixego/odom moved 28-40 cm over the 2 s). One such frame is not enough: on a 30 Hz bag 13 of 761 moving
         frames show no parallax, each alone, and standing on every one let the demo's live pose lag the rig by up
         to 36 cm. ``rays``: the pairs' Kabsch rotation."""
-        still = len(pairs) >= MIN_ROTATION_PAIRS and stands_still(pairs, rays, self.solver.config.min_parallax)
+        still = len(pairs) >= MIN_ROTATION_PAIRS and stands_still(pairs, rays, self.solver.config)
         self._still_frames = self._still_frames + 1 if still else 0
         return self._still_frames >= self.STAND_FRAMES
 

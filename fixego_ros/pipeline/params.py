@@ -261,6 +261,12 @@ ESTIMATOR_PARAMS: Table = _table(
          live=True),
     _num('stationary_parallax_px', 0.3, 'median rotation-compensated parallax (px) below which the rig is taken as '
                                         'standing still (T = 0): with no parallax the scale is pure noise', ge=0.0),
+    _num('stationary_camera_parallax_px', 0.1, 'with both cameras: standing still needs each camera\'s parallax, '
+                                               'with a rotation of its own, below this (px; 0 = one rotation for both '
+                                               'against stationary_parallax_px) ...', ge=0.0),
+    _num('stationary_head_sigma_deg', 0.033, '... and the two rotations within 3 sqrt(2) of this (the heads\' '
+                                             'independent reading error; EVI-D30: 1 unit = 0.114 deg, /sqrt(12))',
+         ge=0.0),
     _num('pixel_sigma', 1.0, 'expected flow/fixation noise in pixels (sets the covariance scale)', gt=0.0),
     _str('loss', 'huber', 'robust loss of the two-frame solve: linear | huber | soft_l1 | cauchy | arctan',
          choices=LOSSES),
@@ -599,6 +605,8 @@ def estimator_config(g: Getter, rig: Rig) -> EstimatorConfig:
             prior_sigma_rel=float(g('prior_sigma_rel')), prior_sigma_min=float(g('prior_sigma_min')),
             solver=SolverConfig(sigma=float(g('pixel_sigma')) / f, loss=str(g('loss')), max_nfev=int(g('max_nfev')),
                                 min_parallax=float(g('stationary_parallax_px')) / f,
+                                camera_parallax=float(g('stationary_camera_parallax_px')) / f,
+                                head_sigma=math.radians(float(g('stationary_head_sigma_deg'))),
                                 backend=str(g('solver_backend'))),
             refinement=str(g('refinement')), scale_min_rotation_deg=float(g('scale_min_rotation_deg')),
             scale_from_rotation=bool(g('scale_from_rotation')),
