@@ -121,11 +121,11 @@ def stands_still(pairs: RayPairs, R: np.ndarray, cfg: SolverConfig) -> bool:
         return True
     if not (cfg.camera_parallax > 0.0 and cfg.head_sigma > 0.0):
         return False
-    _, side = np.unique(pairs.centers, axis=0, return_inverse=True)
-    side = side.reshape(-1)
-    groups = [side == k for k in range(int(side.max()) + 1)] if len(side) else []
-    if len(groups) != 2 or any(int(g.sum()) < MIN_ROTATION_PAIRS for g in groups):
-        return False
+    first = np.all(pairs.centers == pairs.centers[0], axis=1) if len(pairs) else np.zeros(0, bool)
+    groups = [first, ~first]        # each row carries its camera's centre (RayPairs.build)
+    if (any(int(g.sum()) < MIN_ROTATION_PAIRS for g in groups)
+            or not np.all(pairs.centers[~first] == pairs.centers[~first][0])):
+        return False                # one camera (or too few rays of one), or more than two centres
     rotations = []
     for g in groups:
         a, b = pairs.a[g], pairs.b[g]
