@@ -258,3 +258,43 @@ def test_a_command_whose_ack_the_host_read_late_is_dated_in_the_middle_of_what_i
     assert first.t == pytest.approx(10.0004, abs=1e-9)
     assert second.t == pytest.approx(11.0104 - 0.5 * (0.0104 - 0.0004), abs=1e-9)
     assert second.pan == pytest.approx(math.radians(100 / cam.profile.pan_units_per_deg))
+
+
+def test_a_move_dated_near_the_stamp_makes_the_reading_uncertain():
+    """A command is dated to within ``timing_s``: a head told to move 2 ms after the stamp may have left already (on
+    a demo such frames were 2-6 mrad off at the reading's 0.57 mrad). Further away, or on an axis already at its
+    target, the reading holds as before."""
+    p = PredictionParams()
+    rate = math.radians(80.0)
+    jp = _predictor([(0.302, 1.0, rate)], np.arange(0.0, 0.301, 0.03))    # at rest at 0 until 0.302
+    e = jp.estimate(0.3005)
+    assert e.source == 'predicted' and e.pan == 0.0
+    assert e.pan_sigma == pytest.approx(math.hypot(Q[0] / math.sqrt(12), rate * p.timing_s))
+    assert e.tilt_sigma == pytest.approx(Q[1] / math.sqrt(12))              # tilt is told to stay where it is
+    far = _predictor([(0.302 + 4 * p.timing_s, 1.0, rate)], np.arange(0.0, 0.301, 0.03)).estimate(0.3005)
+    assert far.pan == 0.0 and far.pan_sigma == pytest.approx(Q[0] / math.sqrt(12))
+    # between two readings: the same for a stamp just before the dated start
+    cmds = [(0.2495, 1.0, rate)]
+    jp = _predictor(cmds, np.arange(0.0, 0.301, 0.03))
+    e = jp.estimate(0.248)
+    assert e.source == 'interpolated' and e.pan_sigma >= rate * p.timing_s
+    assert jp.estimate(0.21).pan_sigma == 0.0                                   # at rest: read exactly
+
+
+def test_a_command_being_written_counts_before_its_ack_dates_it():
+    """The head takes a command when its last byte arrives; the ACK that dates it is read later. In between, an
+    estimate replays the expected command (the head has started), the ACK-dated one replaces it, and a write that
+    failed leaves nothing behind."""
+    rate = math.radians(80.0)
+    jp = _predictor([], np.arange(0.0, 0.301, 0.03))             # at rest at 0
+    jp.expect_command(0.3, 1.0, 0.0, rate, 0.0)
+    e = jp.estimate(0.32)
+    assert e.pan == pytest.approx(0.02 * rate) and e.pan_sigma >= rate * PredictionParams().timing_s
+    jp.add_command(0.305, 1.0, 0.0, rate, 0.0)                   # the ACK: dated 5 ms later
+    assert jp.estimate(0.32).pan == pytest.approx(0.015 * rate) and len(jp.commands()) == 1
+    jp2 = _predictor([], np.arange(0.0, 0.301, 0.03))
+    jp2.expect_command(0.3, 1.0, 0.0, rate, 0.0)
+    jp2.forget_expected()
+    assert jp2.estimate(0.32).pan == 0.0 and jp2.commands() == []
+    jp2.expect_command(math.nan, 1.0, 0.0, rate, 0.0)             # ignored
+    assert jp2.commands() == []

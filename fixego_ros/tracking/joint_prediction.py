@@ -7,7 +7,9 @@ AbsolutePosition/Home: a target and a speed per axis, from the moment the camera
 head moves - each axis at its commanded speed straight to its target. Without a known command it extrapolates
 the rate of the last two readings. The answer carries a 1-sigma per axis that grows with the extrapolation time
 and the commanded rate (reading quantisation, command timing, the head's speed being only nominal - real heads
-accelerate), so a consumer can weigh it. A later reading simply joins the history: images before it interpolate.
+accelerate), so a consumer can weigh it; a move that starts within a few ``timing_s`` of the stamp counts its start's
+timing on either side, and a command still being written counts from its expected arrival. A later reading simply
+joins the history: images before it interpolate.
 """
 
 from __future__ import annotations
@@ -16,7 +18,8 @@ import bisect
 import math
 import threading
 from collections import deque
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, replace
 from enum import StrEnum
 
 
@@ -176,11 +179,14 @@ class JointPredictor:
     commands sent to the head; :meth:`estimate` interpolates or predicts. Thread-safe (the servo loop adds from
     its thread)."""
 
+    START_WINDOW = 3.0      # a command dated this many timing_s of the stamp may have started on either side of it
+
     def __init__(self, history: JointHistory | None = None, params: PredictionParams | None = None,
                  max_commands: int = 64) -> None:
         self.history = history if history is not None else JointHistory()
         self.params = params or PredictionParams()
         self._commands: deque[Command] = deque(maxlen=max_commands)
+        self._expected: Command | None = None      # being written: not yet acknowledged (so not yet dated)
         self._lock = threading.Lock()
 
     # ------------------------------------------------------------------------------------------ input
@@ -193,13 +199,34 @@ class JointPredictor:
         if not all(math.isfinite(v) for v in vals):
             return
         with self._lock:
+            self._expected = None
             if self._commands and t < self._commands[-1].t:
                 return
             self._commands.append(Command(t, pan, tilt, abs(pan_rate), abs(tilt_rate)))
 
-    def commands(self) -> list[Command]:
+    def expect_command(self, t: float, pan: float, tilt: float, pan_rate: float, tilt_rate: float) -> None:
+        """A command being written, which the head will take about ``t`` (its last byte's arrival). Its ACK, read
+        15-20 ms after the write began (more on a busy host), dates it (:meth:`add_command` then replaces it); until
+        then estimates count on it, since the head may be moving already: on a demo, frames stamped in that gap were
+        published at the reading the head had just left, 2-5 mrad off at the reading's 0.57 mrad (docs/results.md
+        "Stop 63"). Non-finite values are ignored."""
+        vals = (t, pan, tilt, pan_rate, tilt_rate)
+        if all(math.isfinite(v) for v in vals):
+            with self._lock:
+                self._expected = Command(t, pan, tilt, abs(pan_rate), abs(tilt_rate))
+
+    def forget_expected(self) -> None:
+        """The command being written did not reach the head (the write failed)."""
         with self._lock:
-            return list(self._commands)
+            self._expected = None
+
+    def commands(self) -> list[Command]:
+        """The acknowledged commands in time order, then the one being written (when it is not older)."""
+        with self._lock:
+            out = list(self._commands)
+            if self._expected is not None and (not out or self._expected.t >= out[-1].t):
+                out.append(self._expected)
+            return out
 
     # ------------------------------------------------------------------------------------------ output
     def estimate(self, t: float) -> JointEstimate | None:
@@ -244,21 +271,48 @@ class JointPredictor:
         at_1 = _replay(r0, active, later, r1[0])
         a = (t - r0[0]) / (r1[0] - r0[0])
         miss_p, miss_t = r1[1] - at_1[0], r1[2] - at_1[1]
+        pan, tilt = at_t[0] + a * miss_p, at_t[1] + a * miss_t
         # what the replay missed at the second reading is the model's error there (timing, nominal speed): half of
-        # it counts as the uncertainty in between
-        return JointEstimate(t, at_t[0] + a * miss_p, at_t[1] + a * miss_t, math.hypot(sp, 0.5 * a * miss_p),
-                             math.hypot(st, 0.5 * a * miss_t), JointSource.INTERPOLATED)
+        # it counts as the uncertainty in between; a move that starts near the stamp adds its start's
+        start_p, start_t = self._start_sigmas(t, pan, tilt, lambda c: True)
+        return JointEstimate(t, pan, tilt, math.hypot(sp, 0.5 * a * miss_p, start_p),
+                             math.hypot(st, 0.5 * a * miss_t, start_t), JointSource.INTERPOLATED)
+
+    def _start_sigmas(self, t: float, pan: float, tilt: float, which: Callable[[Command], bool]
+                      ) -> tuple[float, float]:
+        """1-sigma per axis for the start of a move near ``t``: a command is dated to within ``timing_s`` (rms), so
+        within ``START_WINDOW`` of those of its start the head may already have left where the replay holds it, or
+        not yet. Measured on a demo (docs/results.md "Stop 63"): frames at the start of a move published the
+        reading the head had just left, 2-6 mrad off, at the reading's 0.57 mrad."""
+        p = self.params
+        reach = self.START_WINDOW * p.timing_s
+        qp, qt = p.quantum_rad
+        sp = st = 0.0
+        for c in reversed(self.commands()):         # in time order: the newest first
+            if c.t < t - reach:
+                break
+            if c.t > t + reach or not which(c):
+                continue
+            if abs(c.pan - pan) > 0.5 * qp:      # the axis has somewhere to go
+                sp = max(sp, c.pan_rate * p.timing_s)
+            if abs(c.tilt - tilt) > 0.5 * qt:
+                st = max(st, c.tilt_rate * p.timing_s)
+        return sp, st
 
     def _predict(self, t: float, last: tuple[float, float, float]) -> JointEstimate:
         p = self.params
         active, later = self._since(last[0])
         if active is None and not any(c.t < t for c in later):
-            return self._extrapolate(t, last)
-        pan, tilt, moved_p, moved_t, rate_p, rate_t = _replay(last, active, later, t)
-        qp, qt = p.quantum_rad
-        sp = _sigma(qp, rate_p, p.timing_s, p.rate_rel * moved_p)
-        st = _sigma(qt, rate_t, p.timing_s, p.rate_rel * moved_t)
-        return JointEstimate(t, pan, tilt, sp, st, JointSource.PREDICTED, t - last[0])
+            e = self._extrapolate(t, last)
+        else:
+            pan, tilt, moved_p, moved_t, rate_p, rate_t = _replay(last, active, later, t)
+            qp, qt = p.quantum_rad
+            e = JointEstimate(t, pan, tilt, _sigma(qp, rate_p, p.timing_s, p.rate_rel * moved_p),
+                              _sigma(qt, rate_t, p.timing_s, p.rate_rel * moved_t), JointSource.PREDICTED, t - last[0])
+        # a move the replay has started already carries its start's timing (rate * timing_s); one dated just after
+        # the stamp may have started before it
+        start_p, start_t = self._start_sigmas(t, e.pan, e.tilt, lambda c: c.t > t)
+        return replace(e, pan_sigma=math.hypot(e.pan_sigma, start_p), tilt_sigma=math.hypot(e.tilt_sigma, start_t))
 
     def _extrapolate(self, t: float, last: tuple[float, float, float]) -> JointEstimate:
         """No command known (passive head, or moved by someone else): the rate of the last two readings."""

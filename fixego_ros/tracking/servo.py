@@ -238,8 +238,11 @@ class ServoLoop:
         if (target.pan, target.tilt) == (pan_u, tilt_u):
             self._sent = target
             return
+        self._expect(target)
+        sent = False
         try:
             self.cam.absolute(target.pan, target.tilt, target.pan_speed, target.tilt_speed, wait=False)
+            sent = True
         except vp.BufferFullError:
             # a camera that does not supersede motions: free the oldest socket and retry next cycle
             busy = sorted(self.cam.busy_sockets)
@@ -249,6 +252,9 @@ class ServoLoop:
                 except vp.ViscaReplyError:
                     self.cam.if_clear()
             raise
+        finally:
+            if not sent:
+                self.predictor.forget_expected()
         self._commanded(target.pan, target.tilt, target.pan_speed, target.tilt_speed)
         self._last_cmd = now
         self._sent = target
@@ -293,6 +299,16 @@ class ServoLoop:
     def _to_clock(self, t_mono: float) -> float:
         """A driver (monotonic) time on :attr:`clock`'s time base."""
         return t_mono + (self.clock() - time.monotonic())
+
+    def _expect(self, target: Target) -> None:
+        """Tell the predictor about a command about to be written: the head takes it when its last byte arrives, the
+        packet's serial time from now (its ACK dates it properly, :meth:`_commanded`)."""
+        pr = self.cam.profile
+        packet = vp.absolute_position(self.cam.address, target.pan_speed, target.tilt_speed, target.pan, target.tilt)
+        self.predictor.expect_command(self._to_clock(time.monotonic() + len(packet) * self.cam.byte_time),
+                                      pr.pan_rad(target.pan), pr.tilt_rad(target.tilt),
+                                      math.radians(pr.pan_speed_deg_s(target.pan_speed)),
+                                      math.radians(pr.tilt_speed_deg_s(target.tilt_speed)))
 
     def _commanded(self, pan_u: int, tilt_u: int, pan_code: int, tilt_code: int) -> None:
         """Tell the predictor about a command just ACKed, dated like the readings: the camera took it between its
