@@ -321,3 +321,12 @@ def test_demo_report_joint_errors_compare_published_and_true_angles_at_the_same_
     e = joint_errors(est, true)
     assert e['frames'] == 10 and e['max_deg'] == pytest.approx(0.4) and e['p50_deg'] == 0.0
     assert e['moving_frames'] == 6 and e['moving_p95_deg'] > e['p95_deg'] - 1e-12
+    assert 'beyond_3sigma' not in e                                       # no sigma stated: nothing to say
+    # the node's stated 1-sigma: 0 at rest (a reading of a head at rest is exact), 0.1 deg while turning
+    sigmas = {t: (0.0, 0.0) if t < 0.45 else (np.radians(0.1), np.radians(0.1)) for t in true}
+    e = joint_errors(est, true, sigmas=sigmas)
+    # 0.2: 0.1 deg off at a stated 0: beyond; 0.7: 0.4 deg off at 0.1: beyond; the 8 others exact
+    assert e['stated_frames'] == 10 and e['beyond_3sigma'] == pytest.approx(0.2)
+    sigmas[0.2] = (0.0, np.radians(0.05))
+    sigmas[0.7] = (np.radians(0.2), 0.0)
+    assert joint_errors(est, true, sigmas=sigmas)['beyond_3sigma'] == 0.0

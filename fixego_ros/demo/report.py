@@ -110,15 +110,17 @@ def vergence_summary(statuses: dict[str, dict[str, str]], stamps: list[float], t
 
 
 def joint_errors(estimated: dict[float, tuple[float, float]], true: dict[float, tuple[float, float]],
-                 moving_deg_s: float = 5.0) -> dict[str, float]:
+                 moving_deg_s: float = 5.0, sigmas: dict[float, tuple[float, float]] | None = None) -> dict[str, float]:
     """Error of the joint states the camera node published against the simulator's true angles at the same image
     stamps (deg, the worse of pan and tilt): p50/p95/max over all frames, and p95 over the frames where the head
-    turned faster than ``moving_deg_s`` (from the true angles of neighbouring frames). Empty when no stamp
-    matches."""
+    turned faster than ``moving_deg_s`` (from the true angles of neighbouring frames). With the 1-sigma the node
+    stated (``sigmas``, rad), the share of those frames where an axis is more than 3 sigma off: whether the
+    covariance the back end weighs the readings by is honest. Empty when no stamp matches."""
     stamps = sorted(set(estimated) & set(true))
     if not stamps:
         return {}
-    err = np.degrees([max(abs(estimated[t][0] - true[t][0]), abs(estimated[t][1] - true[t][1])) for t in stamps])
+    off = np.array([[estimated[t][0] - true[t][0], estimated[t][1] - true[t][1]] for t in stamps])
+    err = np.degrees(np.abs(off).max(axis=1))
     ts = np.array(sorted(true))
     q = np.degrees(np.array([true[t] for t in ts]))
     rate = np.zeros(len(ts))
@@ -130,6 +132,12 @@ def joint_errors(estimated: dict[float, tuple[float, float]], true: dict[float, 
            'max_deg': float(err.max()), 'moving_frames': int(moving.sum())}
     if moving.any():
         out['moving_p95_deg'] = float(np.percentile(err[moving], 95))
+    stated = [k for k, t in enumerate(stamps) if sigmas and t in sigmas]
+    if stated:
+        sig = np.array([sigmas[stamps[k]] for k in stated])
+        beyond = np.any(np.abs(off[stated]) > 3.0 * sig + 1e-12, axis=1)
+        out['stated_frames'] = len(stated)
+        out['beyond_3sigma'] = float(beyond.mean())
     return out
 
 
@@ -177,7 +185,7 @@ def write_report(out: Path, rec, t_start: float, run_args: dict[str, Any],
         'fast_pose_steps': fast_pose_steps(rec.statuses.get('fixego estimator_node', {})),
         'vergence': vergence_summary(rec.statuses, list(vergence_stamps or []), t_start),
         'joint_error_deg': {side: joint_errors({t: q for t, q in rec.joints[side].items() if t >= t_start},
-                                               rec.true_joints[side])
+                                               rec.true_joints[side], sigmas=getattr(rec, 'joint_sigmas', {}).get(side))
                             for side in rec.joints},
     }
     evals = {}
@@ -243,6 +251,7 @@ def write_report(out: Path, rec, t_start: float, run_args: dict[str, Any],
                      'it further behind): ' + ', '.join(f'{k} {v}' for k, v in report['fast_pose_steps'].items()))
     je = [f'{side} p50 {e["p50_deg"]:.3f}, p95 {e["p95_deg"]:.3f}, max {e["max_deg"]:.3f}'
           + (f', p95 {e["moving_p95_deg"]:.3f} while turning' if 'moving_p95_deg' in e else '')
+          + (f', {100 * e["beyond_3sigma"]:.1f} % beyond 3 stated sigma' if 'beyond_3sigma' in e else '')
           for side, e in report['joint_error_deg'].items() if e]
     if je:
         lines.append('  joint states against the true angles, deg: ' + '; '.join(je))

@@ -11,6 +11,7 @@ like the pipeline's nodes.
 
 from __future__ import annotations
 
+import math
 import struct
 import time
 from collections import Counter
@@ -52,6 +53,8 @@ class Recorder(Node):
         # (stamp -> pan, tilt in rad) per side: the camera nodes' joint states and the simulator's true angles
         self.joints: dict[str, dict[float, tuple[float, float]]] = {s: {} for s in SIDES}
         self.true_joints: dict[str, dict[float, tuple[float, float]]] = {s: {} for s in SIDES}
+        # (stamp -> pan, tilt 1-sigma in rad) the camera nodes stated in ``effort``, where they did
+        self.joint_sigmas: dict[str, dict[float, tuple[float, float]]] = {s: {} for s in SIDES}
         self.fixations: Counter[str] = Counter()
         self.statuses: dict[str, dict[str, str]] = {}
         self.status_times: dict[str, float] = {}     # when each status last came (monotonic)
@@ -90,6 +93,9 @@ class Recorder(Node):
     def _on_joints(self, side: str, msg: JointState) -> None:
         self._arrived(f'joint_state_{side}', msg.header.stamp)
         self._keep_joints(self.joints[side], msg)
+        sigma = [float(v) for v in msg.effort[:2]]
+        if len(sigma) == 2 and all(math.isfinite(v) and v >= 0.0 for v in sigma):
+            self.joint_sigmas[side][stamp_to_sec(msg.header.stamp)] = (sigma[0], sigma[1])
 
     def _on_fixation(self, side: str, msg: PointStamped) -> None:
         """Counts valid fixations only (the demo waits for both); the arrival time of every message, the "no valid
@@ -155,7 +161,7 @@ class Recorder(Node):
         for v in self.stage_s.values():
             v.clear()
         self.truth.clear()
-        for d in (*self.joints.values(), *self.true_joints.values()):
+        for d in (*self.joints.values(), *self.true_joints.values(), *self.joint_sigmas.values()):
             d.clear()
         self._paths = dict.fromkeys(PATHS)
         self._parsed.clear()
