@@ -663,4 +663,26 @@ def _old_stationary_step(self, ref, frame, step, covariance, dt, measured=False)
 
 
 def _held_even_at_rest(self, i, stamp, tf, up):
-    return _NEW_HOLD_SPEED(self, i, stamp, None, up)
+    return _NEW_HOLD_SPEED(self, i, stamp, False, up)
+
+
+def test_a_stationary_step_holds_the_frame_only_over_a_long_enough_interval():
+    """Stop 63. A step of 10-40 ms cannot tell rest from slow motion (at 0.2 m/s it moves 2-8 mm, which a narrow field
+    of view shows mostly as a rotation); held as a stand, such steps stood a demo's rig on its last 0.2 m/s stretch.
+    Over at least STATIONARY_MIN_S the stand holds the frame at STATIONARY_LENGTH_SIGMA nominal steps; below, the step
+    claims no length beyond a moving step's, and the smoother counts it neither as a stand nor as motion."""
+    from fixego_ros.geometry.rotation import Pose
+    steps = TwoFrameStep(1e-3, 0.5, 1.0)
+    dt_short, dt_long = 0.5 * TwoFrameStep.STATIONARY_MIN_S, 2.0 * TwoFrameStep.STATIONARY_MIN_S
+
+    def length_sigma(dt: float, step: Pose) -> float:
+        return float(np.sqrt(steps.factor(0, 1, step, np.eye(6) * 1e-6, dt, measured=True)
+                             .noiseModel().noise().covariance()[3, 3]))
+
+    moving = Pose(np.eye(3), np.array([0.0, 0.0, 1.0]))
+    assert length_sigma(dt_long, Pose.identity()) == pytest.approx(0.5 * dt_long * TwoFrameStep.STATIONARY_LENGTH_SIGMA)
+    assert length_sigma(dt_short, Pose.identity()) == pytest.approx(length_sigma(dt_short, moving))
+    assert length_sigma(dt_short, moving) == pytest.approx(0.5 * dt_short * TwoFrameStep.AIDED_LENGTH_SIGMA)
+    assert TwoFrameStep.stands(StepStatus.STATIONARY, dt_long)
+    assert not TwoFrameStep.stands(StepStatus.STATIONARY, dt_short)
+    assert not TwoFrameStep.stands(StepStatus.OK, dt_long)

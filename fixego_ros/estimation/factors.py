@@ -15,6 +15,7 @@ import gtsam
 import numpy as np
 
 from fixego_ros.estimation.keys import camera_key, landmark_key, pose_key, speed_scale_key
+from fixego_ros.estimation.status import StepStatus
 from fixego_ros.geometry.rotation import Pose, exp_so3, project_to_so3
 
 
@@ -176,13 +177,23 @@ class TwoFrameStep:
     end"). Before any aid it is what sets the scale, so it stays at 100 % until then. A stationary step (no parallax
     at all) holds the frame where it is at ``STATIONARY_LENGTH_SIGMA`` nominal steps whether or not the scale is
     measured: inflated tenfold with the rest, it let a rig that stopped where no landmark placed the frames run on
-    at its last speed (docs/results.md "Stop 61").
+    at its last speed (docs/results.md "Stop 61"). Only over at least ``STATIONARY_MIN_S``, though: a shorter step
+    cannot tell rest from slow motion (at 0.2 m/s a 10-40 ms step moves 2-8 mm, which a 21 deg field of view shows
+    mostly as a rotation), and on the demo's last 0.2 m/s stretch such steps (a keyframe 1-2 frames after the last,
+    the heads swinging) stood a moving rig: its refined speed fell to 0.1 m/s for 3 s (terminal 32 cm; docs/results.md
+    "Stop 63"). A shorter one claims no length beyond a moving step's.
     Cauchy-robust: a wrong solve with an optimistic covariance must not drag the trajectory. (The rotation
     covariance given the translation, tighter where the parallax is small, measured 3.3 / 23 cm on the paper bag
     against 2.5 / 21 cm with this one.)"""
 
     AIDED_LENGTH_SIGMA = 10.0
     STATIONARY_LENGTH_SIGMA = 0.1
+    STATIONARY_MIN_S = 0.1
+
+    @classmethod
+    def stands(cls, status: StepStatus, dt: float) -> bool:
+        """Whether a solve of this status over ``dt`` seconds says the rig stood (see the class docstring)."""
+        return status is StepStatus.STATIONARY and dt >= cls.STATIONARY_MIN_S
 
     def __init__(self, rotation_floor: float, nominal_speed: float, cauchy_k: float) -> None:
         self.rotation_floor = rotation_floor
@@ -200,7 +211,7 @@ class TwoFrameStep:
         cov = np.zeros((6, 6))
         cov[:3, :3] = self.rotation_covariance(covariance)
         length_sigma = self.nominal_speed * dt * (self.AIDED_LENGTH_SIGMA if measured else 1.0)
-        if not np.any(step.t):          # stationary: the rays saw no parallax at all
+        if not np.any(step.t) and dt >= self.STATIONARY_MIN_S:     # stationary: the rays saw no parallax at all
             length_sigma = self.nominal_speed * dt * self.STATIONARY_LENGTH_SIGMA
         cov[3:, 3:] = np.eye(3) * max(length_sigma, 1e-6) ** 2
         return gtsam.BetweenFactorPose3(pose_key(ref), pose_key(frame), to_gtsam(self.scaled(step, dt)),

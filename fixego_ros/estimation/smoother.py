@@ -343,7 +343,8 @@ class Smoother:
         tf = None if blind else raw         # what enters the graph; the raw chain keeps the two-frame solve
         if blind and last is not None:
             messages.append('no fixation in either camera (heads driven): placed by the motion prior')
-        if tf is not None and tf.status is StepStatus.STATIONARY:
+        stood = tf is not None and ref is not None and self.steps.stands(tf.status, obs.stamp - ref.stamp)
+        if stood:
             self._stood = obs.stamp
         up = _Update()
         up.add_value(pose_key(i), to_gtsam(pose0), obs.stamp)
@@ -366,7 +367,7 @@ class Smoother:
             self._add_motion_model(i, obs.stamp, ref, tf, pose0, up)
         self._add_speed(i, obs.stamp, ref, tf, up)
         self._add_motion_prior(i, obs.stamp, up)
-        self._hold_speed(i, obs.stamp, tf, up)
+        self._hold_speed(i, obs.stamp, stood, up)
         raw_base = ref.pose_raw if ref is not None else (self._frames[-1].pose_raw if self._frames else Pose.identity())
         frame = _Frame(i, obs.stamp, fix, pose0, (raw_base @ step_raw).normalized(), tracks_of(obs))
         if self._frames:
@@ -596,7 +597,8 @@ class Smoother:
         if self.forward is not None:
             rotation = tf.pose.rvec() if self._good(tf) else (ref.pose.inverse() @ pose0).rvec()
             up.graph.add(self.forward.factor(ref.index, i, rotation, dt))
-        moving = self._good(tf) and tf.status is not StepStatus.STATIONARY and stamp - self._stood > self.settings.lag_s
+        moving = (self._good(tf) and tf.status is not StepStatus.STATIONARY  # (a short stand: neither)
+                  and stamp - self._stood > self.settings.lag_s)
         unheld = not self.scale_observed or (self._carry is None and not self._placed)
         if unheld and moving:
             up.graph.add(self.gauge.factor(ref.index, i, dt))
@@ -661,18 +663,18 @@ class Smoother:
         b = placed[-1]
         return float(np.linalg.norm(b.pose.t - a.pose.t)) / (b.stamp - a.stamp)
 
-    def _hold_speed(self, i: int, stamp: float, tf: TwoFrameResult | None, up: _Update) -> None:
+    def _hold_speed(self, i: int, stamp: float, stood: bool, up: _Update) -> None:
         """A frame the landmarks place is remembered; one they do not gets its step at their last speed
         (:class:`.factors.HeldSpeed`) once a scale aid has measured the scale (before, the steps hold the nominal
-        speed), unless its rays saw the rig stand (a stationary step ``tf``). A rig that stopped as both heads took
-        new points kept moving at the held speed: a live demo whose rig stood 2 s after the loop ran on by 30 cm
-        (docs/results.md "Stop 61")."""
+        speed), unless its rays saw the rig stand (``stood``: :meth:`.TwoFrameStep.stands`). A rig that stopped as
+        both heads took new points kept moving at the held speed: a live demo whose rig stood 2 s after the loop ran
+        on by 30 cm (docs/results.md "Stop 61")."""
         if up.observations >= self.settings.min_resection:
             self._placed[i] = stamp
             oldest = stamp - self.settings.lag_s - self.HISTORY_S
             self._placed = {k: s for k, s in self._placed.items() if s >= oldest}
             return
-        if tf is not None and tf.status is StepStatus.STATIONARY:
+        if stood:
             return
         recent = self._recent_frames()
         speed = self._held_speed() if self.scale_observed and recent else None
