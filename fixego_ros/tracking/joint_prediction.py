@@ -18,7 +18,6 @@ import bisect
 import math
 import threading
 from collections import deque
-from collections.abc import Callable
 from dataclasses import dataclass, replace
 from enum import StrEnum
 
@@ -274,16 +273,15 @@ class JointPredictor:
         pan, tilt = at_t[0] + a * miss_p, at_t[1] + a * miss_t
         # what the replay missed at the second reading is the model's error there (timing, nominal speed): half of
         # it counts as the uncertainty in between; a move that starts near the stamp adds its start's
-        start_p, start_t = self._start_sigmas(t, pan, tilt, lambda c: True)
+        start_p, start_t = self._start_sigmas(t, pan, tilt, after=-math.inf)
         return JointEstimate(t, pan, tilt, math.hypot(sp, 0.5 * a * miss_p, start_p),
                              math.hypot(st, 0.5 * a * miss_t, start_t), JointSource.INTERPOLATED)
 
-    def _start_sigmas(self, t: float, pan: float, tilt: float, which: Callable[[Command], bool]
-                      ) -> tuple[float, float]:
-        """1-sigma per axis for the start of a move near ``t``: a command is dated to within ``timing_s`` (rms), so
-        within ``START_WINDOW`` of those of its start the head may already have left where the replay holds it, or
-        not yet. Measured on a demo (docs/results.md "Stop 63"): frames at the start of a move published the
-        reading the head had just left, 2-6 mrad off, at the reading's 0.57 mrad."""
+    def _start_sigmas(self, t: float, pan: float, tilt: float, after: float) -> tuple[float, float]:
+        """1-sigma per axis for the start of a move near ``t``, of the commands dated after ``after``: a command is
+        dated to within ``timing_s`` (rms), so within ``START_WINDOW`` of those of its start the head may already have
+        left where the replay holds it, or not yet. Measured on a demo (docs/results.md "Stop 63"): frames at the start
+        of a move published the reading the head had just left, 2-6 mrad off, at the reading's 0.57 mrad."""
         p = self.params
         reach = self.START_WINDOW * p.timing_s
         qp, qt = p.quantum_rad
@@ -291,7 +289,7 @@ class JointPredictor:
         for c in reversed(self.commands()):         # in time order: the newest first
             if c.t < t - reach:
                 break
-            if c.t > t + reach or not which(c):
+            if c.t > t + reach or c.t <= after:
                 continue
             if abs(c.pan - pan) > 0.5 * qp:      # the axis has somewhere to go
                 sp = max(sp, c.pan_rate * p.timing_s)
@@ -311,7 +309,7 @@ class JointPredictor:
                               _sigma(qt, rate_t, p.timing_s, p.rate_rel * moved_t), JointSource.PREDICTED, t - last[0])
         # a move the replay has started already carries its start's timing (rate * timing_s); one dated just after
         # the stamp may have started before it
-        start_p, start_t = self._start_sigmas(t, e.pan, e.tilt, lambda c: c.t > t)
+        start_p, start_t = self._start_sigmas(t, e.pan, e.tilt, after=t)
         return replace(e, pan_sigma=math.hypot(e.pan_sigma, start_p), tilt_sigma=math.hypot(e.tilt_sigma, start_t))
 
     def _extrapolate(self, t: float, last: tuple[float, float, float]) -> JointEstimate:

@@ -303,12 +303,15 @@ class ServoLoop:
     def _expect(self, target: Target) -> None:
         """Tell the predictor about a command about to be written: the head takes it when its last byte arrives, the
         packet's serial time from now (its ACK dates it properly, :meth:`_commanded`)."""
-        pr = self.cam.profile
         packet = vp.absolute_position(self.cam.address, target.pan_speed, target.tilt_speed, target.pan, target.tilt)
         self.predictor.expect_command(self._to_clock(time.monotonic() + len(packet) * self.cam.byte_time),
-                                      pr.pan_rad(target.pan), pr.tilt_rad(target.tilt),
-                                      math.radians(pr.pan_speed_deg_s(target.pan_speed)),
-                                      math.radians(pr.tilt_speed_deg_s(target.tilt_speed)))
+                                      *self._in_rad(target.pan, target.tilt, target.pan_speed, target.tilt_speed))
+
+    def _in_rad(self, pan_u: int, tilt_u: int, pan_code: int, tilt_code: int) -> tuple[float, float, float, float]:
+        """A command's target (rad) and speed per axis (rad/s), as the predictor takes it."""
+        pr = self.cam.profile
+        return (pr.pan_rad(pan_u), pr.tilt_rad(tilt_u), math.radians(pr.pan_speed_deg_s(pan_code)),
+                math.radians(pr.tilt_speed_deg_s(tilt_code)))
 
     def _commanded(self, pan_u: int, tilt_u: int, pan_code: int, tilt_code: int) -> None:
         """Tell the predictor about a command just ACKed, dated like the readings: the camera took it between its
@@ -317,10 +320,7 @@ class ServoLoop:
         camera's own delay, and the command is dated in the middle of what is left. Dated at the ACK alone, as
         before, a command was late by p50 0.5-0.8 ms, p95 7-8 ms, at most 22-25 ms on a demo (270 commands per camera
         against the emulator's own log); so: rms 3.9 -> 2.6 ms, at most 13-16 ms (at 50 deg/s, 1 ms is 0.05 deg)."""
-        pr = self.cam.profile
         ack = time.monotonic() - 3 * self.cam.byte_time
         excess = _beyond_narrowest(self._ack_windows, max(0.0, ack - self.cam.last_arrival))
-        t = self._to_clock(ack - 0.5 * excess)
-        self.predictor.add_command(t, pr.pan_rad(pan_u), pr.tilt_rad(tilt_u),
-                                   math.radians(pr.pan_speed_deg_s(pan_code)),
-                                   math.radians(pr.tilt_speed_deg_s(tilt_code)))
+        self.predictor.add_command(self._to_clock(ack - 0.5 * excess),
+                                   *self._in_rad(pan_u, tilt_u, pan_code, tilt_code))
