@@ -297,7 +297,10 @@ class ServoLoop:
         return float(0.5 * (near[0] + near[-1]))
 
     def _to_clock(self, t_mono: float) -> float:
-        """A driver (monotonic) time on :attr:`clock`'s time base."""
+        """A driver (monotonic) time on :attr:`clock`'s time base (itself when that is the monotonic clock: the offset
+        read from two clock calls was a microsecond or more off whenever the thread was preempted between them)."""
+        if self.clock is time.monotonic:
+            return t_mono
         return t_mono + (self.clock() - time.monotonic())
 
     def _expect(self, target: Target) -> None:
