@@ -32,7 +32,7 @@ class SmootherConfig:
     step_floor_px: float = 3.0          # two-frame step rotation sigma floor (px of rotation)
     step_cauchy_k: float = 1.0          # two-frame step factors: Cauchy threshold in sigmas
     nominal_speed: float = 0.5          # m/s: the two-frame steps' length gauge until a scale aid measures it
-    iterations: int = 1                 # extra ISAM2 updates per frame (relinearisation)
+    iterations: int = 1                 # extra Gauss-Newton passes per frame (relinearisation)
     min_resection: int = 6              # observations of existing landmarks needed to place a frame by them
     forward_sigma_deg: float = 5.0      # motion model: the rig moves along its forward axis, this std (0 = off)
     speed_scale_sigma: float = 0.05     # prior std of the speed source's scale (its wheel radius error; 0 = exact)

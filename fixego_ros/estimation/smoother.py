@@ -1,4 +1,5 @@
-"""The metric back end: a fixed-lag smoother (GTSAM ISAM2) over rig poses, camera poses and landmarks.
+"""The metric back end: a fixed-lag smoother (Gauss-Newton over a GTSAM factor graph) over rig poses, camera poses
+and landmarks.
 
 Every frame becomes a rig pose ``x<i>`` with one camera pose per camera tied to it by its pan/tilt readings
 (:class:`.factors.CameraMount`). The landmarks are both cameras' persistent flow tracks and fixation points,
