@@ -148,6 +148,23 @@ def test_a_landmark_nothing_places_is_dropped_and_the_window_goes_on():
     assert window.estimate().exists(X(3)) and len(window.repairs) == 1
 
 
+def test_a_landmark_dropped_by_a_repair_while_it_leaves_the_window_is_forgotten_once():
+    """A point that nothing places and whose stamp is already past the lag: the repair drops it in the first pass,
+    and the marginalisation after that pass must not trip over it (it did: the update raised, and the smoother would
+    have started a new graph)."""
+    window = FixedLagWindow(lag_s=2.0)
+    _pose_chain(window, 6)
+    K = gtsam.Cal3_S2(500.0, 500.0, 0.0, 0.0, 0.0)
+    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    graph.add(gtsam.GenericProjectionFactorCal3_S2(np.array([10.0, 0.0]), gtsam.noiseModel.Isotropic.Sigma(2, 1.0),
+                                                   X(5), L(0), K, False, False))
+    values.insert(L(0), np.array([0.1, 0.0, 5.0]))
+    window.update(graph, values, {L(0): 1.0}, newest=(X(5),), iterations=1)
+    assert window.repairs == ['dropped l0']
+    estimate = window.estimate()
+    assert not estimate.exists(L(0)) and sorted(estimate.keys()) == [X(k) for k in range(3, 6)]
+
+
 def test_a_pose_nothing_holds_is_anchored_where_it_is():
     """Two new poses tied only to each other: the pair is free; the repair holds one where it was placed."""
     window = FixedLagWindow(lag_s=10.0)

@@ -67,7 +67,7 @@ def _value(values: gtsam.Values, key: int) -> gtsam.Pose3 | np.ndarray | float:
             return get(key)
         except RuntimeError:
             continue
-    raise KeyError(f'no value of a known type at {gtsam.Symbol(key).string()}')
+    raise RuntimeError(f'no value of a known type at {gtsam.Symbol(key).string()}')   # the smoother restarts
 
 
 class FixedLagWindow:
@@ -183,7 +183,9 @@ class FixedLagWindow:
         self._add(factors)
 
     def _forget(self, key: int) -> None:
-        self._theta.erase(key)
+        """Erase a variable (one a repair dropped may still be listed among this update's old ones)."""
+        if self._theta.exists(key):
+            self._theta.erase(key)
         if self._lin.exists(key):
             self._lin.erase(key)
         self._fixed.discard(key)
