@@ -15,7 +15,8 @@ variables still in the window is kept as a ``gtsam.LinearContainerFactor`` that 
 The variables such a marginal holds are linearised at that point from then on, in every factor, as ISAM2 does (its
 "fixed variables"; first-estimate Jacobians): relinearised at the estimate instead, the marginal's information met
 Jacobians from another point and claimed what the window cannot know, its scale most of all. Measured at stop 64:
-every 30 Hz loop bag 2-5 % short, mean error 2.4 -> 6.7 cm, the rested loop 3.0 -> 13.6 cm, `bags/paper` 1.9 -> 4.4.
+the 30 Hz loop bags' paths 3-6 % shorter, mean error 2.4 -> 6.7 cm, the rested loop 3.0 -> 13.6 cm, `bags/paper`
+1.9 -> 4.4.
 
 A numerical failure (GTSAM's "indeterminate linear system near variable v") is repaired in place rather than
 handed up: a landmark that no marginal holds is dropped with its factors (a point whose views' robust kernels have
