@@ -129,10 +129,8 @@ def test_a_landmark_nothing_places_is_dropped_and_the_window_goes_on():
     raise, and the smoother started a new graph without any landmark)."""
     window = FixedLagWindow(lag_s=10.0)
     _pose_chain(window, 3)
-    K = gtsam.Cal3_S2(500.0, 500.0, 0.0, 0.0, 0.0)
     graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
-    graph.add(gtsam.GenericProjectionFactorCal3_S2(np.array([10.0, 0.0]), gtsam.noiseModel.Isotropic.Sigma(2, 1.0),
-                                                   X(2), L(0), K, False, False))
+    graph.add(_projection((10.0, 0.0), X(2), L(0)))
     values.insert(L(0), np.array([0.1, 0.0, 5.0]))
     window.update(graph, values, {L(0): 2.0})
     assert window.repairs == ['dropped l0']
@@ -154,10 +152,8 @@ def test_a_landmark_dropped_by_a_repair_while_it_leaves_the_window_is_forgotten_
     have started a new graph)."""
     window = FixedLagWindow(lag_s=2.0)
     _pose_chain(window, 6)
-    K = gtsam.Cal3_S2(500.0, 500.0, 0.0, 0.0, 0.0)
     graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
-    graph.add(gtsam.GenericProjectionFactorCal3_S2(np.array([10.0, 0.0]), gtsam.noiseModel.Isotropic.Sigma(2, 1.0),
-                                                   X(5), L(0), K, False, False))
+    graph.add(_projection((10.0, 0.0), X(5), L(0)))
     values.insert(L(0), np.array([0.1, 0.0, 5.0]))
     window.update(graph, values, {L(0): 1.0}, newest=(X(5),), iterations=1)
     assert window.repairs == ['dropped l0']
