@@ -173,6 +173,13 @@ def _replay(reading: tuple[float, float, float], active: Command | None, later: 
     return pan, tilt, moved_p, moved_t, rate_p, rate_t
 
 
+def _command(t: float, pan: float, tilt: float, pan_rate: float, tilt_rate: float) -> Command | None:
+    """A command as the predictor keeps it (rates as speeds); None when a value is not finite."""
+    if not all(math.isfinite(v) for v in (t, pan, tilt, pan_rate, tilt_rate)):
+        return None
+    return Command(t, pan, tilt, abs(pan_rate), abs(tilt_rate))
+
+
 class JointPredictor:
     """Readings (a :class:`JointHistory`, shared with whoever adds to it) plus the
     commands sent to the head; :meth:`estimate` interpolates or predicts. Thread-safe (the servo loop adds from
@@ -194,14 +201,14 @@ class JointPredictor:
 
     def add_command(self, t: float, pan: float, tilt: float, pan_rate: float, tilt_rate: float) -> None:
         """A command the head received at ``t`` (rad, rad/s). Out-of-order or non-finite ones are ignored."""
-        vals = (t, pan, tilt, pan_rate, tilt_rate)
-        if not all(math.isfinite(v) for v in vals):
+        command = _command(t, pan, tilt, pan_rate, tilt_rate)
+        if command is None:
             return
         with self._lock:
             self._expected = None
             if self._commands and t < self._commands[-1].t:
                 return
-            self._commands.append(Command(t, pan, tilt, abs(pan_rate), abs(tilt_rate)))
+            self._commands.append(command)
 
     def expect_command(self, t: float, pan: float, tilt: float, pan_rate: float, tilt_rate: float) -> None:
         """A command being written, which the head will take about ``t`` (its last byte's arrival). Its ACK, read
@@ -209,10 +216,10 @@ class JointPredictor:
         then estimates count on it, since the head may be moving already: on a demo, frames stamped in that gap were
         published at the reading the head had just left, 2-5 mrad off at the reading's 0.57 mrad (docs/results.md
         "Stop 63"). Non-finite values are ignored."""
-        vals = (t, pan, tilt, pan_rate, tilt_rate)
-        if all(math.isfinite(v) for v in vals):
+        command = _command(t, pan, tilt, pan_rate, tilt_rate)
+        if command is not None:
             with self._lock:
-                self._expected = Command(t, pan, tilt, abs(pan_rate), abs(tilt_rate))
+                self._expected = command
 
     def forget_expected(self) -> None:
         """The command being written did not reach the head (the write failed)."""
