@@ -330,3 +330,15 @@ def test_demo_report_joint_errors_compare_published_and_true_angles_at_the_same_
     sigmas[0.2] = (0.0, np.radians(0.05))
     sigmas[0.7] = (np.radians(0.2), 0.0)
     assert joint_errors(est, true, sigmas=sigmas)['beyond_3sigma'] == 0.0
+
+
+def test_demo_report_counts_the_frames_where_neither_camera_fixates():
+    from fixego_ros.demo.report import blind_frames
+    right = {0.1 * k: k not in (3, 4, 5, 8, 9) for k in range(10)}
+    left = {0.1 * k: k not in (4, 5, 9) for k in range(10)} | {2.0: False}   # 2.0: the right has no message there
+    b = blind_frames({'right': right, 'left': left}, 0.0, 0.9, tail_s=0.25)
+    # both without a fixation at 0.4, 0.5 (a run of 2) and 0.9 (in the last 0.25 s); 2.0 lies after the run
+    assert (b['frames'], b['blind'], b['longest_run'], b['in_last_s']) == (10, 3, 2, 1)
+    assert b['runs'] == [[0.4, 2], [0.9, 1]]
+    assert blind_frames({'right': right, 'left': left}, 0.45, 0.85)['blind'] == 1
+    assert blind_frames({}, 0.0, 1.0)['frames'] == 0

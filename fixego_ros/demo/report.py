@@ -141,6 +141,26 @@ def joint_errors(estimated: dict[float, tuple[float, float]], true: dict[float, 
     return out
 
 
+def blind_frames(valid: dict[str, dict[float, bool]], t_start: float, t_end: float,
+                 tail_s: float = 1.0) -> dict[str, Any]:
+    """Frames in [``t_start``, ``t_end``] at which both cameras published "no valid fixation" (``valid``: stamp ->
+    valid, per side; a stamp one camera did not publish is not counted): the estimator places such a frame by its
+    motion model alone. How many, the longest run of them, and how many in the run's last ``tail_s`` (at the end
+    nothing after them corrects them), and each run's start (s after ``t_start``) and length."""
+    sides = list(valid.values())
+    stamps = sorted(t for t in set.intersection(*(set(v) for v in sides)) if t_start <= t <= t_end) if sides else []
+    blind = [not any(v[t] for v in sides) for t in stamps]
+    runs: list[list[float]] = []        # [seconds after t_start, frames] of each run of blind frames
+    for k, (t, b) in enumerate(zip(stamps, blind, strict=True)):
+        if b and k > 0 and blind[k - 1]:
+            runs[-1][1] += 1
+        elif b:
+            runs.append([round(t - t_start, 3), 1])
+    return {'frames': len(stamps), 'blind': sum(blind), 'longest_run': max((n for _, n in runs), default=0),
+            'in_last_s': sum(b for t, b in zip(stamps, blind, strict=True) if t > t_end - tail_s), 'tail_s': tail_s,
+            'runs': runs}
+
+
 def fast_pose_steps(estimator_status: dict[str, str]) -> dict[str, int]:
     """How the estimator made each frame's pose (its ``steps_<status>`` counters, most first). ``carried``: on the
     smoother's velocity, while its newest answer is within ``LiveSmoother.MAX_CARRY_S`` of the frame (~0.5 ms);
@@ -184,6 +204,8 @@ def write_report(out: Path, rec, t_start: float, run_args: dict[str, Any],
         'smoother_done_after_last_pose_s': rec.smoother_catch_up_s,
         'fast_pose_steps': fast_pose_steps(rec.statuses.get('fixego estimator_node', {})),
         'vergence': vergence_summary(rec.statuses, list(vergence_stamps or []), t_start),
+        'frames_without_fixation': blind_frames(getattr(rec, 'fixation_valid', {}), t_start,
+                                                truth[-1][0] if truth else t_start),
         'joint_error_deg': {side: joint_errors({t: q for t, q in rec.joints[side].items() if t >= t_start},
                                                rec.true_joints[side], sigmas=getattr(rec, 'joint_sigmas', {}).get(side))
                             for side in rec.joints},
@@ -237,6 +259,10 @@ def write_report(out: Path, rec, t_start: float, run_args: dict[str, Any],
                  f'camera steps {v.get("successes", "?")}/{v.get("attempts", "?")} done, interrupted at most '
                  f'{v.get("max_interrupted_s", "?")} s' + (f'; last failure: {v["last_failure"]}'
                                                           if v.get('last_failure') else ''))
+    b = report['frames_without_fixation']
+    if b['frames']:
+        lines.append(f'  frames with no fixation in either camera (placed by the motion model): {b["blind"]} of '
+                     f'{b["frames"]}, longest run {b["longest_run"]}, {b["in_last_s"]} in the last {b["tail_s"]:g} s')
     est = report['diagnostics'].get('fixego estimator_node', {})
     if 'smoother_restarts' in est:      # numerical health of the back end (its last /diagnostics status), its lag
         done = report['smoother_done_after_last_pose_s']

@@ -56,6 +56,8 @@ class Recorder(Node):
         # (stamp -> pan, tilt 1-sigma in rad) the camera nodes stated in ``effort``, where they did
         self.joint_sigmas: dict[str, dict[float, tuple[float, float]]] = {s: {} for s in SIDES}
         self.fixations: Counter[str] = Counter()
+        # (stamp -> whether the message had a valid fixation) per side: frames where neither camera fixates
+        self.fixation_valid: dict[str, dict[float, bool]] = {s: {} for s in SIDES}
         self.statuses: dict[str, dict[str, str]] = {}
         self.status_times: dict[str, float] = {}     # when each status last came (monotonic)
         self.smoother_catch_up_s: float | None = None   # how long the smoother took to finish after the last pose
@@ -102,6 +104,7 @@ class Recorder(Node):
         fixation" ones (z < 0) too: each is what lets flow_node complete a frame."""
         if msg.point.z >= 0:
             self.fixations.update([side])
+        self.fixation_valid[side][stamp_to_sec(msg.header.stamp)] = msg.point.z >= 0
         self._arrived(f'fixation_{side}', msg.header.stamp)
 
     def _on_observation(self, data: bytes) -> None:
