@@ -342,3 +342,48 @@ def test_demo_report_counts_the_frames_where_neither_camera_fixates():
     assert b['runs'] == [[0.4, 2], [0.9, 1]]
     assert blind_frames({'right': right, 'left': left}, 0.45, 0.85)['blind'] == 1
     assert blind_frames({}, 0.0, 1.0)['frames'] == 0
+
+
+def test_demo_report_checks_each_vergence_measurement_against_the_true_distance():
+    from fixego_ros.demo.report import vergence_accuracy
+    cov = np.diag([1e-4, 1e-4, 4e-4])                          # 2 cm std along z
+    measured = [(10.0, np.array([0.0, 0.0, 2.02]), cov),       # +2 cm of 2 m: +1 %, one std
+                (11.0, np.array([0.0, 0.0, 2.94]), cov),       # -6 cm of 3 m: -2 %, three std
+                (12.0, np.array([0.0, 0.0, 2.0]), cov)]        # no truth at its stamp (before the run)
+    truth = {10.0: 2.0, 11.0: 3.0}
+    acc = vergence_accuracy(measured, 9.0, lambda stamp, point: truth.get(stamp))
+    assert (acc['checked'], acc['without_truth']) == (2, 1)
+    assert [s['t_s'] for s in acc['steps']] == [1.0, 2.0]
+    assert [s['error_cm'] for s in acc['steps']] == pytest.approx([2.0, -6.0])
+    assert [s['error_pct'] for s in acc['steps']] == pytest.approx([1.0, -2.0])
+    assert [s['error_over_std'] for s in acc['steps']] == pytest.approx([1.0, -3.0])
+    assert (acc['abs_error_pct_p50'], acc['abs_error_pct_max']) == pytest.approx((1.5, 2.0))
+    assert acc['error_over_std_rms'] == pytest.approx(np.sqrt(5.0))
+    assert vergence_accuracy(measured, 0.0, lambda stamp, point: None) == {'checked': 0, 'without_truth': 3,
+                                                                            'steps': []}
+
+
+def test_the_demo_reports_true_distance_follows_the_rig_through_odom_into_the_simulated_room(tmp_path):
+    """The truth chain of the demo report: ground_truth/pose (base_link in odom, odom at the trajectory's start) ->
+    the rig's pose in the room -> the ray from the right camera along the measured direction."""
+    import shutil
+
+    from fixego_ros.demo.report import simulated_distance
+    from fixego_ros.geometry.rig import default_rig_path, load_rig
+    from fixego_ros.geometry.rotation import rig_pose_to_base_link
+    from fixego_ros.sim.trajectories import make_trajectory
+    from fixego_ros.sim.world import make_room
+    shutil.copy(default_rig_path(), tmp_path / 'rig.yaml')
+    mount = load_rig(tmp_path / 'rig.yaml').mount
+    traj = make_trajectory('paper', seed=0)
+    start, pose = traj.pose_at(0.0), traj.pose_at(9.0)          # mid-loop: turned and moved away from the start
+    odom = rig_pose_to_base_link(start.inverse() @ pose, mount)
+    at = simulated_distance({'trajectory': 'paper', 'seed': 0, 'duration': 0.0}, tmp_path / 'rig.yaml',
+                            [(100.0, odom)])
+    world = make_room(0, 0.002)
+    for direction in (np.array([0.3, 0.0, 1.0]), np.array([1.0, -0.05, 0.2])):
+        u = direction / np.linalg.norm(direction)
+        expected, _ = world.raycast(pose.t, pose.R @ u)
+        assert 0.5 < expected < 20.0
+        assert at(100.0, 1.7 * u) == pytest.approx(expected, abs=1e-9)   # only the direction counts
+    assert at(100.5, np.array([0.0, 0.0, 1.0])) is None                  # no truth at that stamp

@@ -120,12 +120,10 @@ def _say(args: argparse.Namespace, text: str) -> None:
 
 def _run(args: argparse.Namespace, out: Path, rig_path: Path, launcher) -> int:
     import rclpy
-    from geometry_msgs.msg import PoseWithCovarianceStamped
     from rclpy.experimental import EventsExecutor
 
     from fixego_ros.demo.cpu import CpuSampler
     from fixego_ros.demo.launcher import NodeSpec, wait_for
-    from fixego_ros.nodes.common import LATCHED_QOS, stamp_to_sec
     from fixego_ros.nodes.demo_recorder import Recorder
 
     pty_file = out / 'ptys.json'
@@ -161,10 +159,6 @@ def _run(args: argparse.Namespace, out: Path, rig_path: Path, launcher) -> int:
 
     rclpy.init()
     node = Recorder()
-    # the rig's vergence measurements (the left camera node verges by default): counted for the report
-    vergence_stamps: list[float] = []
-    node.create_subscription(PoseWithCovarianceStamped, 'vergence',
-                             lambda m: vergence_stamps.append(stamp_to_sec(m.header.stamp)), LATCHED_QOS)
     ex = EventsExecutor()
     ex.add_node(node)
     spin = lambda s: ex.spin_once(timeout_sec=s)  # noqa: E731
@@ -181,7 +175,7 @@ def _run(args: argparse.Namespace, out: Path, rig_path: Path, launcher) -> int:
         t_reset = node.get_clock().now().nanoseconds * 1e-9
         for client, what in ((node.reset_client, 'estimator reset'), (node.start_client, 'rig start')):
             if client is node.start_client:
-                _scale_at_rest(args, node, vergence_stamps, t_reset, spin)
+                _scale_at_rest(args, node, t_reset, spin)
             success, message = node.call(client, ex, 10.0)
             if not success:
                 print(f'fixego demo: {what} failed: {message}', file=sys.stderr)
@@ -221,7 +215,7 @@ def _run(args: argparse.Namespace, out: Path, rig_path: Path, launcher) -> int:
         cpu.sample(time.monotonic())
         launcher.stop_all()
         from fixego_ros.demo.report import write_report
-        report = write_report(out, node, t_reset, vars(args), vergence_stamps, cpu.shares())
+        report = write_report(out, node, t_reset, vars(args), cpu.shares())
     finally:
         ex.shutdown()
         node.destroy_node()
@@ -235,7 +229,7 @@ def _path_period() -> float:
     return float(ESTIMATOR_NODE_PARAMS['path_publish_period_s'].default)
 
 
-def _scale_at_rest(args: argparse.Namespace, node, vergence_stamps: list[float], t_reset: float, spin) -> None:
+def _scale_at_rest(args: argparse.Namespace, node, t_reset: float, spin) -> None:
     """Before the rig moves: ask for a vergence step and wait (bounded) for its measurement, so the trajectory
     starts metric. The start-up step the left camera node made on its own came before the estimator reset, which
     forgets it; the request may wait out the camera node's vergence_min_interval_s."""
@@ -244,7 +238,7 @@ def _scale_at_rest(args: argparse.Namespace, node, vergence_stamps: list[float],
     from fixego_ros.demo.launcher import wait_for
     from fixego_ros.nodes.common import RELIABLE_QOS
     node.create_publisher(Empty, 'vergence_request', RELIABLE_QOS).publish(Empty())
-    if wait_for(lambda: any(t >= t_reset for t in vergence_stamps), SCALE_AT_REST_TIMEOUT_S, spin=spin):
+    if wait_for(lambda: any(t >= t_reset for t, _, _ in node.vergence), SCALE_AT_REST_TIMEOUT_S, spin=spin):
         _say(args, 'fixego demo: scale measured at rest (vergence step); starting the rig')
     else:
         _say(args, f'fixego demo: no vergence measurement within {SCALE_AT_REST_TIMEOUT_S:g} s of the request; '

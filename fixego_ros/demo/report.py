@@ -4,7 +4,9 @@ vergence steps, latency (image -> pose, and by stage) and drops."""
 from __future__ import annotations
 
 import json
+import math
 import os
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -13,6 +15,7 @@ import numpy as np
 from fixego_ros.evaluation.metrics import EvaluationError, evaluate
 from fixego_ros.evaluation.plot import plot_evaluation
 from fixego_ros.evaluation.tum import write_tum
+from fixego_ros.geometry.rotation import Pose, base_link_pose_to_rig
 
 # Papers' Table 1 (real images, 131-step stadium loop): position error in cm
 PAPER_TABLE1 = {'raw_mean_cm': 17.51, 'ba_mean_cm': 3.36, 'raw_terminal_cm': 35.0, 'ba_terminal_cm': 4.0}
@@ -109,6 +112,59 @@ def vergence_summary(statuses: dict[str, dict[str, str]], stamps: list[float], t
     return out
 
 
+def vergence_accuracy(measured: list[tuple[float, np.ndarray, np.ndarray]], t_start: float,
+                      true_distance_at: Callable[[float, np.ndarray], float | None]) -> dict[str, Any]:
+    """Each vergence measurement (stamp, right fixation point in the rig frame, its covariance) against the true
+    distance the simulator gives along the measured direction at its stamp (``true_distance_at``; None where the
+    recorder has no truth at that stamp, e.g. before the run). Per measurement: the error (cm, %) and the error in
+    units of the std the rig stated along the ray; overall the median and largest |error| in % (issue 17 asks for
+    <= 1 % at 2-4 m) and the RMS of error / stated std: about 1 when the covariance the estimator weighs the
+    measurement by is honest, below 1 when it is too cautious."""
+    steps = []
+    for stamp, point, cov in measured:
+        true_m = true_distance_at(stamp, point)
+        if true_m is None or not math.isfinite(true_m):
+            continue
+        distance = float(np.linalg.norm(point))
+        u = point / distance
+        std = math.sqrt(max(float(u @ cov @ u), 0.0))
+        err = distance - true_m
+        steps.append({'t_s': round(stamp - t_start, 3), 'distance_m': round(distance, 4), 'true_m': round(true_m, 4),
+                      'error_cm': round(100 * err, 2), 'error_pct': round(100 * err / true_m, 3),
+                      'std_cm': round(100 * std, 2), 'error_over_std': round(err / std, 3) if std > 0 else None})
+    out: dict[str, Any] = {'checked': len(steps), 'without_truth': len(measured) - len(steps), 'steps': steps}
+    if steps:
+        pct = np.abs([s['error_pct'] for s in steps])
+        out.update(abs_error_pct_p50=float(np.median(pct)), abs_error_pct_max=float(pct.max()))
+        z = [s['error_over_std'] for s in steps if s['error_over_std'] is not None]
+        if z:
+            out['error_over_std_rms'] = float(np.sqrt(np.mean(np.square(z))))
+    return out
+
+
+def simulated_distance(run_args: dict[str, Any], rig_file: Path,
+                       truth: list[tuple[float, Pose]]) -> Callable[[float, np.ndarray], float | None]:
+    """``true_distance_at`` for :func:`vergence_accuracy` on the demo's simulated rig: its world (the run's seed,
+    sim_rig_node's texel) and the rig's true pose at the stamp, from ``ground_truth/pose`` (base_link in odom, odom
+    = base_link at the trajectory's start: the demo holds the rig there until the run starts)."""
+    from fixego_ros.geometry.rig import load_rig
+    from fixego_ros.pipeline.params import SIM_RIG_NODE_PARAMS
+    from fixego_ros.sim.trajectories import make_trajectory
+    from fixego_ros.sim.vergence_measure import true_distance
+    from fixego_ros.sim.world import make_room
+
+    mount = load_rig(rig_file).mount
+    start = make_trajectory(run_args['trajectory'], seed=int(run_args['seed']),
+                            duration=float(run_args.get('duration') or 0.0) or None).pose_at(0.0)
+    world = make_room(int(run_args['seed']), float(SIM_RIG_NODE_PARAMS['texel'].default))
+    at = dict(truth)
+
+    def true_distance_at(stamp: float, point: np.ndarray) -> float | None:
+        pose = at.get(stamp)
+        return None if pose is None else true_distance(world, start @ base_link_pose_to_rig(pose, mount), point)
+    return true_distance_at
+
+
 def joint_errors(estimated: dict[float, tuple[float, float]], true: dict[float, tuple[float, float]],
                  moving_deg_s: float = 5.0, sigmas: dict[float, tuple[float, float]] | None = None) -> dict[str, float]:
     """Error of the joint states the camera node published against the simulator's true angles at the same image
@@ -172,12 +228,13 @@ def fast_pose_steps(estimator_status: dict[str, str]) -> dict[str, int]:
 
 
 def write_report(out: Path, rec, t_start: float, run_args: dict[str, Any],
-                 vergence_stamps: list[float] | None = None, cpu: dict[str, float] | None = None) -> dict[str, Any]:
+                 cpu: dict[str, float] | None = None) -> dict[str, Any]:
     """Write ``estimate.live.tum`` (each pose as published), ``estimate.tum`` (the last path: the smoother's
     refined trajectory), ``estimate.raw.tum`` (the last path_raw), ``ground_truth.tum``, ``report.json``,
-    ``trajectory.png`` under ``out`` from what the recorder saw at or after ``t_start``; returns the report (with a
-    ``console`` summary). ``vergence_stamps``: stamps of the /fixego/vergence measurements seen; ``cpu``: % of one
-    core per process over the run (:class:`~fixego_ros.demo.cpu.CpuSampler`)."""
+    ``trajectory.png`` under ``out`` from what the recorder saw at or after ``t_start`` (the vergence measurements:
+    all it saw); returns the report (with a ``console`` summary). ``cpu``: % of one core per process over the run
+    (:class:`~fixego_ros.demo.cpu.CpuSampler`). The vergence measurements are checked against the simulated world
+    when ``out`` holds the run's ``rig.yaml``."""
     keep = [(i, t, p) for i, (t, p) in enumerate(rec.poses) if t >= t_start]
     live = [(t, p) for _, t, p in keep]
     latency = [rec.latency_s[i] for i, _, _ in keep if i < len(rec.latency_s)]
@@ -203,13 +260,16 @@ def write_report(out: Path, rec, t_start: float, run_args: dict[str, Any],
         'diagnostics': dict(rec.statuses),      # each node's last /diagnostics status
         'smoother_done_after_last_pose_s': rec.smoother_catch_up_s,
         'fast_pose_steps': fast_pose_steps(rec.statuses.get('fixego estimator_node', {})),
-        'vergence': vergence_summary(rec.statuses, list(vergence_stamps or []), t_start),
+        'vergence': vergence_summary(rec.statuses, [t for t, _, _ in rec.vergence], t_start),
         'frames_without_fixation': blind_frames(getattr(rec, 'fixation_valid', {}), t_start,
                                                 truth[-1][0] if truth else t_start),
         'joint_error_deg': {side: joint_errors({t: q for t, q in rec.joints[side].items() if t >= t_start},
                                                rec.true_joints[side], sigmas=getattr(rec, 'joint_sigmas', {}).get(side))
                             for side in rec.joints},
     }
+    if truth and (out / 'rig.yaml').exists():
+        report['vergence']['against_truth'] = vergence_accuracy(
+            rec.vergence, t_start, simulated_distance(run_args, out / 'rig.yaml', truth))
     evals = {}
     for label, traj in (('refined', est), ('live', live), ('raw', raw)):
         try:
@@ -259,6 +319,13 @@ def write_report(out: Path, rec, t_start: float, run_args: dict[str, Any],
                  f'camera steps {v.get("successes", "?")}/{v.get("attempts", "?")} done, interrupted at most '
                  f'{v.get("max_interrupted_s", "?")} s' + (f'; last failure: {v["last_failure"]}'
                                                           if v.get('last_failure') else ''))
+    acc = v.get('against_truth', {})
+    if acc.get('checked'):
+        errors = ', '.join(f'{st["error_cm"]:+.1f}' for st in acc['steps'])
+        lines.append(f'  vergence against the true distance: {acc["checked"]} measurements, error {errors} cm '
+                     f'(|error| p50 {acc["abs_error_pct_p50"]:.2f} %, max {acc["abs_error_pct_max"]:.2f} %)'
+                     + (f'; error / stated std RMS {acc["error_over_std_rms"]:.2f} (1: the stated std is honest)'
+                        if 'error_over_std_rms' in acc else ''))
     b = report['frames_without_fixation']
     if b['frames']:
         lines.append(f'  frames with no fixation in either camera (placed by the motion model): {b["blind"]} of '

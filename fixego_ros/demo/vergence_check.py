@@ -75,6 +75,7 @@ def run(args: argparse.Namespace) -> dict:
     from fixego_ros.nodes.common import LATCHED_QOS, RELIABLE_QOS, stamp_to_sec
     from fixego_ros.nodes.sim_rig_node import SimRigNode
     from fixego_ros.pipeline.params import SIM_RIG_NODE_PARAMS
+    from fixego_ros.sim.vergence_measure import true_distance
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -189,10 +190,7 @@ def run(args: argparse.Namespace) -> dict:
         d = float(np.linalg.norm(p))
         u = p / d
         std = float(math.sqrt(max(float(u @ cov @ u), 0.0)))
-        true_d = math.nan
-        if pose is not None:
-            with np.errstate(invalid='ignore', divide='ignore'):
-                true_d, _ = sim.renderer.world.raycast(pose.t, pose.R @ u)
+        true_d = math.nan if pose is None else true_distance(sim.renderer.world, pose, p)
         steps.append({'stamp': ts, 'distance_m': d, 'true_m': float(true_d), 'std_m': std,
                       'error_pct': 100.0 * (d - true_d) / true_d, 'partner_id': fix_at.get(round(ts, 6))})
     for s in steps:

@@ -1,12 +1,11 @@
 """The demo's own node: records what the pipeline publishes (and when), and starts the run.
 
-It keeps the refined poses with their arrival latency (receipt time minus the image stamp they carry:
-the simulated rig stamps images with the wall clock, so this is image -> pose through every process),
-the ground truth, the last raw path (subscribed without deserialising each one), and the fixation and
-diagnostics traffic the console progress line shows. For the latency breakdown it also notes when each
-joint state, fixation and flow observation arrives, minus its (image) stamp; the observations are not
-deserialised (the stamp is read from the message's first bytes). Names are relative in the default namespace /fixego,
-like the pipeline's nodes.
+It keeps the refined poses with their arrival latency (receipt time minus the image stamp they carry: the
+simulated rig stamps images with the wall clock, so this is image -> pose through every process), the ground truth,
+the rig's vergence measurements, the last raw path (subscribed without deserialising each one), and the fixation and
+diagnostics traffic the console progress line shows. For the latency breakdown it also notes when each joint state,
+fixation and flow observation arrives, minus its (image) stamp; the observations are not deserialised (the stamp is
+read from the message's first bytes). Names are relative in the default namespace /fixego, like the pipeline's nodes.
 """
 
 from __future__ import annotations
@@ -16,8 +15,9 @@ import struct
 import time
 from collections import Counter
 
+import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import PointStamped, PoseStamped
+from geometry_msgs.msg import PointStamped, PoseStamped, PoseWithCovarianceStamped
 from nav_msgs.msg import Path
 from rclpy.node import Node
 from rclpy.serialization import deserialize_message
@@ -26,7 +26,7 @@ from std_srvs.srv import Trigger
 
 from fixego_ros.geometry.rig import SIDES
 from fixego_ros.geometry.rotation import Pose
-from fixego_ros.nodes.common import RELIABLE_QOS, in_namespace, msg_to_pose, stamp_to_sec
+from fixego_ros.nodes.common import LATCHED_QOS, RELIABLE_QOS, in_namespace, msg_to_pose, stamp_to_sec
 
 
 def cdr_stamp(data: bytes) -> float | None:
@@ -58,6 +58,9 @@ class Recorder(Node):
         self.fixations: Counter[str] = Counter()
         # (stamp -> whether the message had a valid fixation) per side: frames where neither camera fixates
         self.fixation_valid: dict[str, dict[float, bool]] = {s: {} for s in SIDES}
+        # the rig's vergence measurements: (stamp, right fixation point in the rig frame, its 3x3 covariance); kept
+        # by clear(), so the report counts those before the run too
+        self.vergence: list[tuple[float, np.ndarray, np.ndarray]] = []
         self.statuses: dict[str, dict[str, str]] = {}
         self.status_times: dict[str, float] = {}     # when each status last came (monotonic)
         self.smoother_catch_up_s: float | None = None   # how long the smoother took to finish after the last pose
@@ -78,6 +81,7 @@ class Recorder(Node):
             self.create_subscription(JointState, f'ground_truth/{side}/joint_states',
                                      lambda m, s=side: self._keep_joints(self.true_joints[s], m), RELIABLE_QOS)
         self.create_subscription(PointCloud2, 'flow/observation', self._on_observation, RELIABLE_QOS, raw=True)
+        self.create_subscription(PoseWithCovarianceStamped, 'vergence', self._on_vergence, LATCHED_QOS)
         self.reset_client = self.create_client(Trigger, 'estimator_node/reset')
         self.start_client = self.create_client(Trigger, 'sim_rig_node/start')
 
@@ -111,6 +115,11 @@ class Recorder(Node):
         t = cdr_stamp(data)
         if t is not None:
             self.stage_s['observation'].append(self._now() - t)
+
+    def _on_vergence(self, msg: PoseWithCovarianceStamped) -> None:
+        p = msg.pose.pose.position
+        cov = np.asarray(msg.pose.covariance, dtype=float).reshape(6, 6)[:3, :3].copy()
+        self.vergence.append((stamp_to_sec(msg.header.stamp), np.array([p.x, p.y, p.z]), cov))
 
     def _on_pose(self, msg: PoseStamped) -> None:
         t = stamp_to_sec(msg.header.stamp)

@@ -31,6 +31,7 @@ from fixego_ros.geometry.rig import Rig
 from fixego_ros.geometry.rotation import Pose
 from fixego_ros.sim.render import project_points
 from fixego_ros.sim.servo_model import ServoParams, ServoState, quantized, reading_sigmas
+from fixego_ros.sim.world import World
 from fixego_ros.tracking.vergence import triangulate_fixation
 
 VERGENCE_MODES = ('off', 'physical', 'measurements')
@@ -112,6 +113,15 @@ def off_axis_deg(rig: Rig, side: str, rig_pose: Pose, pan: float, tilt: float, p
     """Angle between ``side``'s optical axis (head at true angles pan, tilt) and world ``point``."""
     d = rig.cam_to_rig(side, pan, tilt).T @ (rig_pose.inverse().apply(np.asarray(point, float)) - rig.center(side))
     return float(np.degrees(np.arctan2(np.hypot(d[0], d[1]), d[2])))
+
+
+def true_distance(world: World, rig_pose: Pose, point_rig: np.ndarray) -> float:
+    """The truth a measurement of the right fixation point is checked against: the distance from the right camera
+    centre (the rig origin) along the measured direction ``point_rig`` to the first surface of the simulated
+    ``world``, the rig at its true ``rig_pose`` (world frame); inf when the ray hits nothing."""
+    p = np.asarray(point_rig, dtype=float)
+    distance, _ = world.raycast(rig_pose.t, rig_pose.R @ (p / np.linalg.norm(p)))
+    return float(distance)
 
 
 # ------------------------------------------------------------------------------------------------ samples

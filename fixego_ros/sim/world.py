@@ -194,12 +194,12 @@ class World:
         origin = np.asarray(origin, dtype=float)
         d = np.asarray(direction, dtype=float)
         denom = self._N @ d
-        with np.errstate(divide='ignore', invalid='ignore'):
+        with np.errstate(divide='ignore', invalid='ignore'):    # a plane parallel to the ray: inf/nan, not hit
             lam = np.einsum('ij,ij->i', self._O - origin, self._N) / denom
-        hit = origin + lam[:, None] * d
-        a = np.einsum('ij,ij->i', hit - self._O, self._U)
-        b = np.einsum('ij,ij->i', hit - self._O, self._V)
-        ok = (np.abs(denom) > 1e-12) & (lam > 1e-9) & (a >= 0) & (a <= self._W) & (b >= 0) & (b <= self._H)
+            hit = origin + lam[:, None] * d
+            a = np.einsum('ij,ij->i', hit - self._O, self._U)
+            b = np.einsum('ij,ij->i', hit - self._O, self._V)
+            ok = (np.abs(denom) > 1e-12) & (lam > 1e-9) & (a >= 0) & (a <= self._W) & (b >= 0) & (b <= self._H)
         if not np.any(ok):
             return float('inf'), -1
         lam = np.where(ok, lam, np.inf)
