@@ -251,3 +251,20 @@ def test_a_repair_after_marginalising_keeps_the_window_where_it_was():
     for k in range(9, 12):
         np.testing.assert_allclose(repaired.estimate().atPose3(X(k)).translation(),
                                    twin.estimate().atPose3(X(k)).translation(), atol=1e-6)
+
+
+def test_the_newest_marginal_is_read_when_the_only_pass_shared_its_clique_with_a_variable_that_left():
+    """With no extra pass (``smoother_iterations`` 0) the variables that leave go after the only elimination, and the
+    root clique the newest marginal is read from can still hold one of them: its size must come from that pass."""
+    noise = gtsam.noiseModel.Isotropic.Sigma(3, 0.1)
+    window = FixedLagWindow(lag_s=4.5)
+    first, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    first.add(gtsam.PriorFactorPoint3(0, np.zeros(3), noise))
+    values.insert(0, np.zeros(3))
+    window.update(first, values, {0: 0.0}, newest=(0,))
+    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    graph.add(gtsam.BetweenFactorPoint3(0, 1, np.ones(3), noise))
+    values.insert(1, np.ones(3))
+    window.update(graph, values, {1: 10.0}, newest=(1,))         # 0 (stamp 0) leaves after the pass
+    assert list(window.estimate().keys()) == [1]
+    np.testing.assert_allclose(window.marginal_covariance(1), 2 * 0.01 * np.eye(3), rtol=1e-9)

@@ -93,6 +93,7 @@ class FixedLagWindow:
         self._views = _NO_VIEWS         # projection factors: rows (slot, camera key, landmark key)
         self._repaired = 0              # repairs in this update
         self._tree: gtsam.GaussianBayesTree | None = None   # the last pass's elimination (newest keys last)
+        self._tree_dims: dict[int, int] = {}    # its variables' sizes (some may have left the window since)
         self._root: tuple[tuple[int, ...], np.ndarray] | None = None    # its root's keys and covariance, once asked
 
     def update(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, stamps: dict[int, float],
@@ -143,7 +144,7 @@ class FixedLagWindow:
         keys, cov = self._root
         if key not in keys:
             return np.asarray(self._tree.marginalCovariance(key), float)
-        dims = self._theta.dims()
+        dims = self._tree_dims      # not the estimate's: with no extra pass the old variables left after this one
         start = sum(dims[k] for k in keys[:keys.index(key)])
         end = start + dims[key]
         return cov[start:end, start:end].copy()
@@ -213,7 +214,7 @@ class FixedLagWindow:
                     raise
                 self._repaired += 1
                 self._repair(error, anchored)
-        self._tree, self._root, self._lin = tree, None, lin
+        self._tree, self._tree_dims, self._root, self._lin = tree, lin.dims(), None, lin
         self._theta = lin.retract(tree.optimize())
 
     def _repair(self, error: RuntimeError, anchored: Counter[int]) -> None:

@@ -289,7 +289,9 @@ ESTIMATOR_PARAMS: Table = _table(
          gt=0.0, live=True),
     _num('smoother_lag_s', 2.0, 'smoother: poses and landmarks older than this are marginalised (s); a vergence '
                                 'measurement older than this when it arrives is not used', gt=0.0, le=60.0),
-    _num('smoother_iterations', 1, 'smoother: extra relinearisations per frame', ge=0, le=20),
+    _num('smoother_iterations', 1, 'smoother: extra relinearisations per frame (0 saves ~a quarter of the '
+                                   'smoother\'s time but lost 3 of 9 test bags, docs/results.md "Stop 66")',
+         ge=0, le=20),
     _num('smoother_gate_px', 8.0, 'smoother: an observation farther than this from its landmark (after the pose-only '
                                   'placement of the frame) is left out (px)', gt=0.0),
     _num('smoother_min_parallax_deg', 0.5, 'smoother: a track enters the graph once its rays span this angle', gt=0.0,
