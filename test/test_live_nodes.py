@@ -508,6 +508,12 @@ def test_demo_runs_every_node_as_a_process_and_writes_a_report(tmp_path):
         je = report['joint_error_deg'][side]
         assert je['frames'] >= 10 and 0.0 <= je['p50_deg'] <= je['p95_deg'] <= je['max_deg'] < 5.0, (side, je)
     assert 'joint states against the true angles' in (out / 'report.txt').read_text()
+    # each vergence measurement against the true distance in the simulated room: the one asked for while the rig
+    # stands (after the reset, so the recorder has the truth) is within a few tenths of a percent (stop 66: 0.1 %)
+    v = report['vergence']
+    acc = v['against_truth']
+    assert acc['checked'] + acc['without_truth'] == v['measurements'], v
+    assert all(abs(s['error_pct']) < 2.0 and s['std_cm'] > 0 for s in acc['steps']), acc
     # the demo waits (bounded) for the smoother process to finish the last frames, and says how long that took
     assert report['smoother_done_after_last_pose_s'] >= 0.0
     est_diag = report['diagnostics']['fixego estimator_node']
@@ -526,3 +532,42 @@ def test_demo_runs_every_node_as_a_process_and_writes_a_report(tmp_path):
     assert 'CPU, % of one core' in (out / 'report.txt').read_text()
     for name in ('sim_rig_node', 'right_camera_node', 'left_camera_node', 'flow_node', 'estimator_node'):
         assert (out / 'logs' / f'{name}.log').exists()
+
+
+def test_estimator_node_warns_once_while_the_smoother_falls_behind(ros_context, clean_sequence, tmp_path):
+    """On a machine that does not keep up, the smoother process falls seconds behind and the path is revised from
+    keyframes alone (docs/results.md "Stop 66"): WARN on /diagnostics while it is more than
+    ``smoother_warn_behind_s`` behind, until it is back under half of that (logged once each way by OnceLogger)."""
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+
+    from fixego_ros.nodes.common import RELIABLE_QOS
+    rig, _, _ = clean_sequence
+    node = _synthetic_estimator_node(ros_context, rig, tmp_path, Parameter('smoother_warn_behind_s', value=1.0),
+                                     Parameter('diagnostics_period_s', value=0.05))
+    probe = rclpy.create_node('probe', context=ros_context)
+    ex = executor_for(ros_context, node, probe)
+    diags: list[DiagnosticStatus] = []
+    probe.create_subscription(DiagnosticArray, '/diagnostics',
+                              lambda m: diags.extend(s for s in m.status if s.name == 'fixego estimator_node'),
+                              RELIABLE_QOS)
+
+    def latest_behind_warning() -> str | None:
+        n = len(diags)
+        assert spin_until(ex, lambda: len(diags) > n + 1, 5.0)
+        d = diags[-1]
+        return d.message if d.level == DiagnosticStatus.WARN and 'behind' in d.message else None
+
+    try:
+        for behind in (0.2, 0.9):                           # within the bound: nothing said
+            node._watch_smoother(behind)
+        assert not node.once.active('behind') and latest_behind_warning() is None
+        for behind in (1.4, 2.5, 0.8):                      # 0.8: still above half the bound
+            node._watch_smoother(behind)
+        assert node.once.active('behind')                   # (OnceLogger: logged when it became active)
+        assert latest_behind_warning() == ('smoother 0.8 s behind the newest frame: the path is revised late and '
+                                           'from keyframes alone')
+        node._watch_smoother(0.3)                           # caught up: the WARN goes
+        assert not node.once.active('behind') and latest_behind_warning() is None
+        assert list(node.behind_s)[-6:] == [0.2, 0.9, 1.4, 2.5, 0.8, 0.3]
+    finally:
+        ex.shutdown()

@@ -102,7 +102,8 @@ LIVE_CONFIG = ('fixation_weight', 'velocity_prior', 'prior_sigma_rel', 'prior_si
                'max_speed', 'max_step_rotation_deg', 'reject_translation_std')
 # ... and the node reads these per message (or sets the timer's period)
 LIVE_NODE = ('max_lag_s', 'max_keyframe_lag_s', 'max_future_s', 'backward_reset_count', 'backward_reset_s',
-             'diagnostics_period_s', 'vergence_request_rel_std', 'vergence_request_min_interval_s', 'scale_drift_per_s')
+             'diagnostics_period_s', 'vergence_request_rel_std', 'vergence_request_min_interval_s', 'scale_drift_per_s',
+             'smoother_warn_behind_s')
 
 
 def odom_covariance(cov_rig: np.ndarray, pose_rig: Pose, mount: Pose | None = None) -> list[float]:
@@ -313,7 +314,7 @@ class EstimatorNode(Node):
         self._backward = None
         self.once.clear('order', 'observations in order again')
         if isinstance(self.estimator, LiveSmoother):
-            self.behind_s.append(self.estimator.behind_s)
+            self._watch_smoother(self.estimator.behind_s)
         self.status_counts[res.status.value] += 1
         if not res.status.usable and res.status is not StepStatus.INIT:
             self.get_logger().warning(f'step not solved ({res.status.value}): {res.message} (further ones are '
@@ -323,6 +324,18 @@ class EstimatorNode(Node):
         if self.pub_vergence_request is not None and self.scale_requests.due(
                 res.stamp, self._scale_measurement(), self.estimator.speed_source_used):
             self.pub_vergence_request.publish(Empty())
+
+    def _watch_smoother(self, behind: float) -> None:
+        """Keep the smoother process's lag, and say once when it falls ``smoother_warn_behind_s`` behind (and once
+        when it is back under half of that)."""
+        self.behind_s.append(behind)
+        limit = self.warn_behind_s
+        if limit > 0.0 and behind > limit:
+            self.once.warn('behind', f'the smoother is {behind:.1f} s behind the newest frame: this machine does not '
+                                     'keep up, so the path is revised late and from keyframes alone (less accurate); '
+                                     'fewer processes on the cores, or a faster machine, help')
+        elif limit <= 0.0 or behind < 0.5 * limit:
+            self.once.clear('behind', f'the smoother caught up ({behind:.1f} s behind the newest frame)')
 
     def _scale_measurement(self) -> Measurement | None:
         """The newest vergence measurement, received here or used by the back end (scale_requests' module docstring)."""
@@ -524,6 +537,7 @@ class EstimatorNode(Node):
         self.max_future_s = float(g('max_future_s'))
         self.backward_reset_count = int(g('backward_reset_count'))
         self.backward_reset_s = float(g('backward_reset_s'))
+        self.warn_behind_s = float(g('smoother_warn_behind_s'))
 
     def _apply_params(self, changes: dict[str, object], g: Getter) -> None:
         """``ros2 param set`` of run-time parameters: everything is built first (a combination the core
@@ -589,6 +603,9 @@ class EstimatorNode(Node):
                 level, message = WARN, f'last step {self.last.status.value}: {self.last.message}'
             elif self.last.status is StepStatus.WEAK:
                 level, message = WARN, 'scale weakly observed (large translation covariance)'
+        if self.once.active('behind'):
+            level, message = WARN, (f'smoother {self.behind_s[-1]:.1f} s behind the newest frame: the path is '
+                                    'revised late and from keyframes alone')
         if self.recent:      # stamp problems since the last report: out of order, from the future, clock jumps
             values.update({f'recent_{k}': v for k, v in sorted(self.recent.items())})
             level, message = WARN, (f'{", ".join(f"{v} {k}" for k, v in sorted(self.recent.items()))} since the '

@@ -445,6 +445,11 @@ ESTIMATOR_NODE_PARAMS: Table = _table(
     _num('max_keyframe_lag_s', 0.5, 'even keyframes are skipped this far behind (the estimator then bridges the gap '
                                     'at constant velocity): bounds the latency when the machine is overloaded',
          ge=0.0, live=True),
+    _num('smoother_warn_behind_s', 1.0, 'warn (logged once, WARN on /diagnostics until it is back under half of '
+                                        'this) when the smoother process\'s newest result lags the newest frame by '
+                                        'more than this (s): the machine does not keep up, so the path is revised '
+                                        'late and from keyframes alone, which lost 2 of 9 test bags (docs/results.md '
+                                        '"Stop 66"); 0 = never', ge=0.0, live=True),
     _num('max_future_s', 1.0, 'an observation stamped this far ahead of the node clock is rejected and counted '
                               '(a wrong clock would otherwise make every later observation out of order)', gt=0.0,
          live=True),
