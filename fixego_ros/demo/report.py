@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 
+from fixego_ros.estimation.covariance import std_along
 from fixego_ros.evaluation.metrics import EvaluationError, evaluate
 from fixego_ros.evaluation.plot import plot_evaluation
 from fixego_ros.evaluation.tum import write_tum
@@ -126,8 +127,7 @@ def vergence_accuracy(measured: list[tuple[float, np.ndarray, np.ndarray]], t_st
         if true_m is None or not math.isfinite(true_m):
             continue
         distance = float(np.linalg.norm(point))
-        u = point / distance
-        std = math.sqrt(max(float(u @ cov @ u), 0.0))
+        std = std_along(point, cov)
         err = distance - true_m
         steps.append({'t_s': round(stamp - t_start, 3), 'distance_m': round(distance, 4), 'true_m': round(true_m, 4),
                       'error_cm': round(100 * err, 2), 'error_pct': round(100 * err / true_m, 3),

@@ -71,6 +71,7 @@ def run(args: argparse.Namespace) -> dict:
     from std_srvs.srv import Trigger
 
     from fixego_ros.demo.launcher import Launcher, NodeSpec
+    from fixego_ros.estimation.covariance import std_along
     from fixego_ros.geometry.rig import default_rig_path, load_rig
     from fixego_ros.nodes.common import LATCHED_QOS, RELIABLE_QOS, stamp_to_sec
     from fixego_ros.nodes.sim_rig_node import SimRigNode
@@ -188,8 +189,7 @@ def run(args: argparse.Namespace) -> dict:
         p = np.array([m.pose.pose.position.x, m.pose.pose.position.y, m.pose.pose.position.z])
         cov = np.array(m.pose.covariance).reshape(6, 6)[:3, :3]
         d = float(np.linalg.norm(p))
-        u = p / d
-        std = float(math.sqrt(max(float(u @ cov @ u), 0.0)))
+        std = std_along(p, cov)
         true_d = math.nan if pose is None else true_distance(sim.renderer.world, pose, p)
         steps.append({'stamp': ts, 'distance_m': d, 'true_m': float(true_d), 'std_m': std,
                       'error_pct': 100.0 * (d - true_d) / true_d, 'partner_id': fix_at.get(round(ts, 6))})

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 VAR_MAX = 1.0e6  # variance reported for an unobserved direction (m^2 or rad^2)
@@ -30,6 +32,14 @@ def residual_variance(r: np.ndarray, n_params: int, prior_sigma: float) -> float
     if dof <= 0:
         return prior
     return max(float(np.sum(np.square(r)) / dof), prior)
+
+
+def std_along(point: np.ndarray, cov: np.ndarray) -> float:
+    """First-order std of a measured 3-D ``point`` along its own direction from the origin (a vergence measurement:
+    along the right camera's fixation ray), from its 3x3 ``cov``."""
+    p = np.asarray(point, float)
+    u = p / max(float(np.linalg.norm(p)), 1e-9)
+    return math.sqrt(max(float(u @ np.asarray(cov, float) @ u), 0.0))
 
 
 def checked_measurement(stamp: float, value: np.ndarray, cov: np.ndarray, what: str) -> tuple[np.ndarray, np.ndarray]:

@@ -18,14 +18,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from fixego_ros.estimation.covariance import std_along
+
 Measurement = tuple[float, float]       # (stamp, relative std of the scale)
 
 
 def vergence_measurement(stamp: float, point: np.ndarray, cov: np.ndarray) -> Measurement:
     """A vergence measurement's (stamp, relative std): its covariance along the ray over its distance."""
-    distance = float(np.linalg.norm(point))
-    u = np.asarray(point, float) / max(distance, 1e-9)
-    return float(stamp), math.sqrt(max(float(u @ cov @ u), 0.0)) / max(distance, 1e-9)
+    return float(stamp), std_along(point, cov) / max(float(np.linalg.norm(point)), 1e-9)
 
 
 def newest(*measurements: Measurement | None) -> Measurement | None:

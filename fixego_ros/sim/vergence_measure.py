@@ -27,6 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from fixego_ros.estimation.covariance import std_along
 from fixego_ros.geometry.rig import Rig
 from fixego_ros.geometry.rotation import Pose
 from fixego_ros.sim.render import project_points
@@ -79,8 +80,7 @@ class VergenceMeasurement:
     @property
     def std_m(self) -> float:
         """First-order std of the point along the right fixation ray."""
-        u = self.point_rig / np.linalg.norm(self.point_rig)
-        return float(math.sqrt(max(float(u @ self.cov_rig @ u), 0.0)))
+        return std_along(self.point_rig, self.cov_rig)
 
     def record(self, epoch: float) -> dict:
         """For ``sim.yaml``."""
