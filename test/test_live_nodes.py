@@ -283,6 +283,8 @@ def test_estimator_node_rejects_future_stamps_counts_disorder_and_resets_on_a_cl
             assert all(math.isfinite(v) for v in (p.pose.position.x, p.pose.position.y, p.pose.position.z))
     finally:
         ex.shutdown()
+        probe.destroy_node()
+        node.destroy_node()     # its smoother process and answer thread
 
 
 def test_message_info_gives_the_transport_and_the_queue_wait():
@@ -411,6 +413,8 @@ def test_estimator_node_publishes_paths_at_the_period_and_bounded(ros_context, c
                           and len(paths['path']) == len(paths['path_raw']), 4 * period + 10.0)
     finally:
         ex.shutdown()
+        probe.destroy_node()
+        node.destroy_node()     # its smoother process and answer thread
     expected = [t for t in stamps if round((t - stamps[0]) / period, 6).is_integer()]    # 100, 102, ... 122
     for msgs in paths.values():
         got = [stamp_to_sec(m.header.stamp) for m in msgs]
@@ -571,3 +575,5 @@ def test_estimator_node_warns_once_while_the_smoother_falls_behind(ros_context, 
         assert list(node.behind_s)[-6:] == [0.2, 0.9, 1.4, 2.5, 0.8, 0.3]
     finally:
         ex.shutdown()
+        probe.destroy_node()
+        node.destroy_node()     # its smoother process and answer thread
