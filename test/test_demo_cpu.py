@@ -11,19 +11,22 @@ from fixego_ros.demo.cpu import CpuSampler, children, cpu_seconds
 
 pytestmark = pytest.mark.skipif(not Path('/proc/self/stat').exists(), reason='needs Linux /proc')
 
-# on a "go" line, burns `cpu_s` more of its own CPU time (however long that takes on a busy machine), says
-# "done", then waits for stdin to close
+# says "ready" once its interpreter has started (start-up costs tens of ms of CPU on a slow machine, which must
+# not fall between the test's samples), then on a "go" line burns `cpu_s` more of its own CPU time (however long
+# that takes on a busy machine), says "done", then waits for stdin to close
 BURN = ('import sys, time\n'
+        'print("ready", flush=True)\n'
         'sys.stdin.readline()\n'
         't = time.process_time() + {cpu_s}\n'
         'while time.process_time() < t:\n'
         '    pass\n'
         'print("done", flush=True)\n'
         'sys.stdin.read()\n')
-# starts the burner as its child and prints its pid, passes "go" on, says when the child is done
+# starts the burner as its child and prints its pid once the child is ready, passes "go" on, says when the child is done
 PARENT = ('import subprocess, sys\n'
           'c = subprocess.Popen([sys.executable, "-c", {burn!r}], stdin=subprocess.PIPE, stdout=subprocess.PIPE, '
           'text=True)\n'
+          'c.stdout.readline()\n'
           'print(c.pid, flush=True)\n'
           'c.stdin.write(sys.stdin.readline())\n'
           'c.stdin.flush()\n'
@@ -68,6 +71,7 @@ def test_a_childs_cpu_time_is_counted_under_its_parent_and_kept_apart_from_the_p
 
 def test_a_process_that_exits_keeps_its_share_over_its_own_span_and_short_spans_are_left_out():
     p = _start(BURN.format(cpu_s=0.3))
+    assert p.stdout.readline().strip() == 'ready'
     sampler = CpuSampler({}, {'alone': p.pid})
     sampler.sample(0.0)
     _burn(p)
