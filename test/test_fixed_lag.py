@@ -83,6 +83,44 @@ def test_the_window_agrees_with_gtsams_incremental_fixed_lag_smoother_on_a_nonli
                                    atol=1e-9)
 
 
+def _rotating_chain(window: FixedLagWindow, start_noise: float, iterations: int) -> None:
+    """Rotating poses tied by noisy steps and position fixes, each new pose started ``start_noise`` (rad, m) off."""
+    rng = np.random.default_rng(2)
+    step_noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([0.02] * 3 + [0.05] * 3))
+    step = gtsam.Pose3(gtsam.Rot3.Rz(0.3) * gtsam.Rot3.Rx(0.1), np.array([1.0, 0.2, 0.0]))
+    truth = gtsam.Pose3()
+    for k in range(25):
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        if k == 0:
+            graph.add(gtsam.PriorFactorPose3(X(0), gtsam.Pose3(), gtsam.noiseModel.Isotropic.Sigma(6, 1e-3)))
+        else:
+            truth = truth.compose(step)
+            graph.add(gtsam.BetweenFactorPose3(X(k - 1), X(k), step.compose(gtsam.Pose3.Expmap(rng.normal(0, 0.05, 6))),
+                                               step_noise))
+            if k % 3 == 0:
+                graph.add(gtsam.GPSFactor(X(k), truth.translation() + rng.normal(0, 0.3, 3),
+                                          gtsam.noiseModel.Isotropic.Sigma(3, 0.3)))
+        values.insert(X(k), truth.compose(gtsam.Pose3.Expmap(rng.normal(0, start_noise, 6))))
+        window.update(graph, values, {X(k): float(k)}, newest=(X(k),), iterations=iterations)
+
+
+def test_passes_end_when_one_moves_no_pose_beyond_the_tolerance():
+    """Another Gauss-Newton pass costs a whole linearisation and elimination of the window: it is made only while
+    the last one still moved a pose by more than ``STEP_TOLERANCE``. Started far off, an update takes several; the
+    estimate is that of every pass made, within the tolerance."""
+    stopping, full = FixedLagWindow(lag_s=4.5), FixedLagWindow(lag_s=4.5)
+    full.STEP_TOLERANCE = (0.0, 0.0)
+    _rotating_chain(stopping, 0.2, iterations=5)
+    _rotating_chain(full, 0.2, iterations=5)
+    assert full.passes == {6: 25}
+    assert 1 not in stopping.passes and sum(stopping.passes.values()) == 25    # one pass moves the new pose
+    assert sum(n * c for n, c in stopping.passes.items()) < 6 * 25
+    for k in [X(i) for i in range(20, 25)]:
+        a, b = stopping.estimate().atPose3(k), full.estimate().atPose3(k)
+        np.testing.assert_allclose(a.translation(), b.translation(), atol=2e-3)
+        np.testing.assert_allclose(gtsam.Rot3.Logmap(a.rotation().between(b.rotation())), 0.0, atol=1e-3)
+
+
 def test_a_key_used_again_stays_in_the_window():
     """A landmark re-observed later is kept by the stamp of its latest use."""
     window = FixedLagWindow(lag_s=2.0)

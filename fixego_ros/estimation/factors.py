@@ -111,15 +111,6 @@ class Projection:
         return gtsam.GenericProjectionFactorCal3_S2(z, self.noise, camera_key(frame, side), landmark_key(landmark),
                                                     self.K, False, False)
 
-    def mounted(self, frame: int, ray_rig: np.ndarray, cam_to_rig: np.ndarray, center: np.ndarray,
-                landmark: int) -> gtsam.NonlinearFactor | None:
-        """The same residual on the rig pose with the camera held at its readings (for the pose-only resection)."""
-        z = self.pixel(cam_to_rig.T @ ray_rig)
-        if z is None:
-            return None
-        return gtsam.GenericProjectionFactorCal3_S2(z, self.noise, pose_key(frame), landmark_key(landmark), self.K,
-                                                    False, False, CameraMount.mount(cam_to_rig, center))
-
 
 class ConstantTwist:
     """Weak motion prior over three consecutive poses: the body twist (Pose3 log of each step, per second) stays

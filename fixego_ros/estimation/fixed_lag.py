@@ -78,6 +78,7 @@ class FixedLagWindow:
     MIN_DEPTH_M = 0.3                   # a landmark this close to (or behind) a camera that sees it is dropped
     MAX_DROP_PASSES = 2                 # extra passes per update after the last one dropped landmarks
     REPAIR_SIGMAS = (1.0, 10.0)         # the weak prior on a pose or camera it failed near (rad, m)
+    STEP_TOLERANCE = (1e-3, 2e-3)       # a pass that moves no pose by more (rad, m) ends the update's passes
 
     def __init__(self, lag_s: float) -> None:
         self.lag_s = lag_s
@@ -95,6 +96,7 @@ class FixedLagWindow:
         self._tree: gtsam.GaussianBayesTree | None = None   # the last pass's elimination (newest keys last)
         self._tree_dims: dict[int, int] = {}    # its variables' sizes (some may have left the window since)
         self._root: tuple[tuple[int, ...], np.ndarray] | None = None    # its root's keys and covariance, once asked
+        self.passes: Counter[int] = Counter()   # how many updates took how many Gauss-Newton passes
 
     def update(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, stamps: dict[int, float],
                newest: tuple[int, ...] = (), iterations: int = 0) -> None:
@@ -111,7 +113,7 @@ class FixedLagWindow:
         passes, step = 1 + iterations, 0
         while step < passes:
             last = step == passes - 1
-            self._step(newest if last else (), anchored)
+            moved = self._step(newest, anchored)
             if step == 0 and old:
                 self._marginalise(old)
             dropped = self._drop_behind()
@@ -119,7 +121,10 @@ class FixedLagWindow:
                 self._remove(dropped)
                 if last and passes < 1 + iterations + self.MAX_DROP_PASSES:
                     passes += 1
+            elif not moved:
+                break
             step += 1
+        self.passes[step + 1 if step < passes else passes] += 1
         if 2 * len(self._keys) > 3 * (len(self._keys) - self._keys.count(None)) + 64:
             self._compact()
 
@@ -196,8 +201,9 @@ class FixedLagWindow:
 
     # --- the passes
 
-    def _step(self, newest: tuple[int, ...], anchored: Counter[int]) -> None:
-        """One Gauss-Newton step over the whole window, repairing a numerical failure (module docstring)."""
+    def _step(self, newest: tuple[int, ...], anchored: Counter[int]) -> bool:
+        """One Gauss-Newton step over the whole window, repairing a numerical failure (module docstring). Whether
+        it moved a pose by more than ``STEP_TOLERANCE`` (else another pass would change little)."""
         while True:
             lin = gtsam.Values(self._theta)
             for k in self._fixed:
@@ -215,7 +221,20 @@ class FixedLagWindow:
                 self._repaired += 1
                 self._repair(error, anchored)
         self._tree, self._tree_dims, self._root, self._lin = tree, lin.dims(), None, lin
-        self._theta = lin.retract(tree.optimize())
+        delta = tree.optimize()
+        self._theta = lin.retract(delta)
+        rotation, translation = self.STEP_TOLERANCE
+        for k in self._pose_keys(lin):
+            d = delta.at(k)
+            if np.abs(d[:3]).max() > rotation or np.abs(d[3:]).max() > translation:
+                return True
+        return False
+
+    @staticmethod
+    def _pose_keys(values: gtsam.Values) -> list[int]:
+        keys = np.asarray(values.keys(), np.uint64)
+        kind = keys >> np.uint64(56)
+        return [int(k) for k in keys[(kind == _CHR_POSE) | (kind == _CHR_CAMERA)]]
 
     def _repair(self, error: RuntimeError, anchored: Counter[int]) -> None:
         key = failed_variable(error)

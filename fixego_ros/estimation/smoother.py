@@ -62,10 +62,11 @@ from fixego_ros.estimation.frames import (
     with_track_flow,
 )
 from fixego_ros.estimation.keys import LandmarkId, LandmarkKind, camera_key, landmark_key, pose_key, speed_scale_key
+from fixego_ros.estimation.resection import Sightings, resect
 from fixego_ros.estimation.scale_requests import vergence_measurement
 from fixego_ros.estimation.speed_samples import SpeedSamples
 from fixego_ros.estimation.status import StepStatus
-from fixego_ros.estimation.twoframe import TwoFrameResult, TwoFrameSolver
+from fixego_ros.estimation.twoframe import Fallback, TwoFrameResult, TwoFrameSolver
 from fixego_ros.geometry.rig import SIDES, Rig
 from fixego_ros.geometry.rotation import Pose
 
@@ -339,7 +340,7 @@ class Smoother:
         elif last is not None and ref is None:
             messages.append('flow reference not in the graph: placed by landmarks and the motion prior')
         blind = self._blind(fix)
-        pose0 = self._predict(obs.stamp) if blind else self._resect(i, obs, self._predict(obs.stamp))
+        pose0 = self._predict(obs.stamp) if blind else self._resect(obs, self._predict(obs.stamp))
         raw, step_raw = self._two_frame(stepped, ref, pose0)
         tf = None if blind else raw         # what enters the graph; the raw chain keeps the two-frame solve
         if blind and last is not None:
@@ -414,7 +415,7 @@ class Smoother:
         warm = self.solver.solve(pairs, initial=ref.pose.inverse() @ pose0)
         tf = warm
         if warm.status in (StepStatus.OK, StepStatus.WEAK):       # (no parallax or too few pairs: no starts)
-            cold = self.solver.solve(pairs)
+            cold = self.solver.solve(pairs, fallback=Fallback.CLOSED_FORM)
             if cold.status.usable and cold.cheirality >= 0.5 and cold.cost < self.COLD_START_GAIN * warm.cost:
                 tf = cold
         return tf, self.steps.scaled(tf.pose if self._good(tf) else ref.pose.inverse() @ pose0, dt)
@@ -433,34 +434,30 @@ class Smoother:
         """A solve that may enter the graph: usable, finite, and most points in front of both cameras."""
         return tf is not None and tf.status.usable and tf.pose.is_finite() and tf.cheirality >= 0.5
 
-    def _resect(self, i: int, obs: FrameObservation, start: Pose) -> Pose:
-        """Pose-only fit of the new frame to the landmarks already in the graph (held fixed); the start when
-        there are too few of them."""
-        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
-        values.insert(pose_key(i), to_gtsam(start))
-        fixed = gtsam.noiseModel.Isotropic.Sigma(3, 1e-6)
-        n = 0
+    def _resect(self, obs: FrameObservation, start: Pose) -> Pose:
+        """Pose-only fit of the new frame to the landmarks already in the graph (held where the window has them,
+        :func:`.resection.resect`); the start when there are too few of them or the fit fails."""
+        points, pixels, rotations, centers, focal = [], [], [], [], []
         for side, lid, ray, cam in self._sightings(obs):
             index = self._landmarks.get(lid)
             if index is None:
                 continue
-            factor = self.projections[side].mounted(i, ray, cam.cam_to_rig, self.rig.center(side), index)
-            if factor is None:
+            proj = self.projections[side]
+            z = proj.pixel(cam.cam_to_rig.T @ ray)
+            if z is None:
                 continue
-            graph.add(factor)
-            if not values.exists(landmark_key(index)):
-                point = self._estimate.atPoint3(landmark_key(index))
-                values.insert(landmark_key(index), point)
-                graph.add(gtsam.PriorFactorPoint3(landmark_key(index), point, fixed))
-            n += 1
-        if n < self.settings.min_resection:
+            points.append(self._estimate.atPoint3(landmark_key(index)))
+            pixels.append(z)
+            rotations.append(cam.cam_to_rig)
+            centers.append(self.rig.center(side))
+            focal.append((proj.fx, proj.fy))
+        if len(points) < self.settings.min_resection:
             return start
-        try:
-            result = gtsam.LevenbergMarquardtOptimizer(graph, values).optimize()
-        except RuntimeError:
-            return start
-        pose = from_gtsam(result.atPose3(pose_key(i)))
-        return pose if pose.is_finite() else start
+        cfg = self.settings
+        seen = Sightings(np.array(points, float), np.array(pixels), np.array(rotations), np.array(centers),
+                         np.array(focal, float))
+        pose = resect(seen, cfg.pixel_sigma_px, cfg.huber_k, start)
+        return start if pose is None else pose
 
     @staticmethod
     def _sightings(obs: FrameObservation):

@@ -37,8 +37,8 @@ BACKENDS = ('lm', 'scipy')
 
 
 class Fallback(Enum):
-    """What a warm solve that fails (behind the cameras) tries next. Per refinement ~2 ms at 150 pairs on this
-    machine (docs/results.md "Stop 45")."""
+    """Which cold starts a solve tries: with no warm start, or after a warm one that fails (behind the cameras).
+    Per refinement ~2 ms at 150 pairs on this machine (docs/results.md "Stop 45")."""
 
     COLD = 'cold'                  # every cold start: the closed-form ones and a step along each axis (~16 ms)
     CLOSED_FORM = 'closed_form'    # the 8-point essential matrix's starts only (2-4 refinements: the live pose)
@@ -530,8 +530,9 @@ class TwoFrameSolver:
         translation) where the prediction puts them instead of letting the optimiser wander; with
         ``prior_length = (length, sigma)`` a prior on |T| alone does that for the scale only (the direction
         stays the rays'). The covariance returned is the rays' alone, so those directions still show as
-        unobserved. ``fallback``: what a warm start that lands behind the cameras tries next (:class:`Fallback`;
-        the live pose has a time budget and takes the closed-form starts only)."""
+        unobserved. ``fallback``: the cold starts (:class:`Fallback`) tried when there is no warm start, or when
+        the warm one lands behind the cameras (the live pose has a time budget and takes the closed-form starts
+        only; so does the smoother's cold check of its warm solve)."""
         prior = MotionPrior.build(prior_t, prior_sigma_t, prior_length)
         cfg = self.config
         m = len(pairs)
@@ -545,14 +546,13 @@ class TwoFrameSolver:
                                   np.diag([cfg.sigma**2] * 3 + [VAR_MAX] * 3), 0.0, m,
                                   'no parallax: rotation only')
         warm = initial is not None and initial.is_finite()
-        best = self._best(pairs, [initial] if warm else self._cold_starts(pairs, R_rot), prior)
+        best = self._best(pairs, [initial] if warm else self._starts(fallback, pairs, R_rot), prior)
         # a poor warm start gets the cold starts too, unless a prior on T anchors it (real time: the cold starts
         # cost ~10 solves; a prior-anchored bad step is flagged below and predicted by the caller). A prior on
         # the length alone does not: it holds T and -T alike
         if (fallback is not Fallback.NONE and warm
                 and (best is None or (best.cheirality < 0.5 and (prior is None or prior.t is None)))):
-            starts = essential_start(pairs) if fallback is Fallback.CLOSED_FORM else self._cold_starts(pairs, R_rot)
-            best = self._better(self._best(pairs, starts, prior), best)
+            best = self._better(self._best(pairs, self._starts(fallback, pairs, R_rot), prior), best)
         if best is None:
             return TwoFrameResult(initial or Pose.identity(), StepStatus.FAILED, n_constraints=m,
                                   message='optimiser produced no finite solution')
@@ -561,8 +561,12 @@ class TwoFrameSolver:
             best.message += f'; only {100 * best.cheirality:.0f}% of points in front of the cameras'
         return best
 
-    def _cold_starts(self, pairs: RayPairs, R_rot: np.ndarray) -> list[Pose]:
-        return essential_start(pairs) + [Pose(R_rot, p.t) for p in canonical_starts(self.config.prior_step)]
+    def _starts(self, fallback: Fallback, pairs: RayPairs, R_rot: np.ndarray) -> list[Pose]:
+        """The cold starts ``fallback`` names (every one for NONE: a solve with no warm start needs some)."""
+        closed = essential_start(pairs)
+        if fallback is Fallback.CLOSED_FORM:
+            return closed
+        return closed + [Pose(R_rot, p.t) for p in canonical_starts(self.config.prior_step)]
 
     @staticmethod
     def _better(a: TwoFrameResult | None, b: TwoFrameResult | None) -> TwoFrameResult | None:

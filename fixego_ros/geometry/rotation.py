@@ -19,9 +19,11 @@ RIG_TO_BASE = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 
 
 def skew(v: np.ndarray) -> np.ndarray:
-    """Cross-product matrix: ``skew(a) @ b == np.cross(a, b)``."""
-    x, y, z = np.asarray(v, dtype=float)
-    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+    """Cross-product matrix: ``skew(a) @ b == np.cross(a, b)``; for ``v`` of shape (..., 3), one per row."""
+    v = np.asarray(v, dtype=float)
+    x, y, z = v[..., 0], v[..., 1], v[..., 2]
+    o = np.zeros_like(x)
+    return np.stack([np.stack([o, -z, y], -1), np.stack([z, o, -x], -1), np.stack([-y, x, o], -1)], -2)
 
 
 def rot_x(a: float) -> np.ndarray:
