@@ -1,13 +1,14 @@
-"""One compute thread per process for the numerical libraries (BLAS, OpenCV), unless the environment sets a count.
+"""Process-wide settings of the numerical libraries: one compute thread per process (BLAS, OpenCV) unless the
+environment sets a count, and OpenCV's portable code paths (:func:`portable_opencv`).
 
-Why: the live pipeline is six to eight processes (the simulated rig, two camera nodes, the flow node, the estimator
-and its smoother child, a recorder) on a machine of a few cores. Each process's work per frame is small (Lucas-Kanade
-on crops, matrices of 6 to a few hundred rows; GTSAM does its own linear algebra), so a second library thread rarely
-has anything to do in parallel with the first; but OpenBLAS and OpenCV start a pool of one thread per core in every
-process, and a call that hands work to a pool thread waits until the scheduler runs it, behind the other processes.
-Measured on ``fixego demo``, 12 runs each way alternated (docs/results.md "Stop 51"): image -> pose p95 median 55.5 ->
-49.5 ms, lower in 8 of the 12 pairs; p50 unchanged. ``fixego replay`` gave the same time and the same bytes either way,
-so only the nodes do this.
+Why one thread: the live pipeline is six to eight processes (the simulated rig, two camera nodes, the flow node, the
+estimator and its smoother child, a recorder) on a machine of a few cores. Each process's work per frame is small
+(Lucas-Kanade on crops, matrices of 6 to a few hundred rows; GTSAM does its own linear algebra), so a second library
+thread rarely has anything to do in parallel with the first; but OpenBLAS and OpenCV start a pool of one thread per
+core in every process, and a call that hands work to a pool thread waits until the scheduler runs it, behind the
+other processes. Measured on ``fixego demo``, 12 runs each way alternated (docs/results.md "Stop 51"): image -> pose
+p95 median 55.5 -> 49.5 ms, lower in 8 of the 12 pairs; p50 unchanged. ``fixego replay`` gave the same time and the
+same bytes either way, so only the nodes do this.
 
 A count the user set (``OPENBLAS_NUM_THREADS`` or ``OMP_NUM_THREADS`` for BLAS, ``OPENCV_FOR_THREADS_NUM`` for
 OpenCV) is kept. The variables are also set for processes started from this one (the estimator's smoother child is
@@ -53,3 +54,17 @@ def limit_threads() -> str:
     parts = [f'one thread for {" and ".join(limited)}'] if limited else []
     parts += [f'{", ".join(kept)} as the environment says'] if kept else []
     return 'compute threads: ' + '; '.join(parts) + missing
+
+
+def portable_opencv() -> None:
+    """Run OpenCV's baseline code paths (``cv2.setUseOptimized(False)``) instead of those it picks for this CPU.
+
+    Why: OpenCV dispatches its SIMD kernels (SSE4, AVX2, AVX-512) and IPP by the CPU it runs on, and those round
+    differently. The front end's corners and flow feed an estimate whose weakly observed directions carry a last-bit
+    difference on (the scale of an unaided walk most of all): at stop 67 the shipped ``walk`` bag replayed 8.1 cm RMS
+    apart between this machine's AVX-512 paths and an SSE3 machine's (``OPENCV_CPU_DISABLE``), 0.0000 cm with the
+    baseline paths, which are the same code on every x86-64 CPU the wheel runs on. The cost, measured with
+    ``fixego_ros.bench.flow`` (full preset, one stereo frame): ~10 -> ~12 ms. Called by ``fixego replay`` and by every
+    node at start-up (:func:`~fixego_ros.nodes.common.spin_node`), so a live rig computes what a replay of its bag
+    computes."""
+    cv2.setUseOptimized(False)

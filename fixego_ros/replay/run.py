@@ -96,6 +96,7 @@ from fixego_ros.pipeline.params import (
     sync_params,
 )
 from fixego_ros.pipeline.sync import StereoSync, SyncedFrame, SyncParams
+from fixego_ros.threads import portable_opencv
 from fixego_ros.tracking.fixation import NO_FIXATION_ID, FixationParams, FixationTracker
 from fixego_ros.tracking.flow import FlowParams
 
@@ -527,7 +528,10 @@ def replay(bag: Bag, rig: Rig, settings: ReplaySettings, topics: ReplayTopics = 
            observe: Callable[[FrameObservation], FrameObservation] | None = None) -> ReplayResult:
     """Run the pipeline over ``bag``; ``progress(images_done)`` is called as it goes. ``workers=2`` runs
     the estimator in a second process (same output, faster on two cores). ``observe`` sees each front-end
-    observation and returns what the estimator gets (diagnostics: :mod:`fixego_ros.bench.oracle`)."""
+    observation and returns what the estimator gets (diagnostics: :mod:`fixego_ros.bench.oracle`). OpenCV runs
+    its portable code paths from here on (:func:`~fixego_ros.threads.portable_opencv`: the same trajectory on any
+    CPU)."""
+    portable_opencv()
     speed_topic = settings.speed.topic
     recorded = settings.fixations is FixationSource.RECORDED
     check_topics(bag, topics, speed_topic, settings.vergence_topic, settings.fixations)
