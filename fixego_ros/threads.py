@@ -64,7 +64,7 @@ def portable_opencv() -> None:
     difference on (the scale of an unaided walk most of all): at stop 67 the shipped ``walk`` bag replayed 8.1 cm RMS
     apart between this machine's AVX-512 paths and an SSE3 machine's (``OPENCV_CPU_DISABLE``), 0.0000 cm with the
     baseline paths, which are the same code on every x86-64 CPU the wheel runs on. The cost, measured with
-    ``fixego_ros.bench.flow`` (full preset, one stereo frame): ~10 -> ~12 ms. Called by ``fixego replay`` and by every
-    node at start-up (:func:`~fixego_ros.nodes.common.spin_node`), so a live rig computes what a replay of its bag
-    computes."""
+    ``fixego_ros.bench.flow`` (full preset, one stereo frame): ~10 -> ~12 ms. Called by ``fixego replay`` only: the
+    nodes keep OpenCV's fast paths, since a live run depends on its timing anyway and its two cores are short (four
+    demo runs on a saturated machine at stop 67: flow_compute p50 33 -> 37-53 ms with every node portable)."""
     cv2.setUseOptimized(False)

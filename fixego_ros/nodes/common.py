@@ -39,7 +39,7 @@ from fixego_ros.pipeline.messages import (  # noqa: F401 - re-exported: nodes im
     stamp_to_sec,
 )
 from fixego_ros.pipeline.params import Getter, ParamsError, ParamSpec
-from fixego_ros.threads import limit_threads, portable_opencv
+from fixego_ros.threads import limit_threads
 
 SENSOR_QOS: QoSProfile = qos_profile_sensor_data
 RELIABLE_QOS = QoSProfile(depth=50)
@@ -206,10 +206,8 @@ def spin_node(factory: Callable[[], Node], args: list[str] | None = None, *,
     code, stays readable); exceptions from ``factory`` propagate after the clean-up. ``images``: the node
     publishes images, so its participant gets the package's Fast DDS profile
     (:func:`~fixego_ros.nodes.dds_profile.use_image_profile`) unless the user set one. Every node computes with one
-    BLAS and one OpenCV thread unless the environment sets a count (:func:`~fixego_ros.threads.limit_threads`), and
-    with OpenCV's portable code paths (:func:`~fixego_ros.threads.portable_opencv`)."""
+    BLAS and one OpenCV thread unless the environment sets a count (:func:`~fixego_ros.threads.limit_threads`)."""
     notes = [limit_threads(), use_image_profile() if images else '']
-    portable_opencv()
     rclpy.init(args=args, domain_id=domain_id)
     node = None
     try:
