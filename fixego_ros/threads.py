@@ -65,6 +65,7 @@ def portable_opencv() -> None:
     apart between this machine's AVX-512 paths and an SSE3 machine's (``OPENCV_CPU_DISABLE``), 0.0000 cm with the
     baseline paths, which are the same code on every x86-64 CPU the wheel runs on. The cost, measured with
     ``fixego_ros.bench.flow`` (full preset, one stereo frame): ~10 -> ~12 ms. Called by ``fixego replay`` only: the
-    nodes keep OpenCV's fast paths, since a live run depends on its timing anyway and its two cores are short (four
-    demo runs on a saturated machine at stop 67: flow_compute p50 33 -> 37-53 ms with every node portable)."""
+    nodes keep OpenCV's fast paths, since a live run depends on its timing anyway and its two cores are short (demo
+    runs on a saturated machine at stop 67: flow_compute p50 53 and 37 ms in two with every node portable, 33 in two
+    without)."""
     cv2.setUseOptimized(False)

@@ -57,6 +57,14 @@ def failed_variable(error: RuntimeError) -> int | None:
     return int(found.group(1)) if found else None
 
 
+def _split_keys(values: gtsam.Values) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The keys (sorted, uint64), and among them those of poses and cameras and those of landmarks (by the symbol's
+    character)."""
+    keys = np.asarray(values.keys(), np.uint64)
+    kind = keys >> np.uint64(56)
+    return keys, keys[(kind == _CHR_POSE) | (kind == _CHR_CAMERA)], keys[kind == _CHR_LANDMARK]
+
+
 def _value(values: gtsam.Values, key: int) -> gtsam.Pose3 | np.ndarray | float:
     """One variable's value, typed (the window holds poses, points and doubles)."""
     if is_landmark(key):
@@ -124,7 +132,7 @@ class FixedLagWindow:
             elif not moved:
                 break
             step += 1
-        self.passes[step + 1 if step < passes else passes] += 1
+        self.passes[min(step + 1, passes)] += 1     # passes made (step is the last one's index after a break)
         if 2 * len(self._keys) > 3 * (len(self._keys) - self._keys.count(None)) + 64:
             self._compact()
 
@@ -224,17 +232,11 @@ class FixedLagWindow:
         delta = tree.optimize()
         self._theta = lin.retract(delta)
         rotation, translation = self.STEP_TOLERANCE
-        for k in self._pose_keys(lin):
-            d = delta.at(k)
+        for k in _split_keys(lin)[1]:
+            d = delta.at(int(k))
             if np.abs(d[:3]).max() > rotation or np.abs(d[3:]).max() > translation:
                 return True
         return False
-
-    @staticmethod
-    def _pose_keys(values: gtsam.Values) -> list[int]:
-        keys = np.asarray(values.keys(), np.uint64)
-        kind = keys >> np.uint64(56)
-        return [int(k) for k in keys[(kind == _CHR_POSE) | (kind == _CHR_CAMERA)]]
 
     def _repair(self, error: RuntimeError, anchored: Counter[int]) -> None:
         key = failed_variable(error)
@@ -295,13 +297,11 @@ class FixedLagWindow:
         if not len(self._views):
             return []
         theta = self._theta
-        keys = np.asarray(theta.keys(), np.uint64)  # sorted
+        keys = _split_keys(theta)[0]
         found = [keys[np.minimum(np.searchsorted(keys, self._views[:, c]), len(keys) - 1)] == self._views[:, c]
                  for c in (1, 2)]
         views = self._views[found[0] & found[1]]
-        kind = keys >> np.uint64(56)                # the symbol's character
-        pose_keys = keys[(kind == _CHR_POSE) | (kind == _CHR_CAMERA)]
-        point_keys = keys[kind == _CHR_LANDMARK]
+        _, pose_keys, point_keys = _split_keys(theta)
         poses, points = gtsam.utilities.extractPose3(theta), gtsam.utilities.extractPoint3(theta)
         if len(poses) != len(pose_keys) or len(points) != len(point_keys):
             return []                               # a variable of another kind: the rows would not match the keys

@@ -59,7 +59,7 @@ class BAProblem:
         dt = np.einsum('kji,kj->ki', self.Ct, np.array([t.ray_t for t in terms]).reshape(k, 3))
         x = dt / dt[:, 2:3]                                        # fixation at t, normalised image
         self.y = np.einsum('kij,kj->ki', self.Ct, x)[:, :, None]   # the same, rotated into rig frame t
-        self.Sv = np.array([skew(v) for v in self.vj]).reshape(k, 3, 3)
+        self.Sv = skew(self.vj)
         self.f = np.array([[t.fx, t.fy] for t in terms]).reshape(k, 2)
         self.c3 = self.c[:, :, None]
 
