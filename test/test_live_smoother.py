@@ -208,6 +208,37 @@ def test_inline_the_smoother_takes_the_child_path_on_keyframes_and_is_determinis
     assert np.array_equal(runs[0], runs[1])
 
 
+@pytest.mark.parametrize('point_first', [True, False], ids=['point-before-frame', 'point-after-frame'])
+def test_inline_the_frame_of_each_vergence_measurement_goes_into_the_graph(loop, point_first):
+    """A measurement names the right fixation point at its frame's stamp. Carried to a neighbouring frame at the
+    nominal scale (before the first one) it can miss that frame's fixation ray and be refused: the 30 Hz walk with a
+    0.2 s gap went without a scale for 1.6 s. So its frame goes in, whether the measurement comes before it (replay
+    reads it first) or right after it; every measurement here lands on a frame that the gap alone leaves out."""
+    config = EstimatorConfig(solver=SolverConfig(sigma=1.0 / F))
+    observations = [dataclasses.replace(o, keyframe=(k % 4 == 0)) for k, o in enumerate(loop.observations)]
+    inline = LiveSmoother(RIG, config, inline=True)
+    inline._conn.MIN_GAP_S = 0.5           # > the 0.2 s frame period: frame 4k + 2 stays out without its point
+    measured = [k for k in range(len(observations)) if k % 4 == 2][:5]
+    for k, obs in enumerate(observations):
+        if point_first and k in measured:
+            inline.add_fixation_point(obs.stamp, 'right', *_vergence(loop, k))
+        inline.update(obs)
+        if not point_first and k in measured:
+            inline.add_fixation_point(obs.stamp, 'right', *_vergence(loop, k))
+    smoother = inline._conn._server.smoother
+    assert smoother._vergence_used == len(measured), smoother.scale_note()
+    assert {observations[k].stamp for k in measured} <= {f.stamp for f in smoother._frames}
+    inline.drain(WAIT_S)
+    assert inline.smoothed_results + inline.frames_skipped == len(observations)
+    left_out = LiveSmoother(RIG, config, inline=True)       # the control: without their points they stay out
+    left_out._conn.MIN_GAP_S = 0.5
+    for obs in observations[:measured[-1] + 1]:
+        left_out.update(obs)
+    assert left_out.frames_skipped >= len(measured)
+    assert not any(f.stamp in {observations[k].stamp for k in measured}
+                   for f in left_out._conn._server.smoother._frames)
+
+
 def test_a_skipped_frame_between_two_smoothed_ones_lies_between_them():
     """Stop 36: a frame the child skipped rode on its reference with the fast pose's step, so each keyframe's revision
     left a jump at the next one and the refined path was a sawtooth (a demo's 6.9 m for the 5.0 m loop). Once the
