@@ -24,7 +24,7 @@ def run(joint_mode: str | None = None) -> dict[str, float]:
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / 'demo'
         env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST', MPLBACKEND='Agg')
-        cmd = [sys.executable, '-m', 'fixego_ros.cli', 'demo', '--out', str(out), '--quiet', '--domain-id',
+        cmd = [sys.executable, '-P', '-m', 'fixego_ros.cli', 'demo', '--out', str(out), '--quiet', '--domain-id',
                str(190 + os.getpid() % 10)]
         if joint_mode:
             cmd += ['--joint-mode', joint_mode]

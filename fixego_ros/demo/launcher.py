@@ -24,14 +24,17 @@ def ros_arg_value(v: object) -> str:
 
 @dataclass
 class NodeSpec:
-    """One node process: ``python -m module --ros-args -r __node:=name -p k:=v ...``."""
+    """One node process: ``python -P -m module --ros-args -r __node:=name -p k:=v ...``. ``-P``: the node imports the
+    package this process imports (``PYTHONPATH`` or the installed one), not a ``fixego_ros`` folder in the working
+    directory. Without it, ``fixego demo`` run from a checkout ran that checkout's nodes whatever ``PYTHONPATH`` said:
+    stop 68's first comparison of two codes ran the same nodes on both sides."""
 
     name: str
     module: str
     params: dict[str, object] = field(default_factory=dict)
 
     def argv(self) -> list[str]:
-        args = [sys.executable, '-m', self.module, '--ros-args', '-r', f'__node:={self.name}']
+        args = [sys.executable, '-P', '-m', self.module, '--ros-args', '-r', f'__node:={self.name}']
         for k, v in self.params.items():
             args += ['-p', f'{k}:={ros_arg_value(v)}']
         return args
