@@ -523,6 +523,9 @@ def test_demo_runs_every_node_as_a_process_and_writes_a_report(tmp_path):
     est_diag = report['diagnostics']['fixego estimator_node']
     assert est_diag['smoother_behind_s'] == '0.00' and float(est_diag['smoother_behind_s_p95']) >= 0.0
     assert 'after the last pose' in (out / 'report.txt').read_text()
+    # how many of the vergence measurements the smoother used (the others it ignored with a note): at most all
+    assert 0 <= int(est_diag['smoother_vergence_used']) <= int(est_diag.get('vergence', 0))
+    assert 'vergence measurements used' in (out / 'report.txt').read_text()
     # how each pose was made: every published frame counted once (carried, solved, predicted...)
     steps = report['fast_pose_steps']
     assert steps and sum(steps.values()) >= int(est_diag['published']) > 0, (steps, est_diag['published'])

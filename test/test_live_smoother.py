@@ -226,10 +226,11 @@ def test_inline_the_frame_of_each_vergence_measurement_goes_into_the_graph(loop,
         if not point_first and k in measured:
             inline.add_fixation_point(obs.stamp, 'right', *_vergence(loop, k))
     smoother = inline._conn._server.smoother
-    assert smoother._vergence_used == len(measured), smoother.scale_note()
+    assert smoother.vergence_used == len(measured), smoother.scale_note()
     assert {observations[k].stamp for k in measured} <= {f.stamp for f in smoother._frames}
     inline.drain(WAIT_S)
     assert inline.smoothed_results + inline.frames_skipped == len(observations)
+    assert inline.vergence_used == len(measured)        # what the node reports on /diagnostics
     left_out = LiveSmoother(RIG, config, inline=True)       # the control: without their points they stay out
     left_out._conn.MIN_GAP_S = 0.5
     for obs in observations[:measured[-1] + 1]:

@@ -189,7 +189,7 @@ def test_bad_frames_and_measurements_are_refused_without_harm(loop):
     for o in obs[8:30]:
         sm.update(o)
     sm.add_fixation_point(obs[2].stamp, 'right', np.array([0.0, 0.0, 3.0]), np.eye(3) * 1e-4)   # long gone
-    assert 'ignored' in sm.scale_note() and not sm.scale_observed
+    assert 'ignored' in sm.scale_note() and not sm.scale_observed and sm.vergence_used == 0
 
 
 def test_the_factory_gives_the_papers_method_on_request():
@@ -251,7 +251,7 @@ def test_a_vergence_point_whose_frame_is_missing_or_lacks_the_camera_is_carried_
             sm.add_fixation_point(pending[0], 'right', pending[1], pending[2])
             pending, given = None, given + 1
     assert given >= 2 and sm.scale_observed           # one at frame 0, the others carried
-    assert f'({given} vergence measurement(s))' in sm.scale_note()
+    assert f'({given} vergence measurement(s))' in sm.scale_note() and sm.vergence_used == given
     assert sm.restarts == 0
 
 
@@ -589,7 +589,7 @@ def test_a_measurement_whose_frame_a_restart_dropped_moves_to_the_new_graph(loop
     rng = np.random.default_rng(0)
     sm.add_fixation_point(obs[5].stamp, 'right', *_vergence(loop, 5, 0.0, rng))
     assert sm.scale_observed and 'ignored' not in sm.scale_note(), sm.scale_note()
-    assert sm._vergence_used == 1
+    assert sm.vergence_used == 1
     stamp, rel_std = sm.scale_measurement
     assert stamp == obs[6].stamp and 0.0 < rel_std < 0.05     # carried one frame (0.2 s at rest-like speed)
 

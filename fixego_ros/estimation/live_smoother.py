@@ -95,12 +95,13 @@ class SmootherState:
     dropped: int = 0
     speed_scale: float = 1.0
     speed_scale_estimated: bool = False
+    vergence_used: int = 0
 
 
 def _state(smoother: Any, skipped: int, error: str) -> SmootherState:
     return SmootherState(smoother.scale_observed, smoother.scale_note(), smoother.scale_measurement,
                          smoother.speed_source_used, skipped, error, smoother.restarts, smoother.repairs,
-                         smoother.dropped, smoother.speed_scale, smoother.speed_scale_estimated)
+                         smoother.dropped, smoother.speed_scale, smoother.speed_scale_estimated, smoother.vergence_used)
 
 
 class _Server:
@@ -351,6 +352,11 @@ class LiveSmoother:
     def dropped(self) -> int:
         """Landmarks the smoother dropped because a pass left them behind a camera that sees them."""
         return self._state.dropped
+
+    @property
+    def vergence_used(self) -> int:
+        """Vergence measurements the smoother has used so far (:attr:`Smoother.vergence_used`)."""
+        return self._state.vergence_used
 
     @property
     def alive(self) -> bool:

@@ -249,6 +249,11 @@ class Smoother:
         return 'the speed source' in self._aids
 
     @property
+    def vergence_used(self) -> int:
+        """Vergence measurements that became factors (since :meth:`reset`; the others were ignored, with a note)."""
+        return self._vergence_used
+
+    @property
     def scale_observed(self) -> bool:
         return bool(self._aids)
 

@@ -592,7 +592,8 @@ class EstimatorNode(Node):
                            **percentile_values('smoother_behind_s', self.behind_s or (0.0,)),
                            'smoother_restarts': self.estimator.restarts,
                            'smoother_repairs': self.estimator.repairs,
-                           'smoother_dropped_landmarks': self.estimator.dropped})
+                           'smoother_dropped_landmarks': self.estimator.dropped,
+                           'smoother_vergence_used': self.estimator.vergence_used})
         if self.last is None:
             level, message = WARN, 'no observation yet'
         else:
