@@ -297,11 +297,10 @@ class FixedLagWindow:
         if not len(self._views):
             return []
         theta = self._theta
-        keys = _split_keys(theta)[0]
+        keys, pose_keys, point_keys = _split_keys(theta)
         found = [keys[np.minimum(np.searchsorted(keys, self._views[:, c]), len(keys) - 1)] == self._views[:, c]
                  for c in (1, 2)]
         views = self._views[found[0] & found[1]]
-        _, pose_keys, point_keys = _split_keys(theta)
         poses, points = gtsam.utilities.extractPose3(theta), gtsam.utilities.extractPoint3(theta)
         if len(poses) != len(pose_keys) or len(points) != len(point_keys):
             return []                               # a variable of another kind: the rows would not match the keys

@@ -212,13 +212,12 @@ class _Inline:
         if kind is Message.POINT and self._held is not None and self._server.wanted(self._held.stamp, [message]):
             self._take(Message.FRAME, self._held)   # the measurement came just after its frame: that frame goes in
             self._server.skipped -= 1
-        if kind is Message.FRAME:
-            self._held = None
-            if not payload.keyframe and payload.stamp < self._last + self.MIN_GAP_S - STAMP_TOLERANCE_S \
-                    and not self._server.wanted(payload.stamp):
-                self._server.skip()
-                self._held = payload
-                return
+        if kind is Message.FRAME and not payload.keyframe \
+                and payload.stamp < self._last + self.MIN_GAP_S - STAMP_TOLERANCE_S \
+                and not self._server.wanted(payload.stamp):
+            self._server.skip()
+            self._held = payload        # (a frame that goes in clears it in _take)
+            return
         self._take(kind, payload)
 
     def _take(self, kind: Message, payload: Any) -> None:

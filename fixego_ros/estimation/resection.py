@@ -15,10 +15,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from fixego_ros.estimation.factors import Projection
 from fixego_ros.estimation.twoframe import levenberg_marquardt
 from fixego_ros.geometry.rotation import Pose, skew
-
-MIN_DEPTH = 1e-3        # a point this close to (or behind) a camera's image plane has no pixel there
 
 
 @dataclass(frozen=True)
@@ -41,7 +40,7 @@ class Sightings:
         d = self.points - T                                 # world offset from the rig origin
         pc = np.einsum('nij,nj->ni', CT, d @ R - self.centers)      # (d @ R: rows R^T (P - t))
         z = pc[:, 2]
-        front = z > MIN_DEPTH
+        front = z > Projection.MIN_DEPTH          # the smoother's pixels: no pixel this close to the image plane
         zs = np.where(front, z, 1.0)
         fx, fy = self.focal[:, 0], self.focal[:, 1]
         r = (self.focal * pc[:, :2] / zs[:, None] - self.pixels) / sigma
