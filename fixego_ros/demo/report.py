@@ -335,7 +335,9 @@ def write_report(out: Path, rec, t_start: float, run_args: dict[str, Any],
         done = report['smoother_done_after_last_pose_s']
         lines.append(f'  smoother: {est["smoother_restarts"]} restarts, {est.get("smoother_repairs", "?")} repairs, '
                      f'{est.get("smoother_dropped_landmarks", "?")} landmarks dropped behind a camera, '
-                     f'{est.get("smoother_vergence_used", "?")} vergence measurements used; its newest '
+                     f'{est.get("smoother_vergence_used", "?")} vergence measurements used, '
+                     f'{est.get("smoother_results", "?")} frames smoothed and '
+                     f'{est.get("smoother_skipped_frames", "?")} left out to keep up; its newest '
                      f'result behind the newest frame p50 {est.get("smoother_behind_s_p50", "?")} / p95 '
                      f'{est.get("smoother_behind_s_p95", "?")} s (last 300 frames); '
                      + (f'done {done:.1f} s after the last pose' if done is not None
