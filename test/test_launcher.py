@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import subprocess
+import sys
 
 from fixego_ros.demo.launcher import NodeSpec
 
@@ -24,6 +25,6 @@ def test_a_node_started_in_a_folder_with_another_fixego_ros_imports_this_one(tmp
     done = _run_from(tmp_path, 'fixego_ros.geometry.rotation')
     assert done.returncode == 0, done.stderr
     # the control: a plain ``python -m`` there takes the decoy
-    plain = subprocess.run([NodeSpec('probe', '').argv()[0], '-m', 'fixego_ros.geometry.rotation'], cwd=tmp_path,
+    plain = subprocess.run([sys.executable, '-m', 'fixego_ros.geometry.rotation'], cwd=tmp_path,
                            capture_output=True, text=True, timeout=60)
     assert plain.returncode == 3

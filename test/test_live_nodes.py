@@ -528,7 +528,7 @@ def test_demo_runs_every_node_as_a_process_and_writes_a_report(tmp_path):
     assert 'vergence measurements used' in (out / 'report.txt').read_text()
     # how many frames the child smoothed and how many it left out to keep up, as the report says
     smoothed, left_out = int(est_diag['smoother_results']), int(est_diag['smoother_skipped_frames'])
-    assert smoothed > 0 and left_out >= 0
+    assert smoothed > 0
     assert f'{smoothed} frames smoothed and {left_out} left out to keep up' in (out / 'report.txt').read_text()
     # how each pose was made: every published frame counted once (carried, solved, predicted...)
     steps = report['fast_pose_steps']

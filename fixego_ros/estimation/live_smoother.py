@@ -99,9 +99,11 @@ class SmootherState:
 
 
 def _state(smoother: Any, skipped: int, error: str) -> SmootherState:
-    return SmootherState(smoother.scale_observed, smoother.scale_note(), smoother.scale_measurement,
-                         smoother.speed_source_used, skipped, error, smoother.restarts, smoother.repairs,
-                         smoother.dropped, smoother.speed_scale, smoother.speed_scale_estimated, smoother.vergence_used)
+    return SmootherState(scale_observed=smoother.scale_observed, scale_note=smoother.scale_note(),
+                         scale_measurement=smoother.scale_measurement, speed_source_used=smoother.speed_source_used,
+                         frames_skipped=skipped, last_error=error, restarts=smoother.restarts,
+                         repairs=smoother.repairs, dropped=smoother.dropped, speed_scale=smoother.speed_scale,
+                         speed_scale_estimated=smoother.speed_scale_estimated, vergence_used=smoother.vergence_used)
 
 
 class _Server:
