@@ -120,10 +120,10 @@ def _say(args: argparse.Namespace, text: str) -> None:
 
 def _run(args: argparse.Namespace, out: Path, rig_path: Path, launcher) -> int:
     import rclpy
-    from rclpy.experimental import EventsExecutor
 
     from fixego_ros.demo.cpu import CpuSampler
     from fixego_ros.demo.launcher import NodeSpec, wait_for
+    from fixego_ros.nodes.common import events_executor
     from fixego_ros.nodes.demo_recorder import Recorder
 
     pty_file = out / 'ptys.json'
@@ -159,7 +159,7 @@ def _run(args: argparse.Namespace, out: Path, rig_path: Path, launcher) -> int:
 
     rclpy.init()
     node = Recorder()
-    ex = EventsExecutor()
+    ex = events_executor(node.context)
     ex.add_node(node)
     spin = lambda s: ex.spin_once(timeout_sec=s)  # noqa: E731
     try:

@@ -71,6 +71,7 @@ from fixego_ros.nodes.common import (
     array_to_image,
     declare_parameters,
     diagnostic_status,
+    events_executor,
     image_to_gray,
     in_namespace,
     percentile_values,
@@ -738,7 +739,7 @@ class CameraNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    return run_node(CameraNode, 'camera_node', args, images=True)
+    return run_node(CameraNode, 'camera_node', args, images=True, executor=events_executor)
 
 
 if __name__ == '__main__':

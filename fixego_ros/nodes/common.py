@@ -17,12 +17,13 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Pose as PoseMsg
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType, SetParametersResult
+from rclpy.context import Context
 from rclpy.exceptions import (
     InvalidParameterTypeException,
     InvalidParameterValueException,
     ParameterUninitializedException,
 )
-from rclpy.executors import ExternalShutdownException
+from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, qos_profile_sensor_data
@@ -198,30 +199,43 @@ def set_timer_period(timer, period_s: float) -> None:
 SETUP_ERRORS: tuple[type[Exception], ...] = (ParamsError, RigError)
 
 
+def events_executor(context: Context) -> Executor:
+    """rclpy's C++ ``EventsExecutor`` (``rclpy.experimental``): its wait for work and dispatch cost a fraction of the
+    Python ``SingleThreadedExecutor``'s, which re-builds its wait set on every wake (the camera nodes wake ~100 times a
+    second for images and timers). Not for a node whose subscriptions take the middleware's message info (it does not
+    pass it: ``SystemError: null argument to internal routine``)."""
+    from rclpy.experimental import EventsExecutor
+    return EventsExecutor(context=context)
+
+
 def spin_node(factory: Callable[[], Node], args: list[str] | None = None, *,
               finished: Callable[[Node], bool] | None = None, domain_id: int | None = None,
-              images: bool = False) -> Node | None:
+              images: bool = False, executor: Callable[[Context], Executor] | None = None) -> Node | None:
     """``main`` of a node: init, spin until Ctrl-C, shutdown or ``finished(node)`` (for nodes that end by
     themselves), destroy the node, shut down. Returns the destroyed node (what it recorded, e.g. an exit
     code, stays readable); exceptions from ``factory`` propagate after the clean-up. ``images``: the node
     publishes images, so its participant gets the package's Fast DDS profile
     (:func:`~fixego_ros.nodes.dds_profile.use_image_profile`) unless the user set one. Every node computes with one
-    BLAS and one OpenCV thread unless the environment sets a count (:func:`~fixego_ros.threads.limit_threads`)."""
+    BLAS and one OpenCV thread unless the environment sets a count (:func:`~fixego_ros.threads.limit_threads`).
+    ``executor``: makes the node's executor from its context (default ``SingleThreadedExecutor``; see
+    :func:`events_executor`). It is spun a bounded 0.1 s at a time until the context shuts down (Ctrl-C, SIGTERM):
+    ``EventsExecutor.spin()`` went on spinning after SIGTERM."""
     notes = [limit_threads(), use_image_profile() if images else '']
     rclpy.init(args=args, domain_id=domain_id)
-    node = None
+    node, ex = None, None
     try:
         node = factory()
         for note in filter(None, notes):
             node.get_logger().info(note)
-        if finished is None:
-            rclpy.spin(node)
-        else:
-            while rclpy.ok() and not finished(node):
-                rclpy.spin_once(node, timeout_sec=0.1)
+        ex = (executor or (lambda c: SingleThreadedExecutor(context=c)))(node.context)
+        ex.add_node(node)
+        while node.context.ok() and not (finished is not None and finished(node)):
+            ex.spin_once(timeout_sec=0.1)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
+        if ex is not None:
+            ex.shutdown(timeout_sec=1.0)
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
@@ -229,11 +243,12 @@ def spin_node(factory: Callable[[], Node], args: list[str] | None = None, *,
 
 
 def run_node(factory: Callable[[], Node], prog: str, args: list[str] | None = None, *,
-             finished: Callable[[Node], bool] | None = None, images: bool = False) -> int:
+             finished: Callable[[Node], bool] | None = None, images: bool = False,
+             executor: Callable[[Context], Executor] | None = None) -> int:
     """:func:`spin_node` for a node's ``main``: a bad parameter or rig file ends it with one line on stderr
     (``prog: parameter NAME: VALUE ... (allowed: ...)``) and exit code 2, not a traceback; 0 otherwise."""
     try:
-        spin_node(factory, args, finished=finished, images=images)
+        spin_node(factory, args, finished=finished, images=images, executor=executor)
     except SETUP_ERRORS as e:
         print(f'{prog}: {e}', file=sys.stderr)
         return 2

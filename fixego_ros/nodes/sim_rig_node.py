@@ -44,6 +44,7 @@ from fixego_ros.nodes.common import (
     array_to_image,
     declare_parameters,
     diagnostic_status,
+    events_executor,
     in_namespace,
     publish_diagnostics,
     run_node,
@@ -248,7 +249,8 @@ class SimRigNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    return run_node(SimRigNode, 'sim_rig_node', args, finished=lambda n: n.finished, images=True)
+    return run_node(SimRigNode, 'sim_rig_node', args, finished=lambda n: n.finished, images=True,
+                    executor=events_executor)
 
 
 if __name__ == '__main__':
