@@ -530,6 +530,10 @@ def test_demo_runs_every_node_as_a_process_and_writes_a_report(tmp_path):
     smoothed, left_out = int(est_diag['smoother_results']), int(est_diag['smoother_skipped_frames'])
     assert smoothed > 0
     assert f'{smoothed} frames smoothed and {left_out} left out to keep up' in (out / 'report.txt').read_text()
+    # and what each took in the child (its own time per frame)
+    assert 0.0 < float(est_diag['smoother_update_ms_p50']) <= float(est_diag['smoother_update_ms_p95'])
+    assert (f'p50 {est_diag["smoother_update_ms_p50"]} / p95 {est_diag["smoother_update_ms_p95"]} ms per frame '
+            'smoothed') in (out / 'report.txt').read_text()
     # how each pose was made: every published frame counted once (carried, solved, predicted...)
     steps = report['fast_pose_steps']
     assert steps and sum(steps.values()) >= int(est_diag['published']) > 0, (steps, est_diag['published'])

@@ -72,6 +72,8 @@ def test_the_path_is_the_in_process_smoothers(loop, live):
     assert np.max(np.abs(path - expected)) < 1e-9
     assert live.frames_skipped == 0 and live.smoothed_results == len(loop.observations)
     assert results[-1].scale_observed and 'vergence' in results[-1].scale_note
+    # the child's own time for each frame it answered (/diagnostics smoother_update_ms): one each, positive
+    assert len(live.update_ms) == len(loop.observations) and all(0.0 < ms < 1e3 * WAIT_S for ms in live.update_ms)
 
 
 def test_every_frame_gets_a_pose_at_once_and_it_follows_the_smoother(loop, live):

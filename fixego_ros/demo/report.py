@@ -337,7 +337,9 @@ def write_report(out: Path, rec, t_start: float, run_args: dict[str, Any],
                      f'{est.get("smoother_dropped_landmarks", "?")} landmarks dropped behind a camera, '
                      f'{est.get("smoother_vergence_used", "?")} vergence measurements used, '
                      f'{est.get("smoother_results", "?")} frames smoothed and '
-                     f'{est.get("smoother_skipped_frames", "?")} left out to keep up; its newest '
+                     f'{est.get("smoother_skipped_frames", "?")} left out to keep up, '
+                     f'p50 {est.get("smoother_update_ms_p50", "?")} / p95 {est.get("smoother_update_ms_p95", "?")} '
+                     f'ms per frame smoothed; its newest '
                      f'result behind the newest frame p50 {est.get("smoother_behind_s_p50", "?")} / p95 '
                      f'{est.get("smoother_behind_s_p95", "?")} s (last 300 frames); '
                      + (f'done {done:.1f} s after the last pose' if done is not None

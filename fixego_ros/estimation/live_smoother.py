@@ -96,14 +96,17 @@ class SmootherState:
     speed_scale: float = 1.0
     speed_scale_estimated: bool = False
     vergence_used: int = 0
+    update_ms: float = 0.0      # the smoother's own time for the frame this state came with (its process's CPU share
+                                # decides how far behind that puts it)
 
 
-def _state(smoother: Any, skipped: int, error: str) -> SmootherState:
+def _state(smoother: Any, skipped: int, error: str, update_ms: float) -> SmootherState:
     return SmootherState(scale_observed=smoother.scale_observed, scale_note=smoother.scale_note(),
                          scale_measurement=smoother.scale_measurement, speed_source_used=smoother.speed_source_used,
                          frames_skipped=skipped, last_error=error, restarts=smoother.restarts,
                          repairs=smoother.repairs, dropped=smoother.dropped, speed_scale=smoother.speed_scale,
-                         speed_scale_estimated=smoother.speed_scale_estimated, vergence_used=smoother.vergence_used)
+                         speed_scale_estimated=smoother.speed_scale_estimated, vergence_used=smoother.vergence_used,
+                         update_ms=update_ms)
 
 
 class _Server:
@@ -144,8 +147,10 @@ class _Server:
                 self.error = str(e)
         elif kind is Message.FRAME:
             self._points = [s for s in self._points if s > payload.stamp + STAMP_TOLERANCE_S]
+            t = time.perf_counter()
             result = smoother.update(payload)
-            return replace(result, twoframe=None, ba=None), _state(smoother, self.skipped, self.error)
+            update_ms = (time.perf_counter() - t) * 1e3
+            return replace(result, twoframe=None, ba=None), _state(smoother, self.skipped, self.error, update_ms)
         return None
 
 
@@ -288,6 +293,7 @@ class LiveSmoother:
                 self._process.start()
             child.close()
         self.smoothed_results = 0
+        self.update_ms: deque[float] = deque(maxlen=300)   # the smoother's time per frame it answered (newest last)
         self._local_reset()
 
     # ------------------------------------------------------------------------------------------- interface
@@ -544,6 +550,7 @@ class LiveSmoother:
         self._state = state
         self._answered += 1
         self.smoothed_results += 1
+        self.update_ms.append(state.update_ms)
         if not result.placed:
             return 1
         self._smoothed_stamp = result.stamp

@@ -590,6 +590,7 @@ class EstimatorNode(Node):
                            'smoother_skipped_frames': self.estimator.frames_skipped,
                            'smoother_behind_s': f'{self.estimator.behind_s:.2f}',
                            **percentile_values('smoother_behind_s', self.behind_s or (0.0,)),
+                           **percentile_values('smoother_update_ms', self.estimator.update_ms or (0.0,)),
                            'smoother_restarts': self.estimator.restarts,
                            'smoother_repairs': self.estimator.repairs,
                            'smoother_dropped_landmarks': self.estimator.dropped,
