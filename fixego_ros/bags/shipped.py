@@ -112,6 +112,10 @@ def _differences(x, y, path: str = '') -> list[str]:
         if not isinstance(y, (list, tuple)) or len(x) != len(y):
             return [f'{path}: length differs']
         return [d for i, (u, v) in enumerate(zip(x, y, strict=True)) for d in _differences(u, v, f'{path}[{i}]')]
+    if isinstance(x, dict):
+        if not isinstance(y, dict) or list(x) != list(y):
+            return [f'{path}: keys differ']
+        return [d for k in x for d in _differences(x[k], y[k], f'{path}.{k}' if path else str(k))]
     if hasattr(x, '__dataclass_fields__'):
         if type(x).__name__ != type(y).__name__:
             return [f'{path}: type differs']
@@ -135,6 +139,8 @@ def compare(a: Path, b: Path) -> list[str]:
     string and field layout must match exactly."""
     from itertools import zip_longest
 
+    import yaml
+
     from fixego_ros.bags.reader import Bag
     problems = []
     ba, bb = Bag(a), Bag(b)
@@ -150,9 +156,9 @@ def compare(a: Path, b: Path) -> list[str]:
                 problems.append(f'message {i} ({x.topic} at {x.log_time_ns} ns): {diff[0]}')
         if len(problems) > 5:
             break
-    for extra in ('rig.yaml', 'sim.yaml'):
-        if (a / extra).read_bytes() != (b / extra).read_bytes():
-            problems.append(f'{extra} differs')
+    for extra in ('rig.yaml', 'sim.yaml'):     # numbers the simulator measured (vergence steps) round by CPU too
+        x, y = (yaml.safe_load((d / extra).read_text()) for d in (a, b))
+        problems += [f'{extra}: {d}' for d in _differences(x, y)[:1]]
     problems += _tum_differences(a / 'ground_truth.tum', b / 'ground_truth.tum')
     return problems
 

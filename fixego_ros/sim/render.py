@@ -49,7 +49,14 @@ def project_points(rig: Rig, side: str, rig_pose: Pose, pan_reading: float, tilt
 
 
 def _clip_polygon(poly: np.ndarray, planes: np.ndarray) -> np.ndarray:
-    """Sutherland-Hodgman: keep the part of a convex 3D polygon with ``m . p + k >= 0`` for each (m, k)."""
+    """Sutherland-Hodgman: keep the part of a convex 3D polygon with ``m . p + k >= 0`` for each (m, k). A polygon
+    wholly outside one plane is empty, one wholly inside every plane is itself: both decided from one product, as most
+    of a room's rectangles are one or the other in each frame (the loop below cost ~20 % of a render)."""
+    s_all = poly @ planes[:, :3].T + planes[:, 3]
+    if (s_all < 0).all(axis=0).any():
+        return poly[:0]
+    if (s_all >= 0).all():
+        return poly
     for plane in planes:
         if len(poly) == 0:
             break
