@@ -30,10 +30,11 @@ def ros_context():
             rclpy.shutdown(context=ctx)
 
 
-def executor_for(context, *nodes):
-    """A SingleThreadedExecutor on ``context`` spinning ``nodes`` (the node under test and its peers)."""
+def executor_for(context, *nodes, factory=None):
+    """A SingleThreadedExecutor on ``context`` spinning ``nodes`` (the node under test and its peers), or the one
+    ``factory(context)`` makes (a node's own, e.g. ``events_executor``)."""
     from rclpy.executors import SingleThreadedExecutor
-    ex = SingleThreadedExecutor(context=context)
+    ex = SingleThreadedExecutor(context=context) if factory is None else factory(context)
     for n in nodes:
         ex.add_node(n)
     return ex

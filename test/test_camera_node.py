@@ -29,7 +29,13 @@ from std_srvs.srv import Trigger  # noqa: E402
 from fixego_ros.bench.servo import SyntheticView  # noqa: E402
 from fixego_ros.geometry.rig import CameraModel, Rig  # noqa: E402
 from fixego_ros.nodes.camera_node import CameraNode  # noqa: E402
-from fixego_ros.nodes.common import RELIABLE_QOS, SENSOR_QOS, array_to_image, sec_to_stamp  # noqa: E402
+from fixego_ros.nodes.common import (  # noqa: E402
+    RELIABLE_QOS,
+    SENSOR_QOS,
+    array_to_image,
+    events_executor,
+    sec_to_stamp,
+)
 from fixego_ros.pipeline.messages import stamp_to_sec  # noqa: E402
 from fixego_ros.visca.emulator import ViscaEmulator  # noqa: E402
 
@@ -47,7 +53,9 @@ def _mono(node) -> float:
     return node.get_clock().now().nanoseconds * 1e-9
 
 
-def test_active_node_converges_and_publishes_consistent_joint_states(ros_context, rig_file):
+@pytest.mark.parametrize('factory', [None, events_executor], ids=['single_threaded', 'events'])
+def test_active_node_converges_and_publishes_consistent_joint_states(ros_context, rig_file, factory):
+    """On the Python executor and on the C++ one the node's main() spins it with."""
     emu = ViscaEmulator('evi_d30', baud=9600, start_pan_deg=0.0)
     port = emu.start()
     node = CameraNode(context=ros_context, parameter_overrides=[
@@ -56,7 +64,7 @@ def test_active_node_converges_and_publishes_consistent_joint_states(ros_context
     scene = DriftingView(ros_context, node, emu, seed=3)
     peer, fixes, joints, truth, view, publish_frame = (scene.peer, scene.fixes, scene.joints, scene.truth, scene.view,
                                                        scene.publish_frame)
-    ex = executor_for(ros_context, node, peer)
+    ex = executor_for(ros_context, node, peer, factory=factory)
     import time
     try:
         spin_until(ex, lambda: publish_frame() or time.monotonic() - scene.t0 > 4.0, timeout_s=10.0, step_s=0.005)

@@ -41,10 +41,12 @@ def _read_until_completion(port, timeout_s: float = 5.0) -> list[bytes]:
     raise AssertionError(f'no completion within {timeout_s} s; got {[p.hex() for p in packets]}')
 
 
-def test_images_follow_visca_commands(ros_context, tmp_path):
+@pytest.mark.parametrize('events', [False, True], ids=['single_threaded', 'events'])
+def test_images_follow_visca_commands(ros_context, tmp_path, events):
+    """On the Python executor and on the C++ one the node's main() spins it with."""
     from sensor_msgs.msg import CameraInfo, Image, JointState
 
-    from fixego_ros.nodes.common import RELIABLE_QOS, SENSOR_QOS, image_to_gray
+    from fixego_ros.nodes.common import RELIABLE_QOS, SENSOR_QOS, events_executor, image_to_gray
     from fixego_ros.nodes.sim_rig_node import SimRigNode
 
     pty_file = tmp_path / 'ptys.json'
@@ -56,7 +58,7 @@ def test_images_follow_visca_commands(ros_context, tmp_path):
     node = SimRigNode(context=ros_context, parameter_overrides=overrides)
     links = {side: tmp_path / 'links' / 'run' / side for side in ('right', 'left')}
     probe = rclpy.create_node('probe', context=ros_context)
-    ex = executor_for(ros_context, node, probe)
+    ex = executor_for(ros_context, node, probe, factory=events_executor if events else None)
     images: dict[str, list[Image]] = {'right': [], 'left': []}
     infos: list[CameraInfo] = []
     for side in images:

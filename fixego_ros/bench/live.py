@@ -39,9 +39,11 @@ def run(joint_mode: str | None = None) -> dict[str, float]:
     for stage, v in rep.get('latency_stages_ms', {}).items():
         res.update({f'stage_{stage}_{q}_ms': v[q] for q in ('p50', 'p95') if q in v})
     est = rep.get('diagnostics', {}).get('fixego estimator_node', {})
-    for q in ('p50', 'p95'):         # the smoother process's lag behind the newest frame (s)
+    for q in ('p50', 'p95'):         # the smoother process's lag behind the newest frame (s), its time per frame
         if f'smoother_behind_s_{q}' in est:
             res[f'smoother_behind_{q}_s'] = float(est[f'smoother_behind_s_{q}'])
+        if f'smoother_update_ms_{q}' in est:
+            res[f'smoother_update_{q}_ms'] = float(est[f'smoother_update_ms_{q}'])
     steps = rep.get('fast_pose_steps', {})
     if steps:                        # carried on the smoother's velocity (cheap) or solved (it too far behind)
         res['poses_carried_share'] = steps.get('carried', 0) / sum(steps.values())
