@@ -227,7 +227,7 @@ def spin_node(factory: Callable[[], Node], args: list[str] | None = None, *,
         node = factory()
         for note in filter(None, notes):
             node.get_logger().info(note)
-        ex = (executor or (lambda c: SingleThreadedExecutor(context=c)))(node.context)
+        ex = SingleThreadedExecutor(context=node.context) if executor is None else executor(node.context)
         ex.add_node(node)
         while node.context.ok() and not (finished is not None and finished(node)):
             ex.spin_once(timeout_sec=0.1)

@@ -143,7 +143,7 @@ class Renderer:
                 groups.setdefault(p.group, []).append(p)
         out = {}
         for g, planes in groups.items():
-            pts = np.concatenate([p.corners() for p in planes])
+            pts = np.concatenate([p.corners for p in planes])
             out[g] = (pts.min(axis=0), pts.max(axis=0), planes)
         return out
 
@@ -186,7 +186,7 @@ class Renderer:
                     canvas: _Canvas) -> None:
         if float(np.dot(p.normal, eye - p.origin)) <= 1e-9:
             return  # back face (or edge-on)
-        poly = _clip_polygon(p.corners() @ A.T + b, canvas.frustum)
+        poly = _clip_polygon(p.corners @ A.T + b, canvas.frustum)
         if len(poly) < 3:
             return
         K = canvas.K

@@ -22,6 +22,11 @@ import cv2
 import numpy as np
 
 
+def _frozen(a: np.ndarray) -> np.ndarray:
+    a.setflags(write=False)
+    return a
+
+
 @dataclass
 class Plane:
     """A textured rectangle ``origin + a * u + b * v`` with ``0 <= a <= width``, ``0 <= b <= height``.
@@ -43,21 +48,18 @@ class Plane:
     tint: np.ndarray | None = None  # low-resolution (h, w, 3) float32 colour gains, for rgb8
     _pyramid: dict[tuple[int, bool], np.ndarray] = field(default_factory=dict, repr=False)
 
-    # Cached: a plane does not move, and the renderer asks for both on every plane of every frame (np.cross alone
-    # was ~40 % of a 640x480 frame's render time).
+    # Cached (read-only): a plane does not move, and the renderer asks for both on every plane of every frame
+    # (np.cross alone was ~40 % of a 640x480 frame's render time).
     @functools.cached_property
     def normal(self) -> np.ndarray:
         n = np.cross(self.v, self.u)  # u = viewer's right, v = down: the visible side faces v x u
-        return n / np.linalg.norm(n)
+        return _frozen(n / np.linalg.norm(n))
 
     @functools.cached_property
-    def _corners(self) -> np.ndarray:
-        o, a, b = self.origin, self.u * self.width, self.v * self.height
-        return np.array([o, o + a, o + a + b, o + b])
-
     def corners(self) -> np.ndarray:
         """The four corners (4, 3) in order around the rectangle."""
-        return self._corners.copy()
+        o, a, b = self.origin, self.u * self.width, self.v * self.height
+        return _frozen(np.array([o, o + a, o + a + b, o + b]))
 
     def texture_level(self, level: int, rgb: bool) -> np.ndarray:
         """Texture at pyramid ``level`` (each level halves resolution), grey or rgb; cached."""
