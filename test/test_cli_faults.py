@@ -92,6 +92,7 @@ DEMO_NUMBERS = [
 ]
 for opt, raw, arg in DEMO_NUMBERS:
     CASES[f'demo{arg}'] = ([*DEMO, arg], opt, raw, 'fixego demo')
+CASES['demo--profile=evi_x'] = ([*DEMO, '--profile=evi_x'], '--profile', 'evi_x', 'fixego demo')
 
 PLAY = ['play', str(Path(__file__).resolve().parents[1] / 'bags' / 'walk'), '--delay', '0']
 for opt, raw, arg in [*_numeric('--rate', '1e-300 -1 nan inf 1e308'), *_numeric('--start-offset', '1e308 nan -1'),

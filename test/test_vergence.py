@@ -352,6 +352,32 @@ def test_on_a_turning_rig_the_aim_leads_the_point_and_the_step_measures(room, mo
     assert 'centring' in kinds or not stale.succeeded, stale.timeline
 
 
+def test_a_move_past_the_interruption_bound_is_not_made(room, monkeypatch):
+    """A rig turning at 10 deg/s with the aim's lead taken out (the test above): the partner point is found ~6 deg
+    off the centre and needs a centring move. With a bound that admits the 49 deg trip there and back (predicted
+    1.46 s) but not the centring move on top, the step gives up at the search and the head returns: the left
+    fixation is interrupted about the trip alone, within the bound. The default bound makes the centring move and
+    measures (its return is shorter than predicted: the rig turned the heads' directions closer meanwhile)."""
+    rig, world, renderer = room
+    pose0 = make_trajectory('paper').pose_at(0.0)
+    rate = math.radians(10.0)
+    pose_of_t = lambda t: Pose(pose0.R @ rot_y(rate * t), pose0.t)   # noqa: E731
+    monkeypatch.setattr(VergenceStep, '_led', lambda self, point, t_seen, t_then: point)
+    steps = {}
+    for bound in (1.5, VergenceParams().max_interruption_s):
+        heads = _SimHeads(rig, world, renderer, pose_of_t, (22.5, 0.0), (-22.5, 0.0))
+        step = VergenceStep(rig, JointHistory(), VergenceParams(prior_depth_m=3.0, max_interruption_s=bound),
+                            left_range=((-1.7, 1.7), (-0.4, 0.4)))
+        heads.run(step, 150)
+        steps[bound] = step
+        print(f'bound {bound} s: interrupted {step.interrupted_s:.2f} s, {step.status}, timeline {step.timeline}')
+    tight, default = steps.values()
+    kinds = [what for what, _ in tight.timeline]
+    assert not tight.succeeded and 'max_interruption_s 1.5 s' in tight.reason and 'centring' not in kinds
+    assert tight.finished and 0.8 < tight.interrupted_s <= 1.5
+    assert 'centring' in [what for what, _ in default.timeline]
+
+
 def test_frames_whose_rays_turned_too_parallel_are_left_out_not_the_step(room):
     """The rig turns at 30 deg/s and the heads, looking 66 deg aside, turn with it towards the baseline's line: the
     rays of the later frames meet at under 0.5 deg. Those frames are left out and the step measures with the
@@ -424,17 +450,17 @@ def test_a_right_reselection_while_averaging_uses_the_frames_before_it_or_fails(
     assert not short.succeeded and 're-selected' in short.reason and short.finished
 
 
-@pytest.mark.parametrize(('right_pan', 'pan_max', 'max_turn_deg', 'why'),
-                         [(22.5, 0.2, 60.0, "beyond the left head's range"), (22.5, 1.7, 30.0, 'too long a trip'),
-                          (85.0, 1.7, 200.0, 'nearly along the baseline')])
-def test_a_point_out_of_range_or_too_far_fails_before_the_head_leaves(room, right_pan, pan_max, max_turn_deg, why):
-    """The right point is ~50 deg from where the left head looks: beyond a head limited to pan 11 deg, or further
-    than a 30 deg trip; or the right head looks 5 deg off the baseline's line (vergence ~0.3 deg, where an arc
-    turns the heads): refused without moving the head (no interruption)."""
+@pytest.mark.parametrize(('right_pan', 'pan_max', 'bound_s', 'why'),
+                         [(22.5, 0.2, 1.8, "beyond the left head's range"), (22.5, 1.7, 1.2, 'too long a trip'),
+                          (85.0, 1.7, 10.0, 'nearly along the baseline')])
+def test_a_point_out_of_range_or_too_far_fails_before_the_head_leaves(room, right_pan, pan_max, bound_s, why):
+    """The right point is 49 deg from where the left head looks: beyond a head limited to pan 11 deg, or too far
+    for 1.2 s there and back at 80 deg/s (predicted 1.46 s); or the right head looks 5 deg off the baseline's line
+    (vergence ~0.3 deg, where an arc turns the heads): refused without moving the head (no interruption)."""
     rig, world, renderer = room
     pose0 = make_trajectory('paper').pose_at(0.0)
     heads = _SimHeads(rig, world, renderer, lambda t: pose0, (right_pan, 0.0), (-22.5, 0.0))
-    step = VergenceStep(rig, JointHistory(), VergenceParams(max_turn_deg=max_turn_deg),
+    step = VergenceStep(rig, JointHistory(), VergenceParams(max_interruption_s=bound_s),
                         left_range=((-1.7, pan_max), (-0.4, 0.4)))
     heads.run(step, 30)
     assert step.finished and not step.succeeded and why in step.reason

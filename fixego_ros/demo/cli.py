@@ -27,6 +27,7 @@ from fixego_ros.sim.cli import image_size, read_rig
 from fixego_ros.sim.run import DURATION_MAX, FPS_RANGE, SEED_MAX, SIZE_RANGE, resize_rig
 from fixego_ros.sim.trajectories import NAMES, REST_RANGE
 from fixego_ros.tracking.joint_prediction import MODES as JOINT_MODES
+from fixego_ros.visca.profiles import PROFILES
 
 PROG = 'fixego demo'
 READY_TIMEOUT_MAX = 3600.0     # s
@@ -57,6 +58,9 @@ def register(subparsers) -> None:
     p.add_argument('--joint-mode', choices=JOINT_MODES,
                    help="camera nodes' joint states: predict (at once) or wait (for the next reading) (default: "
                         "camera_node's)")
+    p.add_argument('--profile', choices=tuple(PROFILES),
+                   help="VISCA camera model of the emulated heads and the camera nodes (their speeds bound how long "
+                        "a vergence step interrupts the left fixation; default: camera_node's)")
     p.add_argument('--seed', type=int, default=0, help=f'seed of the simulated world, 0..{SEED_MAX}')
     p.add_argument('--domain-id', type=int,
                    help='ROS_DOMAIN_ID for every process, {}..{} (default: inherited)'.format(*ROS_DOMAIN_IDS))
@@ -128,11 +132,13 @@ def _run(args: argparse.Namespace, out: Path, rig_path: Path, launcher) -> int:
 
     pty_file = out / 'ptys.json'
     pty_file.unlink(missing_ok=True)
+    given = lambda **kw: {k: v for k, v in kw.items() if v is not None}  # noqa: E731  (else the node's default)
     common = {'rig_file': str(rig_path.resolve())}
     launcher.start(NodeSpec('sim_rig_node', 'fixego_ros.nodes.sim_rig_node', {
         **common, 'trajectory': args.trajectory, 'duration': float(args.duration),
         'rest_end_s': float(args.rest_end), 'fps': float(args.fps),
-        'seed': args.seed, 'pty_file': str(pty_file.resolve()), 'wait_for_start': True, 'exit_at_end': True}))
+        'seed': args.seed, 'pty_file': str(pty_file.resolve()), 'wait_for_start': True, 'exit_at_end': True,
+        **given(profile=args.profile)}))
     _say(args, f'fixego demo: simulated rig starting (trajectory {args.trajectory}); logs in {out / "logs"}')
     t_ready = time.monotonic()
 
@@ -149,10 +155,10 @@ def _run(args: argparse.Namespace, out: Path, rig_path: Path, launcher) -> int:
         print(f'fixego demo: {why}', file=sys.stderr)
         return 1
     ptys = json.loads(pty_file.read_text())
-    given = lambda **kw: {k: v for k, v in kw.items() if v is not None}  # noqa: E731  (else the node's default)
     for side in ('right', 'left'):
         launcher.start(NodeSpec(f'{side}_camera_node', 'fixego_ros.nodes.camera_node',
-                                {**common, 'side': side, 'port': ptys[side], **given(joint_mode=args.joint_mode)}))
+                                {**common, 'side': side, 'port': ptys[side],
+                                 **given(joint_mode=args.joint_mode, profile=args.profile)}))
     launcher.start(NodeSpec('flow_node', 'fixego_ros.nodes.flow_node', {**common, **given(preset=args.preset)}))
     launcher.start(NodeSpec('estimator_node', 'fixego_ros.nodes.estimator_node',
                             {**common, 'path_max_length': _path_length(args)}))

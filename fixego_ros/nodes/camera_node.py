@@ -504,7 +504,7 @@ class CameraNode(Node):
                               timing_sigma_s=1e-3 * float(g('vergence_timing_sigma_ms')),
                               settle_px=float(g('vergence_settle_px')), frames=int(g('vergence_frames')),
                               max_rate_deg_s=float(g('vergence_max_rate_deg_s')),
-                              max_turn_deg=float(g('vergence_max_turn_deg')),
+                              max_interruption_s=float(g('vergence_max_interruption_s')),
                               timeout_s=float(g('vergence_timeout_s')), wait_timeout_s=float(g('vergence_wait_s')),
                               slew_deg_s=get_profile(str(g('profile'))).fastest_deg_s)
 

@@ -399,9 +399,12 @@ CAMERA_NODE_PARAMS: Table = _table(
          ge=1, le=300),
     _num('vergence_wait_s', 10.0, 'bound on waiting for both fixations to settle (the left keeps its own point)',
          gt=0.0, le=3600.0),
-    _num('vergence_max_turn_deg', 60.0, 'no vergence step when the left head would have to turn further than this '
-                                        '(deg) to the right fixation point: each way takes ~this / 80 deg/s on an '
-                                        'EVI-D30, without a fixation', gt=0.0, le=360.0),
+    _num('vergence_max_interruption_s', 1.8, "bound on a vergence step's head moves, predicted from the profile's "
+                                             'top speeds: out to the right fixation point, the image searched there '
+                                             'and back (s; the left has no fixation meanwhile). A longer step is '
+                                             'refused before the head moves; a further aim or centring move that '
+                                             'would exceed it is not made. 1.8 s: a 60 deg trip on an EVI-D30 '
+                                             '(80 deg/s)', gt=0.0, le=60.0),
     _num('vergence_timeout_s', 5.0, 'bound from leaving the own fixation to the measurement; then the head returns',
          gt=0.0, le=3600.0),
     _num('vergence_settle_px', 60.0, 'vergence: both fixations this close to their principal points (3 frames in a '

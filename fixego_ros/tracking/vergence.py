@@ -52,7 +52,8 @@ class VergenceParams:
     joint_sigma_deg: float = 0.033   # joint reading noise (EVI-D30: 1 unit = 0.114 deg, /sqrt(12))
     timing_sigma_s: float = 0.005    # time uncertainty of a reading at an image stamp (x head speed: its error)
     select_px: float = 60.0          # a match this close to the centre is fixated directly (no centring move)
-    max_turn_deg: float = 60.0       # no step when the left head would have to turn further (interruption bound)
+    max_interruption_s: float = 1.8  # bound on a step's head moves (out, search, back; predicted): a longer one is
+                                     # refused, an extra move that would exceed it is not made (the head returns)
     settle_px: float = 60.0          # both fixations this close to their principal points ...
     max_rate_deg_s: float = 60.0     # ... and both heads turning at most this fast (a fast head's reading is off)
     motion_window_s: float = 0.05    # head speed at a stamp: from its readings this long before and after
@@ -477,7 +478,9 @@ class VergenceStep:
     it; once both fixations have settled, ``frames`` frames are averaged by :func:`average_samples` - or fewer, at
     least ``settle_frames``, if the right re-selects or the left loses the point first), ``returning`` (head back
     to where it looked before), then ``ended`` with :attr:`result` or :attr:`reason`. A point beyond the left
-    head's range or further than ``max_turn_deg`` from where it looks fails before the head moves.
+    head's range, or whose moves there and back would take longer than ``max_interruption_s`` (predicted from the
+    head's top speeds, :meth:`_move_s`), fails before the head moves; a further aim or a centring move that would
+    take the step past that bound is not made (the head returns).
 
     The caller feeds the right camera's messages and each left frame, and calls :meth:`poll` (also from a timer,
     so timeouts fire without images). Bounds: ``wait_timeout_s`` on waiting, ``timeout_s`` from leaving the own
@@ -670,12 +673,39 @@ class VergenceStep:
             self.timeline.append(('arrived', now))
         return True
 
+    def _move_s(self, frm: tuple[float, float], to: tuple[float, float]) -> float:
+        """How long a head move takes: its longer axis at the head's top speed, plus ``move_latency_s``."""
+        return max(math.degrees(abs(to[k] - frm[k])) / self.p.slew_deg_s[k] for k in (0, 1)) + self.p.move_latency_s
+
+    def _trip_s(self, frm: tuple[float, float], aim: tuple[float, float], home: tuple[float, float]) -> float:
+        """Predicted interruption of a move ``frm`` -> ``aim`` (its latency covers the image searched there) and the
+        move back ``home``."""
+        return self._move_s(frm, aim) + self._move_s(aim, home)
+
+    def _over_budget(self, now: float, aim: tuple[float, float]) -> str:
+        """Why a move to ``aim`` now would take the step past ``max_interruption_s`` ('' when it would not)."""
+        latest, home = self.left_history.latest(), self.home
+        if latest is None or home is None or self.t_left is None:
+            return ''
+        spent = now - self.t_left
+        total = spent + self._trip_s((latest[1], latest[2]), aim, home)
+        if total <= self.p.max_interruption_s:
+            return ''
+        return (f'a move to {self._fmt(aim)} would interrupt the left fixation for {total:.2f} s ({spent:.2f} s '
+                f'spent; more than max_interruption_s {self.p.max_interruption_s:g} s)')
+
     def _next_aim(self, now: float) -> None:
         while self._aims:
             aim = self._lead_aim(self._aims.pop(0), self._t_plan, now)
-            if self._reachable(aim):
-                break
-            self._rejections.append(f"aim {self._fmt(aim)} beyond the left head's range (the rig turns)")
+            if not self._reachable(aim):
+                self._rejections.append(f"aim {self._fmt(aim)} beyond the left head's range (the rig turns)")
+                continue
+            over = self._over_budget(now, aim)
+            if over:
+                self._aims.clear()
+                self._rejections.append(over)
+                continue
+            break
         else:
             why = '; '.join(self._rejections) or 'no aim covers the search range'
             self._fail(now, f'partner point not found ({why})')
@@ -692,9 +722,10 @@ class VergenceStep:
         return p0 <= aim[0] <= p1 and t0 <= aim[1] <= t1
 
     def _plan_aims(self, ray_r: np.ndarray, home: tuple[float, float]) -> tuple[list[np.ndarray], str]:
-        """The points along the right ray (rig frame) to aim the left head at, in its range and within
-        ``max_turn_deg`` of ``home``: first the one at the prior depth (the match then lands near the centre: no
-        centring move), then those covering the whole search range; or none and why. None either when the
+        """The points along the right ray (rig frame) to aim the left head at, in its range and near enough
+        ``home`` that the moves there and back fit ``max_interruption_s``: first the one at the prior depth (the
+        match then lands near the centre: no centring move), then those covering the whole search range; or none
+        and why. None either when the
         point lies so near the baseline's line that its vergence is below ``plan_angle_deg``: on an arc the heads
         turn towards that line, and a trigger the min interval held back came to a point already turned so far
         that the step measured nothing (the demo's second arc: vergence 0.2-0.3 deg, docs/results.md "Stop 58")."""
@@ -713,11 +744,13 @@ class VergenceStep:
         aims = [(x, a) for x, a in aims if self._reachable(a)]
         if not aims:
             return [], "the right fixation point is beyond the left head's range"
-        turn = [max(abs(a[0] - home[0]), abs(a[1] - home[1])) for _, a in aims]
-        near = [x for (x, _), d in zip(aims, turn, strict=True) if d <= math.radians(self.p.max_turn_deg)]
+        trip = [self._trip_s(home, a, home) for _, a in aims]
+        near = [x for (x, _), d in zip(aims, trip, strict=True) if d <= self.p.max_interruption_s]
         if not near:
-            return [], (f'the right fixation point is {math.degrees(min(turn)):.0f} deg away from where the left '
-                        f'head looks (more than {self.p.max_turn_deg:g} deg: too long a trip)')
+            turn = min(max(abs(a[0] - home[0]), abs(a[1] - home[1])) for _, a in aims)
+            return [], (f'the right fixation point is {math.degrees(turn):.0f} deg away from where the left head '
+                        f'looks: too long a trip ({min(trip):.2f} s there and back, more than max_interruption_s '
+                        f'{self.p.max_interruption_s:g} s)')
         return near, ''
 
     # -------------------------------------------------------------------- aims on a turning rig
@@ -748,10 +781,8 @@ class VergenceStep:
         aim = self.rig.aim_readings('left', point)
         latest = self.left_history.latest()
         for _ in range(2):      # the duration depends on the aim: one refinement is enough
-            move = 0.0 if latest is None else max(math.degrees(abs(aim[k] - latest[k + 1])) / self.p.slew_deg_s[k]
-                                                  for k in (0, 1))
-            t_then = now + move + self.p.move_latency_s
-            aim = self.rig.aim_readings('left', self._led(point, t_seen, t_then))
+            move = self.p.move_latency_s if latest is None else self._move_s((latest[1], latest[2]), aim)
+            aim = self.rig.aim_readings('left', self._led(point, t_seen, now + move))
         return aim
 
     # -------------------------------------------------------------------- the left camera's frames
@@ -836,6 +867,10 @@ class VergenceStep:
             aim = self._lead_aim(point, tr, now)
             if not self._reachable(aim):
                 self._fail(now, "the partner point is beyond the left head's range")
+                return self._action()
+            over = self._over_budget(now, aim)
+            if over:
+                self._fail(now, f'the partner point is not centred: {over}')
                 return self._action()
             self._to('centring', now)
             self._arrived, self._aim = None, aim
