@@ -258,7 +258,7 @@ class _SimHeads:
         self.left_q = _quantised(tuple(a + float(np.clip(b - a, -step, step))
                                        for a, b in zip(self.left_q, target, strict=True)))
 
-    def run(self, step, frames, right_id=lambda t: 0):
+    def run(self, step, frames, right_id=lambda t: 0, right_fixated=lambda t: True):
         for k in range(frames):
             t = k / 30.0
             rq, rpx, rimg = self.right(t)
@@ -267,7 +267,7 @@ class _SimHeads:
             step.add_right_fixation(t, rpx, right_id(t))
             step.left_history.add(t, *self.left_q)
             limg = self.renderer.render('left', self.pose_of_t(t), *self.left_q)
-            act = step.on_left_image(t, limg, t + 0.001)
+            act = step.on_left_image(t, limg, t + 0.001, right_fixated=right_fixated(t))
             self.actions.append(act.kind)
             if act.kind == 'hold':
                 self._move(act.aim)
@@ -350,6 +350,32 @@ def test_on_a_turning_rig_the_aim_leads_the_point_and_the_step_measures(room, mo
     stale = run()
     kinds = [what for what, _ in stale.timeline]
     assert 'centring' in kinds or not stale.succeeded, stale.timeline
+
+
+def test_the_return_is_cut_short_when_the_right_camera_has_no_fixation(room):
+    """The right camera loses its fixation (a swing back from its pan limit) while the left head returns from a
+    measurement: the left selects its own point at once, where the head is, instead of leaving both cameras without
+    a fixation for the rest of the trip (~0.7 s; the end of the demo loop: 8-13 frames with neither fixated, placed
+    by the motion model through the rig's final stop). The measurement stands; the interruption is the trip out."""
+    rig, world, renderer = room
+    pose0 = make_trajectory('paper').pose_at(0.0)
+    results = {}
+    for cut in (False, True):
+        heads = _SimHeads(rig, world, renderer, lambda t: pose0, (22.5, 0.0), (-22.5, 0.0))
+        step = VergenceStep(rig, JointHistory(), VergenceParams(prior_depth_m=3.0),
+                            left_range=((-1.7, 1.7), (-0.4, 0.4)))
+        heads.run(step, 150, right_fixated=lambda t, s=step, c=cut: not (c and s.phase == 'returning'))
+        results[cut] = (step, heads)
+    (full, _), (cut, heads) = results[False], results[True]
+    kinds = [what for what, _ in cut.timeline]
+    print(f'interrupted {full.interrupted_s:.2f} s with the whole return, {cut.interrupted_s:.2f} s cut: '
+          f'{cut.timeline}')
+    # (the renderer's noise differs between the two runs: the same distance to its noise)
+    assert full.succeeded and cut.succeeded and cut.result.distance_m == pytest.approx(full.result.distance_m, 1e-3)
+    assert 'return cut short' in kinds and 'return cut short' not in [w for w, _ in full.timeline]
+    assert kinds[kinds.index('returning') + 1] == 'return cut short' and kinds[-1] == 'ended'
+    assert cut.finished and cut.interrupted_s < full.interrupted_s - 0.4
+    assert heads.actions[-1] == 'track' and heads.tracker.last.valid and heads.tracker.last.reselected  # own point
 
 
 def test_a_move_past_the_interruption_bound_is_not_made(room, monkeypatch):

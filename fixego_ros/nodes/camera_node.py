@@ -328,7 +328,7 @@ class CameraNode(Node):
             return
         if step is not None and not step.finished:
             self._vergence_stamps[t] = msg.header.stamp
-            act = step.on_left_image(t, gray, self._now())
+            act = step.on_left_image(t, gray, self._now(), right_fixated=self.stagger.partner_fixated)
             self._vergence_tick()
             if act.kind == 'hold':     # the step drives the head: no tracking, "no valid fixation" published
                 self._publish_fixation(msg.header.stamp, None, NO_FIXATION_ID)

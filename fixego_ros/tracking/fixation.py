@@ -351,6 +351,11 @@ class SwingStagger:
         if self._partner is None or stamp >= self._partner[0]:
             self._partner = (stamp, has_fixation)
 
+    @property
+    def partner_fixated(self) -> bool:
+        """Whether the other camera's newest fixation message has a fixation (True before any came)."""
+        return self._partner is None or self._partner[1]
+
     def hold(self, t: float, frame_s: float) -> bool:
         """Whether a swing due at image stamp ``t`` waits (``frame_s``: this camera's frame interval)."""
         if self.max_hold_s <= 0.0 or self._partner is None:

@@ -791,8 +791,9 @@ class VergenceStep:
             return Action('hold', aim=self._aim)
         return Action('track')
 
-    def on_left_image(self, t: float, gray: np.ndarray, now: float) -> Action:
-        """Call for each left image (before tracking). ``now``: the node's clock (same time base as stamps)."""
+    def on_left_image(self, t: float, gray: np.ndarray, now: float, right_fixated: bool = True) -> Action:
+        """Call for each left image (before tracking). ``now``: the node's clock (same time base as stamps);
+        ``right_fixated``: whether the right camera's newest fixation message has a fixation."""
         if self.t_start is None:
             self.t_start = self.t_phase = now
         self.poll(now)
@@ -819,8 +820,13 @@ class VergenceStep:
             return self._search(t, gray, now)
         if self.phase == 'returning':
             assert self._aim is not None
-            # own point again as soon as the head is back (the tracker needs no settled image to select)
-            if (self._reached(now, self._aim) and t >= self._arrived) or now - self.t_phase > self.p.aim_timeout_s:
+            # own point again as soon as the head is back (the tracker needs no settled image to select), or at
+            # once, where the head is, when the right camera has no fixation either (swinging back from a limit,
+            # re-selecting): with neither camera fixated the estimator has no rays to place the frames with
+            back = self._reached(now, self._aim) and t >= self._arrived
+            if back or not right_fixated or now - self.t_phase > self.p.aim_timeout_s:
+                if not back and not right_fixated:
+                    self.timeline.append(('return cut short', now))
                 self._to('ended', now)
                 self.finished, self.t_back = True, now
                 return Action('track', reselect=True)
