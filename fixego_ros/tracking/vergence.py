@@ -708,7 +708,9 @@ class VergenceStep:
             break
         else:
             why = '; '.join(self._rejections) or 'no aim covers the search range'
-            self._fail(now, f'partner point not found ({why})')
+            searched = any(what in ('searched', 'not found') for what, _ in self.timeline)
+            # the first aim, led for a turning rig, can be over the bound that the plan's aims were within
+            self._fail(now, f'partner point not found ({why})' if searched else f'too long a trip ({why})')
             return
         self._aim = aim
         self._arrived = None
@@ -725,10 +727,10 @@ class VergenceStep:
         """The points along the right ray (rig frame) to aim the left head at, in its range and near enough
         ``home`` that the moves there and back fit ``max_interruption_s``: first the one at the prior depth (the
         match then lands near the centre: no centring move), then those covering the whole search range; or none
-        and why. None either when the
-        point lies so near the baseline's line that its vergence is below ``plan_angle_deg``: on an arc the heads
-        turn towards that line, and a trigger the min interval held back came to a point already turned so far
-        that the step measured nothing (the demo's second arc: vergence 0.2-0.3 deg, docs/results.md "Stop 58")."""
+        and why. None either when the point lies so near the baseline's line that its vergence is below
+        ``plan_angle_deg``: on an arc the heads turn towards that line, and a trigger the min interval held back
+        came to a point already turned so far that the step measured nothing (the demo's second arc: vergence
+        0.2-0.3 deg, docs/results.md "Stop 58")."""
         depth = self.p.prior_depth_m or math.sqrt(self.p.min_depth_m * self.p.max_depth_m)
         angle = math.degrees(ray_angle(ray_r * depth - self.rig.center('right'), ray_r * depth - self.rig.c_L))
         if angle < self.p.plan_angle_deg:
