@@ -352,6 +352,24 @@ def test_on_a_turning_rig_the_aim_leads_the_point_and_the_step_measures(room, mo
     assert 'centring' in kinds or not stale.succeeded, stale.timeline
 
 
+def test_a_first_aim_led_past_the_bound_fails_before_the_head_moves(room):
+    """The rig turns at 22 deg/s away from the right fixation point: the plan's aims fit a 1.6 s bound (51 deg, 1.51 s
+    there and back), but the first one, led for where the point will be when the head arrives, does not. The step
+    fails without driving the head: nothing interrupted, no return, and the scheduler is told the own point was not
+    left."""
+    rig, world, renderer = room
+    pose0 = make_trajectory('paper').pose_at(0.0)
+    rate = math.radians(-22.0)
+    heads = _SimHeads(rig, world, renderer, lambda t: Pose(pose0.R @ rot_y(rate * t), pose0.t), (22.5, 0.0),
+                      (-22.5, 0.0))
+    step = VergenceStep(rig, JointHistory(), VergenceParams(prior_depth_m=3.0, max_interruption_s=1.6),
+                        left_range=((-1.7, 1.7), (-0.4, 0.4)))
+    heads.run(step, 150)
+    assert step.finished and not step.succeeded and 'once led for the turning rig' in step.reason, step.reason
+    assert 'max_interruption_s 1.6 s' in step.reason
+    assert 'hold' not in heads.actions and step.interrupted_s == 0.0 and step.t_left is None
+
+
 def test_the_return_is_cut_short_when_the_right_camera_has_no_fixation(room):
     """The right camera loses its fixation (a swing back from its pan limit) while the left head returns from a
     measurement: the left selects its own point at once, where the head is, instead of leaving both cameras without

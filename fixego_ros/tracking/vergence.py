@@ -708,9 +708,13 @@ class VergenceStep:
             break
         else:
             why = '; '.join(self._rejections) or 'no aim covers the search range'
-            searched = any(what in ('searched', 'not found') for what, _ in self.timeline)
-            # the first aim, led for a turning rig, can be over the bound that the plan's aims were within
-            self._fail(now, f'partner point not found ({why})' if searched else f'too long a trip ({why})')
+            if not any(what == 'aim' for what, _ in self.timeline):
+                # the first aim, led for a turning rig, is beyond the range or the bound that the plan's aims were
+                # within: the head has not moved (no return, nothing interrupted)
+                self.home = self.t_left = None
+                self._fail(now, f'too long a trip or out of range once led for the turning rig ({why})')
+                return
+            self._fail(now, f'partner point not found ({why})')
             return
         self._aim = aim
         self._arrived = None
