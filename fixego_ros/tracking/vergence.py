@@ -477,10 +477,11 @@ class VergenceStep:
     it, which is then found again), ``converging`` (the tracker holds the partner point, the usual servo centres
     it; once both fixations have settled, ``frames`` frames are averaged by :func:`average_samples` - or fewer, at
     least ``settle_frames``, if the right re-selects or the left loses the point first), ``returning`` (head back
-    to where it looked before), then ``ended`` with :attr:`result` or :attr:`reason`. A point beyond the left
-    head's range, or whose moves there and back would take longer than ``max_interruption_s`` (predicted from the
-    head's top speeds, :meth:`_move_s`), fails before the head moves; a further aim or a centring move that would
-    take the step past that bound is not made (the head returns).
+    to where it looked before; cut short, the own point selected where the head is, when the right camera has no
+    fixation: never both cameras without one), then ``ended`` with :attr:`result` or :attr:`reason`. A point beyond
+    the left head's range, or whose moves there and back would take longer than ``max_interruption_s`` (predicted
+    from the head's top speeds, :meth:`_move_s`), fails before the head moves; a further aim or a centring move that
+    would take the step past that bound is not made (the head returns).
 
     The caller feeds the right camera's messages and each left frame, and calls :meth:`poll` (also from a timer,
     so timeouts fire without images). Bounds: ``wait_timeout_s`` on waiting, ``timeout_s`` from leaving the own
