@@ -656,7 +656,7 @@ class VergenceStep:
     def _start_return(self, now: float) -> None:
         self.right_images.clear()
         self.t_phase = now
-        if self.home is None:
+        if self.t_left is None:         # the head never left its own point: nothing to return from
             self._to('ended', now)
             self.finished = True
             return
@@ -686,9 +686,9 @@ class VergenceStep:
     def _over_budget(self, now: float, aim: tuple[float, float]) -> str:
         """Why a move to ``aim`` now would take the step past ``max_interruption_s`` ('' when it would not)."""
         latest, home = self.left_history.latest(), self.home
-        if latest is None or home is None or self.t_left is None:
+        if latest is None or home is None:
             return ''
-        spent = now - self.t_left
+        spent = 0.0 if self.t_left is None else now - self.t_left
         total = spent + self._trip_s((latest[1], latest[2]), aim, home)
         if total <= self.p.max_interruption_s:
             return ''
@@ -709,13 +709,10 @@ class VergenceStep:
             break
         else:
             why = '; '.join(self._rejections) or 'no aim covers the search range'
-            if not any(what == 'aim' for what, _ in self.timeline):
-                # the first aim, led for a turning rig, is beyond the range or the bound that the plan's aims were
-                # within: the head has not moved (no return, nothing interrupted)
-                self.home = self.t_left = None
-                self._fail(now, f'too long a trip or out of range once led for the turning rig ({why})')
-                return
-            self._fail(now, f'partner point not found ({why})')
+            # before the first move (no t_left yet): that aim, led for a turning rig, is beyond the range or the
+            # bound the plan's aims were within, and the step ends without the head having moved
+            self._fail(now, f'partner point not found ({why})' if self.t_left is not None else
+                       f'too long a trip or out of range once led for the turning rig ({why})')
             return
         self._aim = aim
         self._arrived = None
@@ -820,8 +817,9 @@ class VergenceStep:
                 return Action('track')
             self.home = (home[1], home[2])
             self._to('aiming', now)
-            self.t_left = now
             self._next_aim(now)
+            if not self._ended:         # the first aim is chosen: the head leaves its own point now
+                self.t_left = now
             return self._action()
         if self.phase in ('aiming', 'centring'):
             return self._search(t, gray, now)
