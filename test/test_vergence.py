@@ -224,6 +224,13 @@ def _quantised(q):
     return tuple(round(a / u) * u for a, u in zip(q, D30_UNIT, strict=True))
 
 
+def _turning_rig(rate_deg_s: float):
+    """The paper loop's start pose turning about the vertical at ``rate_deg_s`` (pose of t)."""
+    pose0 = make_trajectory('paper').pose_at(0.0)
+    rate = math.radians(rate_deg_s)
+    return lambda t: Pose(pose0.R @ rot_y(rate * t), pose0.t)
+
+
 class _SimHeads:
     """Both heads on rendered images: the right one fixates a scene point exactly (quantised readings); the left
     one is driven by the step (aims) or, tracking, by a one-frame servo that centres its fixation; heads turn at
@@ -325,9 +332,7 @@ def test_on_a_turning_rig_the_aim_leads_the_point_and_the_step_measures(room, mo
     Aimed where the point was when the step started (the lead taken out), the search lands ~13 deg off: the
     partner point has to be centred first or is not found."""
     rig, world, renderer = room
-    pose0 = make_trajectory('paper').pose_at(0.0)
-    rate = math.radians(22.0)
-    pose_of_t = lambda t: Pose(pose0.R @ rot_y(rate * t), pose0.t)   # noqa: E731
+    pose_of_t = _turning_rig(22.0)
 
     def run() -> VergenceStep:
         heads = _SimHeads(rig, world, renderer, pose_of_t, (22.5, 0.0), (-22.5, 0.0))
@@ -358,10 +363,7 @@ def test_a_first_aim_led_past_the_bound_fails_before_the_head_moves(room):
     fails without driving the head: nothing interrupted, no return, and the scheduler is told the own point was not
     left."""
     rig, world, renderer = room
-    pose0 = make_trajectory('paper').pose_at(0.0)
-    rate = math.radians(-22.0)
-    heads = _SimHeads(rig, world, renderer, lambda t: Pose(pose0.R @ rot_y(rate * t), pose0.t), (22.5, 0.0),
-                      (-22.5, 0.0))
+    heads = _SimHeads(rig, world, renderer, _turning_rig(-22.0), (22.5, 0.0), (-22.5, 0.0))
     step = VergenceStep(rig, JointHistory(), VergenceParams(prior_depth_m=3.0, max_interruption_s=1.6),
                         left_range=((-1.7, 1.7), (-0.4, 0.4)))
     heads.run(step, 150)
@@ -403,9 +405,7 @@ def test_a_move_past_the_interruption_bound_is_not_made(room, monkeypatch):
     fixation is interrupted about the trip alone, within the bound. The default bound makes the centring move and
     measures (its return is shorter than predicted: the rig turned the heads' directions closer meanwhile)."""
     rig, world, renderer = room
-    pose0 = make_trajectory('paper').pose_at(0.0)
-    rate = math.radians(10.0)
-    pose_of_t = lambda t: Pose(pose0.R @ rot_y(rate * t), pose0.t)   # noqa: E731
+    pose_of_t = _turning_rig(10.0)
     monkeypatch.setattr(VergenceStep, '_led', lambda self, point, t_seen, t_then: point)
     steps = {}
     for bound in (1.5, VergenceParams().max_interruption_s):
@@ -427,10 +427,7 @@ def test_frames_whose_rays_turned_too_parallel_are_left_out_not_the_step(room):
     rays of the later frames meet at under 0.5 deg. Those frames are left out and the step measures with the
     earlier ones (before, one such frame failed the whole step)."""
     rig, world, renderer = room
-    pose0 = make_trajectory('paper').pose_at(0.0)
-    rate = math.radians(30.0)
-    heads = _SimHeads(rig, world, renderer, lambda t: Pose(pose0.R @ rot_y(rate * t), pose0.t), (-66.0, 0.0),
-                      (-60.0, 0.0))
+    heads = _SimHeads(rig, world, renderer, _turning_rig(30.0), (-66.0, 0.0), (-60.0, 0.0))
     step = VergenceStep(rig, JointHistory(), VergenceParams(prior_depth_m=3.0), left_range=((-1.7, 1.7), (-0.4, 0.4)))
     heads.run(step, 150)
     assert step.succeeded, step.status
