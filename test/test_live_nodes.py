@@ -526,6 +526,9 @@ def test_demo_runs_every_node_as_a_process_and_writes_a_report(tmp_path):
     # how many of the vergence measurements the smoother used (the others it ignored with a note): at most all
     assert 0 <= int(est_diag['smoother_vergence_used']) <= int(est_diag.get('vergence', 0))
     assert 'vergence measurements used' in (out / 'report.txt').read_text()
+    # resections the smoother placed at the two-frame step's rotation instead, counted and reported
+    assert int(est_diag['smoother_resections_rejected']) >= 0
+    assert 'resections rejected' in (out / 'report.txt').read_text()
     # how many frames the child smoothed and how many it left out to keep up, as the report says
     smoothed, left_out = int(est_diag['smoother_results']), int(est_diag['smoother_skipped_frames'])
     assert smoothed > 0

@@ -689,3 +689,61 @@ def test_a_stationary_step_holds_the_frame_only_over_a_long_enough_interval():
     assert TwoFrameStep.stands(StepStatus.STATIONARY, dt_long)
     assert not TwoFrameStep.stands(StepStatus.STATIONARY, dt_short)
     assert not TwoFrameStep.stands(StepStatus.OK, dt_long)
+
+
+def _perturbed_resection(monkeypatch, k_bad: int, turn_deg: float) -> None:
+    """Frame ``k_bad``'s resection turns the rig ``turn_deg`` further about its vertical axis than it found (the
+    wrong minimum of a one-camera pose fit; docs/results.md "Stop 72")."""
+    resect = Smoother._resect
+
+    def bad(self, obs, start):
+        pose = resect(self, obs, start)
+        if self._index == k_bad:
+            turn = Rotation.from_rotvec([0.0, math.radians(turn_deg), 0.0]).as_matrix()
+            pose = type(pose)(pose.R @ turn, pose.t)
+        return pose
+
+    monkeypatch.setattr(Smoother, '_resect', bad)
+
+
+def _turn_error_deg(run, results, k: int) -> float:
+    """How far the pose published for frame ``k`` (as placed, before any revision) is turned from the truth."""
+    rel = (run.poses[0].inverse() @ run.poses[k]).R
+    return math.degrees(np.linalg.norm(Rotation.from_matrix(rel.T @ results[k].pose.R).as_rotvec()))
+
+
+def _sightings_used(monkeypatch) -> dict[int, int]:
+    """Each frame's landmark observations that passed the projection gate into the graph, by frame index."""
+    used: dict[int, int] = {}
+    solve = Smoother._solve
+
+    def counted(self, up):
+        used[self._index] = up.observations
+        return solve(self, up)
+
+    monkeypatch.setattr(Smoother, '_solve', counted)
+    return used
+
+
+@pytest.mark.parametrize('check', [True, False])
+def test_a_resection_both_the_prediction_and_the_two_frame_step_contradict_is_not_used(loop, monkeypatch, check):
+    """Stop 72. On the arc (frame 45, the rig turning ~5 deg a frame) the resection turns 15 deg too far. The
+    prediction and the two-frame step both disagree with it, so the frame is placed at the step's rotation: its
+    sightings pass the projection gate as they do unperturbed, the rejection is counted and said, and the frame ends
+    within a degree of the truth. Control: with the check off the frame is gated against the wrong pose and loses
+    its sightings. (Unperturbed, frame 45's resection is kept.)"""
+    used = _sightings_used(monkeypatch)
+    clean = Smoother(RIG, _config())
+    assert 'resection' not in _replay(clean, loop)[0][45].message
+    seen = used[45]
+    if not check:
+        monkeypatch.setattr(Smoother, 'RESECTION_AGREEMENT_DEG', math.inf)
+    _perturbed_resection(monkeypatch, 45, 15.0)
+    sm = Smoother(RIG, _config())
+    results = _replay(sm, loop)[0]
+    assert seen >= 10
+    if check:
+        assert sm.resections_rejected > clean.resections_rejected and 'resection' in results[45].message
+        assert used[45] >= 0.8 * seen and _turn_error_deg(loop, results, 45) < 1.0
+    else:
+        assert sm.resections_rejected == 0 and used[45] <= 0.2 * seen

@@ -335,6 +335,7 @@ def write_report(out: Path, rec, t_start: float, run_args: dict[str, Any],
         done = report['smoother_done_after_last_pose_s']
         lines.append(f'  smoother: {est["smoother_restarts"]} restarts, {est.get("smoother_repairs", "?")} repairs, '
                      f'{est.get("smoother_dropped_landmarks", "?")} landmarks dropped behind a camera, '
+                     f'{est.get("smoother_resections_rejected", "?")} resections rejected, '
                      f'{est.get("smoother_vergence_used", "?")} vergence measurements used, '
                      f'{est.get("smoother_results", "?")} frames smoothed and '
                      f'{est.get("smoother_skipped_frames", "?")} left out to keep up, '

@@ -93,6 +93,7 @@ class SmootherState:
     restarts: int = 0
     repairs: int = 0
     dropped: int = 0
+    resections_rejected: int = 0
     speed_scale: float = 1.0
     speed_scale_estimated: bool = False
     vergence_used: int = 0
@@ -104,7 +105,8 @@ def _state(smoother: Any, skipped: int, error: str, update_ms: float) -> Smoothe
     return SmootherState(scale_observed=smoother.scale_observed, scale_note=smoother.scale_note(),
                          scale_measurement=smoother.scale_measurement, speed_source_used=smoother.speed_source_used,
                          frames_skipped=skipped, last_error=error, restarts=smoother.restarts,
-                         repairs=smoother.repairs, dropped=smoother.dropped, speed_scale=smoother.speed_scale,
+                         repairs=smoother.repairs, dropped=smoother.dropped,
+                         resections_rejected=smoother.resections_rejected, speed_scale=smoother.speed_scale,
                          speed_scale_estimated=smoother.speed_scale_estimated, vergence_used=smoother.vergence_used,
                          update_ms=update_ms)
 
@@ -364,6 +366,12 @@ class LiveSmoother:
     def vergence_used(self) -> int:
         """Vergence measurements the smoother has used so far (:attr:`Smoother.vergence_used`)."""
         return self._state.vergence_used
+
+    @property
+    def resections_rejected(self) -> int:
+        """Frames the smoother placed at the two-frame step's rotation, not at their resection
+        (:attr:`Smoother.RESECTION_AGREEMENT_DEG`)."""
+        return self._state.resections_rejected
 
     @property
     def alive(self) -> bool:

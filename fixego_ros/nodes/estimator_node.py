@@ -594,6 +594,7 @@ class EstimatorNode(Node):
                            'smoother_restarts': self.estimator.restarts,
                            'smoother_repairs': self.estimator.repairs,
                            'smoother_dropped_landmarks': self.estimator.dropped,
+                           'smoother_resections_rejected': self.estimator.resections_rejected,
                            'smoother_vergence_used': self.estimator.vergence_used})
         if self.last is None:
             level, message = WARN, 'no observation yet'
