@@ -15,7 +15,7 @@ draw is the unperturbed replay the per-seed figures and the goal count come from
 flip between outcomes on the last bits of their input (stop 55: one seed went 11.2 -> 57.6 cm mean), so a change of
 the method is judged by the range over draws, not by one replay.
 
-    python -m fixego_ros.bench.seeds [--out bench] [--seeds 16] [--draws 3] [--workers 2]
+    python -m fixego_ros.bench.seeds [--out bench] [--seeds 32] [--draws 3] [--workers 2]
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-SEEDS = 16
+SEEDS = 32
 DRAWS = 3                 # replays per bag: one as it is, the others with its rays jittered
 JITTER_PX = 0.01          # white noise per ray and axis of a jittered draw (px at the bag's resolution)
 WORKERS = 2
