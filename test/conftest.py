@@ -110,3 +110,23 @@ class DriftingView:
             self.pub.publish(array_to_image(self.view.render(*self.kinematic(pan, tilt), ox, oy), stamp,
                                             'right_optical_frame'))
         return False
+
+
+def perturb_resection(monkeypatch, k_bad: int, turn_deg: float) -> None:
+    """Frame ``k_bad``'s resection turns the rig ``turn_deg`` further about its vertical axis than it found (the
+    wrong minimum of a one-camera pose fit; docs/results.md "Stop 72")."""
+    import math
+
+    import numpy as np
+
+    from fixego_ros.estimation.smoother import Smoother
+    from fixego_ros.geometry.rotation import exp_so3
+
+    resect = Smoother._resect
+    turn = exp_so3(np.array([0.0, math.radians(turn_deg), 0.0]))
+
+    def bad(self, obs, start):
+        pose = resect(self, obs, start)
+        return type(pose)(pose.R @ turn, pose.t) if self._index == k_bad else pose
+
+    monkeypatch.setattr(Smoother, '_resect', bad)

@@ -10,6 +10,7 @@ from collections import deque
 
 import numpy as np
 import pytest
+from conftest import perturb_resection
 
 from fixego_ros.estimation.backend import make_backend
 from fixego_ros.estimation.config import EstimatorConfig
@@ -449,20 +450,10 @@ def test_one_frame_without_parallax_does_not_stop_the_live_pose():
 def test_inline_reports_the_resections_its_smoother_rejected(loop, monkeypatch):
     """The count the node puts on /diagnostics (smoother_resections_rejected) is the smoother's: one frame on the arc
     whose resection turns 15 deg too far is placed at the two-frame step's rotation and counted."""
-    resect = Smoother._resect
-
-    def bad(self, obs, start):
-        pose = resect(self, obs, start)
-        if self._index == 38:
-            turn = np.array([[math.cos(0.26), 0.0, math.sin(0.26)], [0.0, 1.0, 0.0],
-                             [-math.sin(0.26), 0.0, math.cos(0.26)]])
-            pose = type(pose)(pose.R @ turn, pose.t)
-        return pose
-
     config = EstimatorConfig(solver=SolverConfig(sigma=1.0 / F))
     clean = LiveSmoother(RIG, config, inline=True)
     _feed(clean, loop, wait=False)
-    monkeypatch.setattr(Smoother, '_resect', bad)
+    perturb_resection(monkeypatch, 38, 15.0)
     inline = LiveSmoother(RIG, config, inline=True)
     _feed(inline, loop, wait=False)
     assert inline.resections_rejected == inline._conn._server.smoother.resections_rejected

@@ -8,6 +8,7 @@ import math
 
 import numpy as np
 import pytest
+from conftest import perturb_resection
 from scipy.spatial.transform import Rotation
 
 from fixego_ros.estimation.backend import make_backend
@@ -691,21 +692,6 @@ def test_a_stationary_step_holds_the_frame_only_over_a_long_enough_interval():
     assert not TwoFrameStep.stands(StepStatus.OK, dt_long)
 
 
-def _perturbed_resection(monkeypatch, k_bad: int, turn_deg: float) -> None:
-    """Frame ``k_bad``'s resection turns the rig ``turn_deg`` further about its vertical axis than it found (the
-    wrong minimum of a one-camera pose fit; docs/results.md "Stop 72")."""
-    resect = Smoother._resect
-
-    def bad(self, obs, start):
-        pose = resect(self, obs, start)
-        if self._index == k_bad:
-            turn = Rotation.from_rotvec([0.0, math.radians(turn_deg), 0.0]).as_matrix()
-            pose = type(pose)(pose.R @ turn, pose.t)
-        return pose
-
-    monkeypatch.setattr(Smoother, '_resect', bad)
-
-
 def _turn_error_deg(run, results, k: int) -> float:
     """How far the pose published for frame ``k`` (as placed, before any revision) is turned from the truth."""
     rel = (run.poses[0].inverse() @ run.poses[k]).R
@@ -738,7 +724,7 @@ def test_a_resection_both_the_prediction_and_the_two_frame_step_contradict_is_no
     seen = used[45]
     if not check:
         monkeypatch.setattr(Smoother, 'RESECTION_AGREEMENT_DEG', math.inf)
-    _perturbed_resection(monkeypatch, 45, 15.0)
+    perturb_resection(monkeypatch, 45, 15.0)
     sm = Smoother(RIG, _config())
     results = _replay(sm, loop)[0]
     assert seen >= 10

@@ -161,9 +161,10 @@ class Smoother:
     # a turn for a sideways shift. On the papers' loop (seed 2, 5.1 Hz) both heads re-selected at once on an arc, 29
     # sightings were left (28 of one camera), and the resection turned the rig -18.2 deg where the prediction said
     # +4.70, the step +4.96 and the truth +4.71; the gate admitted the sightings that fit it, and the loop ended
-    # 3.2 deg and 41 cm off (1.5 cm with the check). Over 32 seeds of that loop: within the papers' 3.36 / 4 cm
-    # 12 -> 14, the worst seed 26.1 / 40.8 -> 9.1 / 11.7 cm (docs/results.md "Stop 72"). The step's rotation is the
-    # better witness: it comes from the flow around both fixation points, whose axes lie ~34 deg apart.
+    # 3.2 deg and 41 cm off (1.5 cm with the check). Over 32 seeds of that loop (bench.seeds): within the papers'
+    # 3.36 / 4 cm 10 -> 12, the worst seed 230 / 433 -> 9.0 / 12.4 cm (docs/results.md "Stop 72"). The step's
+    # rotation is the better witness: it comes from the flow around both fixation points, whose axes lie ~34 deg
+    # apart.
     RESECTION_AGREEMENT_DEG = 2.0
 
     def __init__(self, rig: Rig, config: EstimatorConfig | None = None, marginals: bool = True) -> None:
