@@ -361,7 +361,8 @@ class Smoother:
         pose0 = predicted if blind else self._resect(obs, predicted)
         # a resection that turns far from the prediction is checked against the two-frame step, solved from the
         # prediction (the resection's wrong minimum would be the solve's warm start)
-        doubtful = ref is not None and self._turn_deg(predicted, pose0) > self.RESECTION_AGREEMENT_DEG
+        turned = self._turn_deg(predicted, pose0)
+        doubtful = ref is not None and turned > self.RESECTION_AGREEMENT_DEG
         raw, step_raw = self._two_frame(stepped, ref, predicted if doubtful else pose0)
         tf = None if blind else raw         # what enters the graph; the raw chain keeps the two-frame solve
         if doubtful and self._good(tf):
@@ -370,7 +371,7 @@ class Smoother:
             if off > self.RESECTION_AGREEMENT_DEG:
                 self.resections_rejected += 1
                 messages.append(f'resection {off:.1f} deg from the two-frame step and '
-                                f'{self._turn_deg(predicted, pose0):.1f} deg from the prediction: placed at the '
+                                f'{turned:.1f} deg from the prediction: placed at the '
                                 f"step's rotation and the predicted position (rejection {self.resections_rejected})")
                 pose0 = Pose(solved.R, predicted.t)
         if blind and last is not None:
