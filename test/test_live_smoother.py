@@ -47,16 +47,21 @@ def _vergence(run, k: int):
     return p, np.eye(3) * (1e-3 * d) ** 2
 
 
-def _feed(backend, run, wait: bool):
-    """Every frame, with a vergence point at each new right fixation; the path as the node keeps it (each result's
-    pose, then the revisions). ``wait``: let the child answer each frame before the next (no frame skipped)."""
+def _feed(backend, run, wait: bool, speed_from_s: float | None = None):
+    """Every frame, with a vergence point at each new right fixation (or, given ``speed_from_s``, the true velocity from
+    then on instead); the path as the node keeps it (stretched by each result's ``prefix_scale``, then its pose and its
+    revisions). ``wait``: let the child answer each frame before the next (no frame skipped)."""
     path, results, last_fid = {}, [], None
     for k, obs in enumerate(run.observations):
+        if speed_from_s is not None and obs.stamp - run.stamps[0] >= speed_from_s:
+            step = run.poses[k - 1].inverse() @ run.poses[k]
+            backend.add_velocity(obs.stamp - 1e-3, step.t / (obs.stamp - run.stamps[k - 1]), np.eye(3) * 1e-4)
         r = backend.update(obs)
-        if obs.right.fixation_id != last_fid:
+        if speed_from_s is None and obs.right.fixation_id != last_fid:
             backend.add_fixation_point(obs.stamp, 'right', *_vergence(run, k))
             last_fid = obs.right.fixation_id
         results.append(r)
+        path = {s: p * r.prefix_scale for s, p in path.items()}
         path[r.stamp] = r.pose.t
         path.update({s: p.t for s, p in r.revised})
         if wait and isinstance(backend, LiveSmoother):
@@ -75,6 +80,23 @@ def test_the_path_is_the_in_process_smoothers(loop, live):
     assert results[-1].scale_observed and 'vergence' in results[-1].scale_note
     # the child's own time for each frame it answered (/diagnostics smoother_update_ms): one each, positive
     assert len(live.update_ms) == len(loop.observations) and all(0.0 < ms < 1e3 * WAIT_S for ms in live.update_ms)
+
+
+def test_the_first_measurements_stretch_reaches_the_caller_as_in_process(loop):
+    """A speed source that starts 4 s in, nominal speed 1 m/s against the rig's ~0.3: the child's stretch of the path
+    built before it (Smoother._stretch) reaches the caller once, and the path it keeps is the in-process one."""
+    config = EstimatorConfig(solver=SolverConfig(sigma=1.0 / F))
+    config = dataclasses.replace(config, smoother=dataclasses.replace(config.smoother, nominal_speed=1.0))
+    expected_results, expected = _feed(Smoother(RIG, config), loop, wait=False, speed_from_s=4.0)
+    live = LiveSmoother(RIG, config)
+    try:
+        results, path = _feed(live, loop, wait=True, speed_from_s=4.0)
+    finally:
+        live.close()
+    scales = [r.prefix_scale for r in results if r.prefix_scale != 1.0]
+    assert len(scales) == 1 and scales == [r.prefix_scale for r in expected_results if r.prefix_scale != 1.0]
+    assert scales[0] < 0.8
+    assert np.max(np.abs(path - expected)) < 1e-9
 
 
 def test_every_frame_gets_a_pose_at_once_and_it_follows_the_smoother(loop, live):

@@ -571,8 +571,8 @@ def test_replay_uses_the_bags_vergence_measurements_and_is_same_with_two_workers
     assert VergenceCheckingEstimator.seen == [] and out.read_bytes() != outs[0]
     rig = load_rig(vergence_bag / 'rig.yaml')
     res = replay(Bag(vergence_bag), rig, ReplaySettings.from_getters(rig, vergence_topic='/fixego/vergence'))
-    assert res.counts['vergence'] == len(written)   # defaults (the smoother): used as factors, no prefix rescale
-    assert res.counts['prefix_rescaled'] == 0, res.notes
+    assert res.counts['vergence'] == len(written)   # defaults (the smoother): used as factors; the first one at
+    assert res.counts['prefix_rescaled'] == 0, res.notes     # the start: no path before it to stretch
 
 
 def test_constant_speed_replay_is_rescaled_by_the_vergence_step(vergence_bag):

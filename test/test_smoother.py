@@ -49,24 +49,28 @@ def _vergence(run, k: int, rel_std: float, rng: np.random.Generator):
     return p * (1.0 + rng.normal(0.0, rel_std)), cov
 
 
-def _replay(smoother: Smoother, run, vergence: bool = True, speed: bool = False, speed_bias: float = 0.0):
-    """Feed every frame (and the aids; the speed source reads ``1 + speed_bias`` times the truth), keep the path as a
-    caller does: each result's pose, then its revisions."""
+def _replay(smoother: Smoother, run, vergence: bool = True, speed: bool = False, speed_bias: float = 0.0,
+            aids_from_s: float = 0.0):
+    """Feed every frame (and the aids; the speed source reads ``1 + speed_bias`` times the truth; vergence at each new
+    right fixation; both from ``aids_from_s`` into the run on), keep the path as a caller does: the positions so far
+    times each result's ``prefix_scale``, then its pose and its revisions."""
     rng = np.random.default_rng(3)
     path: dict[float, np.ndarray] = {}
     results = []
     last_fid = None
     for k, obs in enumerate(run.observations):
-        if speed:
+        aided = obs.stamp - run.stamps[0] >= aids_from_s
+        if speed and aided:
             pose0 = run.poses[max(k - 1, 0)]
             v = (pose0.inverse() @ run.poses[k]).t / max(obs.stamp - run.stamps[max(k - 1, 0)], 1e-9)
             smoother.add_velocity(obs.stamp - 1e-3, v * (1.0 + speed_bias + rng.normal(0.0, 0.01)), np.eye(3) * 1e-4)
         r = smoother.update(obs)
         fid = obs.right.fixation_id
-        if vergence and fid != last_fid:
+        if vergence and fid != last_fid and aided:
             smoother.add_fixation_point(obs.stamp, 'right', *_vergence(run, k, 0.005, rng))
             last_fid = fid
         results.append(r)
+        path = {s: p * r.prefix_scale for s, p in path.items()}
         path[r.stamp] = r.pose.t
         for s, p in r.revised:
             path[s] = p.t
@@ -105,6 +109,33 @@ def test_without_an_aid_the_scale_is_unobserved_and_said_so(loop):
     duration = loop.stamps[-1] - loop.stamps[0]
     assert _length(est) > 1.5 * _length(true)              # the true speed is ~0.3 m/s, the nominal 1 m/s
     assert 0.5 * duration < _length(est) < 2.5 * duration     # the nominal length's order, whatever the truth
+
+
+@pytest.mark.parametrize('stretch', [True, False])
+def test_the_first_measurement_stretches_the_path_that_left_the_window_before_it(loop, monkeypatch, stretch):
+    """Nominal speed 1 m/s, the rig's ~0.3 m/s, and a speed source that starts 4 s into the run: the path before it
+    was built at the nominal speed, and what had left the 2 s window by then no solve moves. Once the rig's speed since
+    the aid is known, the smoother reports the stretch once (``prefix_scale``, below 1 here), and the path goes on from
+    the stretched part without a jump. Control: without the stretch that part keeps the nominal speed."""
+    if not stretch:
+        monkeypatch.setattr(Smoother, 'STRETCH_RANGE', (1.0, 1.0))
+    sm = Smoother(RIG, _config(nominal_speed=1.0))
+    results, est, true = _replay(sm, loop, vergence=False, speed=True, aids_from_s=4.0)
+    scales = [r.prefix_scale for r in results if r.prefix_scale != 1.0]
+    t = np.array(loop.stamps) - loop.stamps[0]
+    left = t < 4.0 - sm.settings.lag_s - 0.1              # frames that had left the window before the aid
+    ratio = _length(est[left]) / _length(true[left])
+    boundary = int(np.flatnonzero(left)[-1])
+    steps = np.linalg.norm(np.diff(est, axis=0), axis=1)
+    if stretch:
+        assert len(scales) == 1 and 0.2 < scales[0] < 0.8, scales      # measured 0.316
+        assert 'stretched' in results[-1].scale_note
+        assert abs(ratio - 1.0) < 0.4, ratio                 # measured 1.12 (the nominal-speed part was not one
+        # scale: x3.8 in its first second, x2.7 in its last); no jump where it meets the graph's frames
+        assert steps[boundary] < 2.0 * max(steps[boundary - 1], steps[boundary + 1])
+    else:
+        assert not scales and ratio > 3.0, ratio             # measured 3.53
+    assert np.all(np.isfinite(est))
 
 
 def test_a_speed_source_makes_the_loop_metric(loop):

@@ -424,7 +424,8 @@ class LiveSmoother:
     def drain(self, timeout_s: float) -> tuple[tuple[float, Pose], ...]:
         """Wait (at most ``timeout_s``; 0 = only what has arrived) until the smoother has answered or skipped every
         frame sent to it, and return its revisions not yet handed out by :meth:`update` (the node takes them
-        between frames and after the last)."""
+        between frames and after the last), in the path as the caller has it: before a stretch of the smoother's that
+        the next result carries (``prefix_scale``), so that stretching the path then stretches these too."""
         end = time.monotonic() + timeout_s
         while self._sent_frames > self._answered + self._state.frames_skipped and time.monotonic() < end:
             if self._conn.poll(min(0.05, max(0.0, end - time.monotonic()))):
@@ -433,7 +434,8 @@ class LiveSmoother:
             elif not self.alive:
                 break
         self._receive_all()
-        return self._take_revised()
+        k = self._prefix_scale
+        return tuple((s, Pose(p.R, p.t / k)) for s, p in self._take_revised())
 
     # ------------------------------------------------------------------------------------------- frames
     def update(self, obs: FrameObservation) -> FrameResult:
@@ -497,6 +499,7 @@ class LiveSmoother:
         while self._recent and self._recent[0].stamp < horizon:
             self._recent.popleft().ref = None
         revised = self._take_revised()
+        prefix_scale, self._prefix_scale = self._prefix_scale, 1.0
         odom = self._odom_pose(pose, obs.stamp)
         if self._state.last_error:
             messages.append(f'smoother: {self._state.last_error}')
@@ -505,7 +508,7 @@ class LiveSmoother:
         return FrameResult(self._index, obs.stamp, status, pose, frame.raw, step, step_raw,
                            tf.covariance if tf is not None else unknown, cov, '; '.join(messages), tf, None,
                            ref.stamp if ref is not None else None, scale_observed=self.scale_observed,
-                           scale_note=self.scale_note(), revised=revised, odom=odom)
+                           scale_note=self.scale_note(), prefix_scale=prefix_scale, revised=revised, odom=odom)
 
     # ------------------------------------------------------------------------------------------- pieces
     def _local_reset(self) -> None:
@@ -520,6 +523,7 @@ class LiveSmoother:
         self._sent_frames = 0
         self._answered = 0
         self._smoothed_stamp: float | None = None      # the newest frame the smoother answered
+        self._prefix_scale = 1.0    # the smoother's stretch of the path so far, reported with the next result
 
     def _history_start(self, stamp: float) -> float:
         """The oldest stamp kept: ``HISTORY_S`` back, or further while the smoother may still revise those frames
@@ -562,6 +566,8 @@ class LiveSmoother:
         if not result.placed:
             return 1
         self._smoothed_stamp = result.stamp
+        if result.prefix_scale != 1.0 and math.isfinite(result.prefix_scale):
+            self._stretch(result.prefix_scale)
         updates = {round(s, 6): p for s, p in result.revised}
         updates[round(result.stamp, 6)] = result.pose
         moved: set[int] = set()
@@ -582,6 +588,14 @@ class LiveSmoother:
         if np.all(np.isfinite(result.pose_covariance)):
             self._pose_cov = result.pose_covariance
         return 1
+
+    def _stretch(self, k: float) -> None:
+        """The smoother measured the scale and stretched the path before it (:meth:`Smoother._stretch`): every frame
+        kept here is stretched too (the revisions that come with it then place the smoother's frames and those riding
+        on them), and the caller is told with the next result."""
+        for r in self._recent:
+            r.pose, r.raw = Pose(r.pose.R, r.pose.t * k), Pose(r.raw.R, r.raw.t * k)
+        self._prefix_scale *= k
 
     def _between_smoothed(self, moved: set[int]) -> None:
         """A frame the child skipped that now lies between two smoothed frames, one of them just ``moved``, goes on the

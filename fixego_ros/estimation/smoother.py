@@ -166,6 +166,17 @@ class Smoother:
     # rotation is the better witness: it comes from the flow around both fixation points, whose axes lie ~34 deg
     # apart.
     RESECTION_AGREEMENT_DEG = 2.0
+    # The first scale aid stretches the path that had left the window before it (:meth:`_stretch`) by the rig's speed
+    # over the STRETCH_DELAY_S after the aid over its speed in the STRETCH_SPAN_S before it as reported then (at the
+    # nominal speed). Not when the rig moved less than STRETCH_MIN_PATH_M in that span (a rig that stood until its
+    # first measurement, as the demo's does, has nothing to stretch), nor by a stretch outside STRETCH_RANGE (taken for
+    # something other than the scale). The window's frames before the aid are left to the graph: stretching them too
+    # made a walker that accelerated from rest over them 3.4x too long (the speeds' ratio assumes a steady speed
+    # across the aid), and the graph had them within 5 %.
+    STRETCH_SPAN_S = 0.8
+    STRETCH_DELAY_S = 1.0
+    STRETCH_MIN_PATH_M = 0.05
+    STRETCH_RANGE = (0.2, 5.0)
 
     def __init__(self, rig: Rig, config: EstimatorConfig | None = None, marginals: bool = True) -> None:
         """``marginals``: give each result the newest pose's marginal covariance (``/fixego/odom`` needs it). Without,
@@ -214,6 +225,14 @@ class Smoother:
         self.repairs = 0           # numerical failures the window repaired in place (FixedLagWindow)
         self.dropped = 0           # landmarks a pass left behind a camera that sees them (FixedLagWindow)
         self.resections_rejected = 0    # resections the prediction and the two-frame step both contradicted
+        # the first scale aid's stretch (:meth:`_stretch`): the aid's stamp, the newest frame that had left the window
+        # by then (-1: none) and the positions of the graph's frames then; whether it was decided, and what is added to
+        # the positions reported since (world frame) and to the raw ones
+        self._probe: tuple[float, int, dict[int, np.ndarray]] | None = None
+        self._stretched = False
+        self._shift = np.zeros(3)
+        self._shift_raw = np.zeros(3)
+        self._prefix_scale = 1.0   # reported with the next result (FrameResult.prefix_scale), then 1
         self._restart()
 
     def _restart(self) -> None:
@@ -297,8 +316,8 @@ class Smoother:
 
     def _reject(self, obs: FrameObservation, why: str) -> FrameResult:
         last = self._frames[-1] if self._frames else None
-        pose = last.pose if last is not None else Pose.identity()
-        raw = last.pose_raw if last is not None else Pose.identity()
+        pose = self._out(last) if last is not None else Pose.identity()
+        raw = self._out_raw(last) if last is not None else Pose.identity()
         return FrameResult.rejected(self._index, obs.stamp, pose, raw, why, scale_observed=self.scale_observed,
                                     scale_note=self.scale_note())
 
@@ -421,11 +440,24 @@ class Smoother:
             messages.append(why)
         pose_cov = self._covariance(frame)
         ref_pose = ref.pose if ref is not None else frame.pose
-        revised = tuple((f.stamp, f.pose) for f in self._frames if f.index < i and self._in_graph(f))
-        return FrameResult(i, obs.stamp, status, frame.pose, frame.pose_raw, ref_pose.inverse() @ frame.pose, step_raw,
+        prefix_scale, self._prefix_scale = self._prefix_scale, 1.0
+        # with the stretch: also the frames that left the window since the aid (the caller stretched them too)
+        left = self._probe[1] if prefix_scale != 1.0 and self._probe is not None else math.inf
+        revised = tuple((f.stamp, self._out(f)) for f in self._frames
+                        if f.index < i and (self._in_graph(f) or f.index > left))
+        return FrameResult(i, obs.stamp, status, self._out(frame), self._out_raw(frame),
+                           ref_pose.inverse() @ frame.pose, step_raw,
                            tf.covariance if tf is not None else np.diag([1e-2] * 3 + [VAR_MAX] * 3), pose_cov,
                            '; '.join(messages), tf, None, ref.stamp if ref is not None else None,
-                           scale_observed=self.scale_observed, scale_note=self.scale_note(), revised=revised)
+                           scale_observed=self.scale_observed, scale_note=self.scale_note(), prefix_scale=prefix_scale,
+                           revised=revised)
+
+    def _out(self, frame: _Frame) -> Pose:
+        """A frame's pose as reported: shifted by the first scale aid's stretch (:meth:`_stretch`)."""
+        return Pose(frame.pose.R, frame.pose.t + self._shift)
+
+    def _out_raw(self, frame: _Frame) -> Pose:
+        return Pose(frame.pose_raw.R, frame.pose_raw.t + self._shift_raw)
 
     # ------------------------------------------------------------------------------------------- pieces
     def _two_frame(self, obs: FrameObservation, ref: _Frame | None, pose0: Pose
@@ -817,6 +849,10 @@ class Smoother:
 
     def _solve(self, up: _Update) -> bool:
         """Add one frame's factors and relinearise; on a numerical failure start a new graph at the estimate."""
+        if self._aids and self._probe is None and self._frames:     # the first update with a scale aid
+            placed = {f.index: f.pose.t.copy() for f in self._frames if self._in_graph(f)}
+            left = max((f.index for f in self._frames if f.index < min(placed, default=-1)), default=-1)
+            self._probe = (self._frames[-1].stamp, left, placed)
         try:
             newest = tuple(k for k in (pose_key(self._index), *(camera_key(self._index, s) for s in SIDES))
                            if up.values.exists(k))
@@ -846,7 +882,40 @@ class Smoother:
                 pose = from_gtsam(self._estimate.atPose3(pose_key(f.index)))
                 if pose.is_finite():
                     f.pose = pose
+        if self._probe is not None and not self._stretched \
+                and self._frames[-1].stamp >= self._probe[0] + self.STRETCH_DELAY_S - 1e-6:
+            self._stretch(*self._probe)
         return True
+
+    def _stretch(self, stamp: float, left: int, before: dict[int, np.ndarray]) -> None:
+        """The first scale aid (at ``stamp``) was used ``STRETCH_DELAY_S`` ago. The frames that had left the window by
+        then (up to frame ``left``) were built at the nominal speed and no solve moves them any more; the window's own
+        frames took the measured scale as far as the graph carried it. The rig's speed since over its speed in the
+        ``STRETCH_SPAN_S`` before the aid (``before``: the graph's frames as they were then) is the stretch ``k``:
+        every position reported before is to be multiplied by ``k`` (the caller rewrites its path: ``prefix_scale``),
+        and from now on every position is reported shifted by ``(k - 1)`` times frame ``left``'s, so that the path goes
+        on from there (the frames since ``left`` come revised with the stretch; raw ones shifted by ``(k - 1)`` times
+        the newest raw position: the raw chain goes on from it). Without it the path before the first measurement kept
+        the nominal speed for good: a 10 Hz walk at ~1 m/s whose first vergence measurement the replay could use came
+        8.6 s in ran at 0.57 of its length (docs/results.md "Stop 73")."""
+        self._stretched = True
+        boundary = next((f for f in self._frames if f.index == left), None)
+        since = [f for f in self._frames if f.stamp > stamp and self._in_graph(f)]
+        then = sorted((f.stamp, f.index) for f in self._frames
+                      if f.index in before and f.stamp >= stamp - self.STRETCH_SPAN_S - 1e-6)
+        if boundary is None or len(since) < 3 or len(then) < 3:
+            return
+        was = sum(float(np.linalg.norm(before[b] - before[a])) for (_, a), (_, b) in itertools.pairwise(then))
+        moved = sum(float(np.linalg.norm(b.pose.t - a.pose.t)) for a, b in itertools.pairwise(since))
+        k = (moved / (since[-1].stamp - since[0].stamp)) / (was / (then[-1][0] - then[0][0])) \
+            if was >= self.STRETCH_MIN_PATH_M else 1.0
+        low, high = self.STRETCH_RANGE
+        if not (math.isfinite(k) and low <= k <= high) or k == 1.0:
+            return
+        self._prefix_scale = k
+        self._shift = (k - 1.0) * boundary.pose.t
+        self._shift_raw = (k - 1.0) * self._frames[-1].pose_raw.t
+        self._note = f'scale measured at {stamp:.3f} s: the path before it stretched x{k:.3f}'
 
     def _status(self, tf: TwoFrameResult | None, up: _Update) -> tuple[StepStatus, str]:
         if self._index == 0:

@@ -707,9 +707,10 @@ def replay(bag: Bag, rig: Rig, settings: ReplaySettings, topics: ReplayTopics = 
             continue
         res.steps[e.status] += 1
         if e.prefix_scale != 1.0:
-            # the path so far was built at a nominal speed (constant-speed prior) and the vergence step has just
-            # measured the real one: the written trajectory is the estimator's best, so it gets the metric scale
-            res.note('prefix_rescaled', f'scale measured at {e.stamp:.3f} s: the {len(res.poses)} poses before it '
+            # the path so far was built at a nominal speed and a scale aid has measured the real one (the smoother:
+            # the part that had left its window before the aid): the written trajectory is the back end's best, so
+            # it gets the metric scale
+            res.note('prefix_rescaled', f'scale measured by {e.stamp:.3f} s: the {len(res.poses)} poses before it '
                                         f'rescaled by {e.prefix_scale:.3f}')
             res.poses = [Pose(p.R, p.t * e.prefix_scale) for p in res.poses]
             res.poses_raw = [Pose(p.R, p.t * e.prefix_scale) for p in res.poses_raw]
