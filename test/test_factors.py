@@ -67,6 +67,17 @@ def test_constant_twist_jacobian_matches_central_differences(step, measured):
     np.testing.assert_allclose(A, _numeric_jacobian(factor, values, _sigmas(measured)), atol=1e-5)
 
 
+def test_constant_twist_takes_a_looser_rotation_sigma_never_a_tighter_one():
+    """The smoother loosens the rotation part for a rig that turns irregularly; a sigma below the configured one is
+    not taken (the configured sigma is the floor), and the translation part keeps its own."""
+    def sigmas(rotation_sigma):
+        factor = TWIST.factor((0, 1, 2), 0.5, 0.4, False, rotation_sigma)
+        return 1.0 / np.abs(np.diag(np.asarray(factor.noiseModel().R())))
+    np.testing.assert_allclose(sigmas(None), _sigmas(False))
+    np.testing.assert_allclose(sigmas(0.01), _sigmas(False))
+    np.testing.assert_allclose(sigmas(0.8), [0.8] * 3 + [0.05] * 3)
+
+
 def test_constant_twist_holds_the_gauge_until_the_scale_is_measured_then_leaves_it_free():
     """Before a scale aid the speed is a gauge and the prior holds it (its error grows with the scale); after, scaling
     every translation leaves the error unchanged, so the prior cannot prefer short steps (the absolute form

@@ -127,12 +127,16 @@ class ConstantTwist:
     """
 
     def __init__(self, rotation_sigma: float, translation_sigma: float, speed_sigma: float, min_speed: float) -> None:
-        self.gauge_noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([rotation_sigma] * 3 + [translation_sigma] * 3))
-        self.relative_noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([rotation_sigma] * 3 + [speed_sigma] * 3))
+        self.rotation_sigma, self.translation_sigma, self.speed_sigma = rotation_sigma, translation_sigma, speed_sigma
         self.min_speed = min_speed
 
     def factor(self, frames: tuple[int, int, int], dt1: float, dt2: float,
-               measured: bool = False) -> gtsam.NonlinearFactor:
+               measured: bool = False, rotation_sigma: float | None = None) -> gtsam.NonlinearFactor:
+        """``rotation_sigma``: this factor's, if larger than the class's (the smoother loosens it for a rig that turns
+        irregularly)."""
+        rotation = self.rotation_sigma if rotation_sigma is None else max(rotation_sigma, self.rotation_sigma)
+        noise = gtsam.noiseModel.Diagonal.Sigmas(
+            np.array([rotation] * 3 + [self.speed_sigma if measured else self.translation_sigma] * 3))
         keys = [pose_key(f) for f in frames]
         vmin = self.min_speed
 
@@ -155,7 +159,7 @@ class ConstantTwist:
                     H[j] = np.vstack([de[:3], dt])
             return np.concatenate([e[:3], e[3:] / m])
 
-        return gtsam.CustomFactor(self.relative_noise if measured else self.gauge_noise, keys, error)
+        return gtsam.CustomFactor(noise, keys, error)
 
 
 class TwoFrameStep:

@@ -173,6 +173,16 @@ class Smoother:
     # something other than the scale). The window's frames before the aid are left to the graph: stretching them too
     # made a walker that accelerated from rest over them 3.4x too long (the speeds' ratio assumes a steady speed
     # across the aid), and the graph had them within 5 %.
+    # The constant-twist prior's rotation sigma is at least RATE_SPREAD_GAIN times the RMS change of the angular rate
+    # between consecutive frames along the two-frame chain over the last RATE_WINDOW_S (:meth:`_rate_spread`): a rig
+    # carried by a walker turns irregularly, and the configured 0.1 rad/s per step held its rotation against the rays
+    # (ten-second 10 Hz walks with the simulator's fixations: median 10.0 / 21.1 cm, three runs 1.8-2194 m off; with
+    # the gain 5.8 / 16.3 cm, worst 13.8 cm). A wheeled rig's chain changes its rate by ~0.01 rad/s per step (the
+    # papers' loop, median), so the floor holds there (32 seeds: 14 -> 13 within 3.36 / 4 cm, mean of the means 3.47 ->
+    # 3.45 cm; gain 4: 12, worst terminal 11.7 -> 38.3 cm). The chain's rates come from the keyframe steps, which
+    # smooth the frame-to-frame change: on the walks the spread was ~0.15 rad/s where sigmas of 0.5-1.0 were needed.
+    RATE_WINDOW_S = 2.0
+    RATE_SPREAD_GAIN = 8.0
     STRETCH_SPAN_S = 0.8
     STRETCH_DELAY_S = 1.0
     STRETCH_MIN_PATH_M = 0.05
@@ -210,6 +220,7 @@ class Smoother:
 
     def reset(self) -> None:
         self._frames: deque[_Frame] = deque()
+        self._rates: deque[tuple[float, np.ndarray]] = deque()     # (stamp, angular rate): _note_rate
         self._index = -1
         self._speed = SpeedSamples()
         self._points: list[_PendingPoint] = []
@@ -422,6 +433,7 @@ class Smoother:
         self._hold_speed(i, obs.stamp, stood, up)
         raw_base = ref.pose_raw if ref is not None else (self._frames[-1].pose_raw if self._frames else Pose.identity())
         frame = _Frame(i, obs.stamp, fix, pose0, (raw_base @ step_raw).normalized(), tracks_of(obs))
+        self._note_rate(frame, tf)
         if self._frames:
             self._frames[-1].tracks = {}        # only the newest frame's are stepped from
         self._frames.append(frame)
@@ -697,14 +709,36 @@ class Smoother:
         up.stamps[speed_scale_key(self._scale_key)] = stamp
         return self._scale_key
 
+    def _note_rate(self, frame: _Frame, tf: TwoFrameResult | None) -> None:
+        """Keep the angular rate from the last frame to this one along the two-frame chain (rad/s, in the last frame),
+        when this frame's step was solved."""
+        last = self._frames[-1] if self._frames else None
+        if self._good(tf) and last is not None and frame.stamp > last.stamp:
+            turn = Pose(last.pose_raw.R.T @ frame.pose_raw.R, np.zeros(3)).rvec()
+            self._rates.append((frame.stamp, turn / (frame.stamp - last.stamp)))
+        while self._rates and self._rates[0][0] < frame.stamp - self.RATE_WINDOW_S:
+            self._rates.popleft()
+
+    def _rate_spread(self, stamp: float) -> float | None:
+        """RMS change per axis of the angular rate between consecutive frames over the last ``RATE_WINDOW_S`` (rad/s;
+        None with fewer than three rates). It includes the steps' own noise: their covariances claimed more than the
+        whole change on the walks (the spread less that noise was 0 on every frame of one), so it is not taken off."""
+        rates = [w for s, w in self._rates if s >= stamp - self.RATE_WINDOW_S]
+        if len(rates) < 3:
+            return None
+        return float(np.sqrt(np.mean(np.sum(np.diff(np.array(rates), axis=0) ** 2, axis=1) / 3.0)))
+
     def _add_motion_prior(self, i: int, stamp: float, up: _Update) -> None:
-        """Constant twist over the last three frames of this graph; for its second frame a loose step prior (at rest
-        at the start, the old graph's motion after a restart)."""
+        """Constant twist over the last three frames of this graph (its rotation sigma loosened for a rig that turns
+        irregularly: ``RATE_SPREAD_GAIN``); for its second frame a loose step prior (at rest at the start, the old
+        graph's motion after a restart)."""
         recent = self._recent_frames()
         if len(recent) == 2:
             a, b = recent
+            spread = self._rate_spread(stamp)
             up.graph.add(self.twist.factor((a.index, b.index, i), b.stamp - a.stamp, stamp - b.stamp,
-                                           self.scale_observed))
+                                           self.scale_observed,
+                                           None if spread is None else self.RATE_SPREAD_GAIN * spread))
         elif len(recent) == 1 and self._carry is not None:
             # a restarted graph: its first step moves on as the old graph moved (the scale comes with it)
             first = recent[0]
