@@ -156,13 +156,14 @@ def _twist_sigmas(bag: str, monkeypatch) -> np.ndarray:
 
 
 def test_the_twist_prior_loosens_its_rotation_for_a_rig_that_turns_irregularly(monkeypatch):
-    """The wheeled rig of the papers' loop keeps the configured rotation sigma on most frames (it loosens where a
-    straight meets an arc); the walker's head bob and sway loosen it ten times over (Smoother.RATE_SPREAD_GAIN).
-    Measured: 61 % of the loop's factors at 0.1 rad/s, the walk's median 1.01."""
+    """The wheeled rig of the papers' loop keeps the configured rotation sigma on almost every frame (a straight
+    meeting an arc changes its rate once, which the median spread ignores); the walker's head bob and sway loosen it
+    nine times over (Smoother.RATE_SPREAD_GAIN). Measured: 92 % of the loop's factors at 0.1 rad/s, the walk's median
+    0.95."""
     base = EstimatorConfig().smoother.twist_rotation_sigma
     wheeled, walked = _twist_sigmas('paper', monkeypatch), _twist_sigmas('walk', monkeypatch)
     assert np.all(wheeled >= base) and np.all(walked >= base)
-    assert np.mean(wheeled == base) > 0.4, np.mean(wheeled == base)
+    assert np.mean(wheeled == base) > 0.8, np.mean(wheeled == base)
     assert np.median(walked) > 5.0 * base > np.median(wheeled), (np.median(walked), np.median(wheeled))
 
 
@@ -589,6 +590,9 @@ def test_frames_no_landmark_places_keep_the_speed_the_landmarks_measured(loop, m
     # the forward-motion prior (stop 55) alone also holds it here (0.98): HeldSpeed is shown without it, and without
     # the log-space gauge, which a graph whose landmarks never placed a frame (this stand-in records none) keeps
     monkeypatch.setattr(Smoother, 'SCALE_GAUGE_SIGMA', 1e9)
+    # and with the twist prior's rotation held at its floor, as it was before stop 73: the swing-backs' noisy rates
+    # loosen it, and this stripped graph then runs 4x long instead of decaying (a failure too, but another one)
+    monkeypatch.setattr(Smoother, 'RATE_SPREAD_GAIN', 0.0)
     assert _gap_length_ratio(loop, gap, forward_sigma_deg=0.0) < 0.5       # measured 0.21: the speed decays
 
 
