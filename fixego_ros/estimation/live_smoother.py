@@ -434,8 +434,8 @@ class LiveSmoother:
             elif not self.alive:
                 break
         self._receive_all()
-        k = self._prefix_scale
-        return tuple((s, Pose(p.R, p.t / k)) for s, p in self._take_revised())
+        revised, k = self._take_revised(), self._prefix_scale
+        return revised if k == 1.0 else tuple((s, Pose(p.R, p.t / k)) for s, p in revised)
 
     # ------------------------------------------------------------------------------------------- frames
     def update(self, obs: FrameObservation) -> FrameResult:

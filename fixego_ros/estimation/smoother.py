@@ -68,7 +68,7 @@ from fixego_ros.estimation.speed_samples import SpeedSamples
 from fixego_ros.estimation.status import StepStatus
 from fixego_ros.estimation.twoframe import Fallback, TwoFrameResult, TwoFrameSolver
 from fixego_ros.geometry.rig import SIDES, Rig
-from fixego_ros.geometry.rotation import Pose, rotation_angle
+from fixego_ros.geometry.rotation import Pose, log_so3, rotation_angle
 
 
 @dataclass
@@ -716,7 +716,7 @@ class Smoother:
         when this frame's step was solved."""
         last = self._frames[-1] if self._frames else None
         if self._good(tf) and last is not None and frame.stamp > last.stamp:
-            turn = Pose(last.pose_raw.R.T @ frame.pose_raw.R, np.zeros(3)).rvec()
+            turn = log_so3(last.pose_raw.R.T @ frame.pose_raw.R)
             self._rates.append((frame.stamp, turn / (frame.stamp - last.stamp)))
         while self._rates and self._rates[0][0] < frame.stamp - self.RATE_WINDOW_S:
             self._rates.popleft()
