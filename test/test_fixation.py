@@ -224,3 +224,31 @@ def test_reselect_last_starts_a_new_point_in_the_last_image_that_the_next_frame_
     nxt = tr.update(view.render(0, 0, ox=3.0, oy=-2.0), 0.1)
     assert nxt.valid and not nxt.reselected and nxt.fixation_id == st.fixation_id + 1
     assert np.allclose(nxt.pixel, view.pixel_of(scene, 0, 0, 3.0, -2.0), atol=0.3)
+
+
+def test_the_fixation_point_stays_on_its_scene_point_while_the_scene_comes_closer():
+    """14 frames each 2 % closer about a point 40 px off the fixation (x1.32 in all), as a rig walking towards a
+    wall sees it. LK alone follows the growing window off the point (the fixation is the longest track of all); the
+    template registered with its affine stays on it."""
+    import cv2
+    rng = np.random.default_rng(4)
+    tex = cv2.GaussianBlur(rng.uniform(0, 255, (3 * CAM.height, 3 * CAM.width)).astype(np.float32), (0, 0), 1.5)
+    tex = cv2.normalize(tex, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+    about = np.array([CAM.cx + 40.0, CAM.cy - 25.0])         # the zoom's fixed point in the image
+    C = np.array([(tex.shape[1] - 1) / 2, (tex.shape[0] - 1) / 2])
+
+    def frame(s: float) -> tuple[np.ndarray, np.ndarray]:
+        A = np.column_stack([np.eye(2) * s, about - s * C])
+        return cv2.warpAffine(tex, A, (CAM.width, CAM.height), flags=cv2.INTER_LINEAR), A
+
+    tr = FixationTracker(CAM)
+    img, A = frame(1.0)
+    st = tr.update(img, 0.0)
+    on_texture = np.array(st.pixel) - A[:, 2]
+    s = 1.0
+    for k in range(1, 15):
+        s *= 1.02
+        img, A = frame(s)
+        st = tr.update(img, k / 10)
+        assert st.valid and st.fixation_id == 0
+    assert math.dist(st.pixel, on_texture * s + A[:, 2]) < 0.05

@@ -13,6 +13,14 @@ its flow pair at that frame, then ends. Regions follow the fixation pixel at t (
 quarter of its side each way; ``full``: ``max_corners`` over the whole image. Each :class:`CameraFrame`
 carries every live track at t (``track_ids``, ``track_rays``).
 
+**Registered against the birth patch.** Each track keeps the patch it was detected on. After LK each frame, the
+patch is registered with an affine warp at LK's position (:func:`~fixego_ros.tracking.flow.register`), and the
+registered position is the track's. LK from frame to frame drifts off the point as the scene comes closer; the
+registration does not (0.20 -> 0.06 px median after 16 frames on the papers' loop). A track whose patch no longer
+registers (correlation below ``REGISTER_MIN_NCC`` after the warp, or landing far from LK) ends: it is not on one
+static point, e.g. a corner formed by two surfaces at different depths that slides as they part. Those few tracks
+tilted the papers' loop by 0.3-0.5 deg on its first straight (docs/results.md "Stop 74").
+
 **Predicted LK.** Image motion between frames can be large (a head lags its fixation point or swings
 back at a pan limit), so LK starts from a prediction: the pan/tilt of both frames are known, and the
 rig rotation over the step is predicted at constant angular velocity from the previous step (Kabsch
@@ -41,7 +49,7 @@ is skipped when the median rotation-compensated parallax is below ``ransac_min_p
 degenerate and any pair fits some E).
 
 Counts per camera and frame (:class:`~fixego_ros.tracking.flow.FlowCounts`): ``detected`` = live tracks
-of t-1 tracked into t = ``lost + min_eig + outside + fb + ncc + epipolar + kept``; ``new`` = tracks
+of t-1 tracked into t = ``lost + min_eig + outside + fb + ncc + epipolar + unregistered + kept``; ``new`` = tracks
 started at t.
 
 A camera contributes flow only if it also had a usable sample at the keyframe; a camera that is
@@ -63,13 +71,16 @@ from fixego_ros.estimation.twoframe import MIN_ROTATION_PAIRS, kabsch_rotation
 from fixego_ros.geometry.rig import SIDES, Rig
 from fixego_ros.geometry.rotation import exp_so3, log_so3, rotation_angle
 from fixego_ros.tracking.flow import (
+    BirthPatches,
     Box,
     FlowCounts,
     FlowParams,
     FlowTracks,
     PointFlow,
     aligned,
+    birth_patches,
     detect_corners,
+    register,
     square_box,
     track_points,
     valid_box,
@@ -197,6 +208,21 @@ def _in_box(px: np.ndarray, box: Box) -> np.ndarray:
 
 
 @dataclass(frozen=True)
+class _Births:
+    """One camera's live tracks' birth patches and each one's affine since (:func:`~fixego_ros.tracking.flow.register`),
+    by track id (ascending, as the tracks are)."""
+
+    ids: np.ndarray
+    patches: BirthPatches
+    linear: np.ndarray      # (N, 2, 2)
+
+    def rows(self, ids: np.ndarray) -> np.ndarray | None:
+        """The rows of ``ids``; None when one is not here."""
+        rows = np.minimum(np.searchsorted(self.ids, ids), max(len(self.ids) - 1, 0))
+        return rows if len(self.ids) and np.array_equal(self.ids[rows], ids) else None
+
+
+@dataclass(frozen=True)
 class SideReport:
     """What happened to one camera in the last :meth:`StereoFrontEnd.process` call."""
 
@@ -245,6 +271,7 @@ class StereoFrontEnd:
         self._key: dict[str, Tracks] = {side: Tracks() for side in SIDES}  # tracks at the keyframe
         self._last: dict[str, CameraSample | None] = dict.fromkeys(SIDES)   # the previous frame's samples
         self._tracks: dict[str, Tracks] = {side: Tracks() for side in SIDES}  # live tracks there
+        self._births: dict[str, _Births | None] = dict.fromkeys(SIDES)       # ... and their birth patches
         self._last_stamp: float | None = None
         self._omega = np.zeros(3)           # rig angular velocity of the last step (rad/s, rig frame)
         self._since_key = 0
@@ -353,6 +380,7 @@ class StereoFrontEnd:
         self.last_tracks[side] = None
         self._last[side] = None
         self._tracks[side] = Tracks()
+        self._births[side] = None
 
     def _regions(self, centre: tuple[float, float], shape: tuple[int, int]) -> tuple[Box, Box, int]:
         """(detection region, track region, target count) around the window centre at t."""
@@ -423,6 +451,35 @@ class StereoFrontEnd:
         return _Follow(flow, Tracks(old.ids[fin], flow.curr_px[ok][fin], rays[fin]), counts, (old.rays[fin], rays[fin]),
                        lk, retry)
 
+    def _register(self, side: str, now: CameraSample, tracks: Tracks) -> tuple[Tracks, np.ndarray, int]:
+        """``tracks`` at t with each LK position replaced by its birth patch's registration (and the ray recomputed);
+        a track whose birth patch no longer registers ends (:func:`~fixego_ros.tracking.flow.register` says why).
+        Returns the tracks, their affines since birth, and how many ended."""
+        births = self._births[side]
+        rows = None if births is None or not len(tracks) else births.rows(tracks.ids)
+        if rows is None:          # (every track is born with a patch; a camera skipped at t-1 has no tracks)
+            return tracks, np.repeat(np.eye(2)[None], len(tracks), axis=0), 0
+        px, linear, ok = register(now.gray, tracks.px, births.patches.take(rows), births.linear[rows])
+        rays = self.rig.pixels_to_rig_rays(side, px, now.pan, now.tilt)
+        ok &= np.all(np.isfinite(rays), axis=1)
+        return Tracks(tracks.ids[ok], px[ok], rays[ok]), linear[ok], int((~ok).sum())
+
+    def _keep_births(self, side: str, tracks: Tracks, followed: np.ndarray, linear: np.ndarray,
+                     born: _Births | None) -> None:
+        """Keep the birth patches of ``tracks``: those ``followed`` into t (their affines now ``linear``, in that
+        order) that are still live, and those ``born`` at t. The others are forgotten."""
+        old = self._births[side]
+        parts = []
+        ids = tracks.ids[np.isin(tracks.ids, followed)]
+        rows = old.rows(ids) if old is not None and len(ids) else None
+        if rows is not None:
+            parts.append(_Births(ids, old.patches.take(rows), linear[np.searchsorted(followed, ids)]))
+        if born is not None:
+            parts.append(born)
+        self._births[side] = None if not parts else _Births(
+            np.concatenate([b.ids for b in parts]), BirthPatches.concat([b.patches for b in parts]),
+            np.concatenate([b.linear for b in parts]))
+
     def _check(self, side: str, s: CameraSample | None, current: dict[str, CameraSample | None]) -> CameraFrame | None:
         """The camera's frame at t without flow (fixation ray, rotation), or None when the sample is unusable;
         ``current[side]`` becomes the checked sample (or None)."""
@@ -462,8 +519,11 @@ class StereoFrontEnd:
         cam = self.rig.camera(side)
         if f is not None:
             tracks, counts, lk, retry = f.tracks, f.counts, f.lk, f.retry
+            tracks, linear, unregistered = self._register(side, now, tracks)
+            counts = replace(counts, unregistered=unregistered, kept=counts.kept - unregistered)
         else:
-            tracks, counts, lk, retry = Tracks(), FlowCounts(), '', False
+            tracks, counts, lk, retry, linear = Tracks(), FlowCounts(), '', False, np.zeros((0, 2, 2))
+        followed = tracks.ids
 
         fix_px = now.fixation_px
         centre = fix_px if fix_px is not None else ((cam.width - 1) / 2.0, (cam.height - 1) / 2.0)
@@ -507,7 +567,7 @@ class StereoFrontEnd:
         # 3. new tracks once the region lacks REPLENISH_FRACTION of the target (and the camera holds fewer than the
         #    target in all)
         need = min(target - int(_in_box(tracks.px, region).sum()), target - len(tracks))
-        n_new = 0
+        n_new, born = 0, None
         batch = max(1, round(REPLENISH_FRACTION * target))
         if need >= batch and region[2] - region[0] >= 1 and region[3] - region[1] >= 1:
             pts = detect_corners(now.gray, region, need, p, exclude=tracks.px)
@@ -518,7 +578,9 @@ class StereoFrontEnd:
                 ids = self._next_id[side] + np.arange(n_new, dtype=np.int64)
                 self._next_id[side] += n_new
                 tracks = tracks.plus(Tracks(ids, pts[fin], rays[fin]))
+                born = _Births(ids, birth_patches(now.gray, pts[fin]), np.repeat(np.eye(2)[None], n_new, axis=0))
         counts = replace(counts, new=n_new)
+        self._keep_births(side, tracks, followed, linear, born)
         if self.last_tracks[side] is not None:
             self.last_tracks[side] = replace(self.last_tracks[side], counts=counts)
 
