@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import cv2
 import numpy as np
 import pytest
@@ -482,3 +484,20 @@ def test_the_front_end_ends_tracks_whose_birth_patch_no_longer_registers(small_r
         for side in SIDES:
             np.testing.assert_array_equal(fe._births[side].ids, fe._tracks[side].ids)
     assert unregistered[1:] == [0, 0, 0]
+
+
+def test_a_share_of_the_tracks_is_registered_each_frame_each_about_once_per_period(small_rig):
+    """``register_period_s`` 0.3 at 10 frames a second: a third of the tracks per frame, the longest unregistered
+    first, so that every live track was registered within the last 0.3 s (an even cost per frame, not a burst)."""
+    from dataclasses import replace
+    fe = StereoFrontEnd(small_rig, replace(WINDOW, register_period_s=0.3), CONSECUTIVE)
+    for k in range(12):
+        fe.process(0.1 * k, synthetic_samples(k))
+        if k < 4:
+            continue
+        births, tracks = fe._births['right'], fe._tracks['right']
+        np.testing.assert_array_equal(births.ids, tracks.ids)
+        followed = births.stamps < 0.1 * k - 1e-9                  # (not born at this frame)
+        fresh = np.isclose(births.stamps, 0.1 * k)
+        assert abs(int(fresh.sum()) - math.ceil(len(tracks) / 3)) <= fe.last['right'].counts.new + 1
+        assert births.stamps.min() > 0.1 * k - 0.3 - 1e-9 and followed.any()

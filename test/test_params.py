@@ -283,6 +283,7 @@ def test_flow_node_run_time_changes_take_effect(ros_context, tmp_path):
     try:
         assert _set(node, 'fb_max_px', 0.8).successful and node.frontend.params.fb_max_px == 0.8
         assert _set(node, 'ransac_px', 0.0).successful and node.frontend.params.ransac_px == 0.0
+        assert _set(node, 'register_period_s', 0.0).successful and node.frontend.params.register_period_s == 0.0
         assert _set(node, 'keyframe_max_frames', 3).successful and node.frontend.keyframes.max_frames == 3
         assert _set(node, 'slop_s', 0.02).successful and node.sync.params.slop_s == 0.02
         assert _set(node, 'max_wait_s', 0.5).successful and node.sync.params.max_wait_s == 0.5

@@ -61,7 +61,7 @@ from fixego_ros.pipeline.sync import StereoSync
 
 PARAMS = FLOW_NODE_PARAMS
 # applied at run time: the front end and the synchroniser read their params objects at every frame
-LIVE_FLOW = ('min_eig', 'fb_max_px', 'ransac_px')
+LIVE_FLOW = ('min_eig', 'fb_max_px', 'ransac_px', 'register_period_s')
 LIVE_KEYFRAMES = ('keyframe_max_frames', 'keyframe_min_parallax_px', 'keyframe_min_tracked_fraction',
                   'keyframe_max_rotation_deg')
 LIVE_SYNC = ('slop_s', 'max_wait_s', 'joint_extrapolation_s')

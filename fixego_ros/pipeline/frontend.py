@@ -215,6 +215,7 @@ class _Births:
     ids: np.ndarray
     patches: BirthPatches
     linear: np.ndarray      # (N, 2, 2)
+    stamps: np.ndarray      # (N,) when each was last registered (born)
 
     def rows(self, ids: np.ndarray) -> np.ndarray | None:
         """The rows of ``ids``; None when one is not here."""
@@ -322,8 +323,8 @@ class StereoFrontEnd:
         elif all(c is None for c in current.values()):
             self._omega = np.zeros(3)
         self._last_stamp = stamp
-        cams = {side: self._finish(side, frames[side], current[side], follows[side]) if frames[side] is not None
-                else None for side in SIDES}
+        cams = {side: self._finish(side, frames[side], current[side], follows[side], stamp, dt)
+                if frames[side] is not None else None for side in SIDES}
         obs = FrameObservation(stamp, cams['right'], cams['left'], self._prev_stamp)
         self._since_key += 1
         obs.keyframe = self._new_keyframe(obs, current)
@@ -451,34 +452,48 @@ class StereoFrontEnd:
         return _Follow(flow, Tracks(old.ids[fin], flow.curr_px[ok][fin], rays[fin]), counts, (old.rays[fin], rays[fin]),
                        lk, retry)
 
-    def _register(self, side: str, now: CameraSample, tracks: Tracks) -> tuple[Tracks, np.ndarray, int]:
-        """``tracks`` at t with each LK position replaced by its birth patch's registration (and the ray recomputed);
-        a track whose birth patch no longer registers ends (:func:`~fixego_ros.tracking.flow.register` says why).
-        Returns the tracks, their affines since birth, and how many ended."""
+    def _register(self, side: str, now: CameraSample, tracks: Tracks, stamp: float, dt: float
+                  ) -> tuple[Tracks, np.ndarray, np.ndarray, int]:
+        """``tracks`` at t with the LK positions of those due (``FlowParams.register_period_s``) replaced by their
+        birth patches' registrations (and the rays recomputed); a track whose birth patch no longer registers ends
+        (:func:`~fixego_ros.tracking.flow.register` says why). Returns the tracks, their affines since birth, when each
+        was last registered, and how many ended."""
         births = self._births[side]
         rows = None if births is None or not len(tracks) else births.rows(tracks.ids)
         if rows is None:          # (every track is born with a patch; a camera skipped at t-1 has no tracks)
-            return tracks, np.repeat(np.eye(2)[None], len(tracks), axis=0), 0
-        px, linear, ok = register(now.gray, tracks.px, births.patches.take(rows), births.linear[rows])
+            return tracks, np.repeat(np.eye(2)[None], len(tracks), axis=0), np.full(len(tracks), stamp), 0
+        linear, stamps = births.linear[rows], births.stamps[rows]
+        period, n = self.params.register_period_s, len(rows)
+        # a share of the tracks per frame, the longest unregistered first: each about once per period, at an even cost
+        due = n if period <= 0.0 or dt <= 0.0 else min(n, math.ceil(n * dt / period - 1e-9))
+        now_due = np.sort(np.argsort(stamps, kind='stable')[:due])
+        px, lin, done = register(now.gray, tracks.px[now_due], births.patches.take(rows[now_due]), linear[now_due])
         rays = self.rig.pixels_to_rig_rays(side, px, now.pan, now.tilt)
-        ok &= np.all(np.isfinite(rays), axis=1)
-        return Tracks(tracks.ids[ok], px[ok], rays[ok]), linear[ok], int((~ok).sum())
+        done &= np.all(np.isfinite(rays), axis=1)
+        out_px, out_rays, keep = tracks.px.copy(), tracks.rays.copy(), np.ones(n, bool)
+        out_px[now_due], out_rays[now_due], linear[now_due] = px, rays, lin
+        stamps[now_due] = stamp
+        keep[now_due[~done]] = False
+        return (Tracks(tracks.ids[keep], out_px[keep], out_rays[keep]), linear[keep], stamps[keep],
+                int((~keep).sum()))
 
-    def _keep_births(self, side: str, tracks: Tracks, followed: np.ndarray, linear: np.ndarray,
+    def _keep_births(self, side: str, tracks: Tracks, followed: np.ndarray, linear: np.ndarray, registered: np.ndarray,
                      born: _Births | None) -> None:
-        """Keep the birth patches of ``tracks``: those ``followed`` into t (their affines now ``linear``, in that
-        order) that are still live, and those ``born`` at t. The others are forgotten."""
+        """Keep the birth patches of ``tracks``: those ``followed`` into t (their affines now ``linear``, last
+        registered at ``registered``, in that order) that are still live, and those ``born`` at t. The others are
+        forgotten."""
         old = self._births[side]
         parts = []
         ids = tracks.ids[np.isin(tracks.ids, followed)]
         rows = old.rows(ids) if old is not None and len(ids) else None
         if rows is not None:
-            parts.append(_Births(ids, old.patches.take(rows), linear[np.searchsorted(followed, ids)]))
+            at = np.searchsorted(followed, ids)
+            parts.append(_Births(ids, old.patches.take(rows), linear[at], registered[at]))
         if born is not None:
             parts.append(born)
         self._births[side] = None if not parts else _Births(
             np.concatenate([b.ids for b in parts]), BirthPatches.concat([b.patches for b in parts]),
-            np.concatenate([b.linear for b in parts]))
+            np.concatenate([b.linear for b in parts]), np.concatenate([b.stamps for b in parts]))
 
     def _check(self, side: str, s: CameraSample | None, current: dict[str, CameraSample | None]) -> CameraFrame | None:
         """The camera's frame at t without flow (fixation ray, rotation), or None when the sample is unusable;
@@ -513,16 +528,18 @@ class StereoFrontEnd:
         return CameraFrame(ray, int(s.fixation_id) if ray is not None else -1, C,
                            joint_sigma=sigma if math.isfinite(sigma) and sigma > 0.0 else 0.0)
 
-    def _finish(self, side: str, frame: CameraFrame, now: CameraSample, f: _Follow | None) -> CameraFrame:
+    def _finish(self, side: str, frame: CameraFrame, now: CameraSample, f: _Follow | None, stamp: float, dt: float
+                ) -> CameraFrame:
         """Region, flow pairs keyframe -> t with the epipolar check, new tracks; fills ``frame``."""
         p = self.params
         cam = self.rig.camera(side)
         if f is not None:
             tracks, counts, lk, retry = f.tracks, f.counts, f.lk, f.retry
-            tracks, linear, unregistered = self._register(side, now, tracks)
+            tracks, linear, registered, unregistered = self._register(side, now, tracks, stamp, dt)
             counts = replace(counts, unregistered=unregistered, kept=counts.kept - unregistered)
         else:
-            tracks, counts, lk, retry, linear = Tracks(), FlowCounts(), '', False, np.zeros((0, 2, 2))
+            tracks, counts, lk, retry = Tracks(), FlowCounts(), '', False
+            linear, registered = np.zeros((0, 2, 2)), np.zeros(0)
         followed = tracks.ids
 
         fix_px = now.fixation_px
@@ -578,9 +595,10 @@ class StereoFrontEnd:
                 ids = self._next_id[side] + np.arange(n_new, dtype=np.int64)
                 self._next_id[side] += n_new
                 tracks = tracks.plus(Tracks(ids, pts[fin], rays[fin]))
-                born = _Births(ids, birth_patches(now.gray, pts[fin]), np.repeat(np.eye(2)[None], n_new, axis=0))
+                born = _Births(ids, birth_patches(now.gray, pts[fin]), np.repeat(np.eye(2)[None], n_new, axis=0),
+                               np.full(n_new, stamp))
         counts = replace(counts, new=n_new)
-        self._keep_births(side, tracks, followed, linear, born)
+        self._keep_births(side, tracks, followed, linear, registered, born)
         if self.last_tracks[side] is not None:
             self.last_tracks[side] = replace(self.last_tracks[side], counts=counts)
 

@@ -230,6 +230,9 @@ FLOW_PARAMS: Table = _table(
     _num('lk_levels', 3, 'pyramid levels', ge=0, le=8),
     _num('ransac_px', 1.0, 'epipolar RANSAC inlier bound per camera, keyframe -> now (px; 0 = off)', ge=0.0,
          live=True),
+    _num('register_period_s', 0.1, "each track's birth patch is registered at its tracked position about this "
+         'often (s; 0 = every frame): a share of the tracks per frame, the longest unregistered first', ge=0.0,
+         le=10.0, live=True),
     _num('keyframe_max_frames', 10, 'frames tracked from one keyframe at most (1 = consecutive frames, the papers)',
          ge=1, le=1000, live=True),
     _num('keyframe_min_parallax_px', 0.0, 'new keyframe once the rotation-compensated parallax reaches this '
@@ -580,7 +583,7 @@ def flow_params(g: Getter) -> FlowParams:
                           paper_region_px=int(g('paper_region_px')), paper_points=int(g('paper_points')),
                           max_corners=int(g('max_corners')), min_eig=float(g('min_eig')),
                           fb_max_px=float(g('fb_max_px')), lk_win=int(g('lk_win')), lk_levels=int(g('lk_levels')),
-                          ransac_px=float(g('ransac_px')))
+                          ransac_px=float(g('ransac_px')), register_period_s=float(g('register_period_s')))
     except ValueError as e:
         raise _config_error('flow', e) from None
 

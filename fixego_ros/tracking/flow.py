@@ -63,6 +63,7 @@ class FlowParams:
     border_px: int = 8              # points must stay this far inside the image
     ransac_px: float = 1.0          # front end: epipolar RANSAC inlier bound (px at the focal length; <= 0: off)
     ransac_min_parallax_px: float = 0.5  # front end: skip RANSAC below this median rotation-compensated parallax
+    register_period_s: float = 0.1  # front end: each track's birth patch registered about this often (0: every frame)
 
     def __post_init__(self) -> None:
         if self.preset not in PRESETS:
@@ -94,6 +95,8 @@ class FlowParams:
             raise ValueError(f'FlowParams.fb_max_px must be > 0, got {self.fb_max_px}')
         if self.ncc_min > 1.0:
             raise ValueError(f'FlowParams.ncc_min must be <= 1, got {self.ncc_min}')
+        if self.register_period_s < 0.0:
+            raise ValueError(f'FlowParams.register_period_s must be >= 0, got {self.register_period_s}')
         if self.ransac_min_parallax_px < 0.0:
             raise ValueError(f'FlowParams.ransac_min_parallax_px must be >= 0, got {self.ransac_min_parallax_px}')
 
