@@ -424,7 +424,6 @@ class BirthPatches:
     def concat(parts: list[BirthPatches]) -> BirthPatches:
         return BirthPatches(*(np.concatenate([getattr(b, f.name) for b in parts]) for f in fields(BirthPatches)))
 
-
     @property
     def half(self) -> int:
         return (math.isqrt(self.template.shape[1]) - 1) // 2
