@@ -222,7 +222,7 @@ class FlowNode(Node):
         totals = self.frontend.totals           # which LK attempt the tracks came from, RANSAC runs
         values.update({f'{side}.{k}_total': totals[f'{side}.{k}'] for side in SIDES
                        for k in ('lk_predicted', 'lk_zero', 'lk_fixation', 'lk_stereo', 'lk_retry', 'ransac',
-                                 'epipolar')})
+                                 'epipolar', 'unregistered')})
         for name, q in (('process_ms', self.process_ms), ('image_in_ms', self.image_in_ms),
                         ('image_dds_ms', self.image_dds_ms), ('image_queue_ms', self.image_queue_ms),
                         ('ready_ms', self.ready_ms)):
