@@ -488,10 +488,11 @@ class StereoFrontEnd:
         rows = old.rows(ids) if old is not None and len(ids) else None
         if rows is not None:
             at = np.searchsorted(followed, ids)
-            parts.append(_Births(ids, old.patches.take(rows), linear[at], registered[at]))
+            same = len(rows) == len(old.ids)       # every track went on: its patches as they are, not copied
+            parts.append(_Births(ids, old.patches if same else old.patches.take(rows), linear[at], registered[at]))
         if born is not None:
             parts.append(born)
-        self._births[side] = None if not parts else _Births(
+        self._births[side] = None if not parts else parts[0] if len(parts) == 1 else _Births(
             np.concatenate([b.ids for b in parts]), BirthPatches.concat([b.patches for b in parts]),
             np.concatenate([b.linear for b in parts]), np.concatenate([b.stamps for b in parts]))
 
