@@ -414,9 +414,6 @@ class BirthPatches:
     std: np.ndarray
     update: np.ndarray
 
-    def __len__(self) -> int:
-        return len(self.std)
-
     def take(self, idx: np.ndarray) -> BirthPatches:
         return BirthPatches(self.template[idx], self.std[idx], self.update[idx])
 
