@@ -116,10 +116,12 @@ def test_the_first_measurement_stretches_the_path_that_left_the_window_before_it
     """Nominal speed 1 m/s, the rig's ~0.3 m/s, and a speed source that starts 4 s into the run: the path before it
     was built at the nominal speed, and what had left the 2 s window by then no solve moves. Once the rig's speed since
     the aid is known, the smoother reports the stretch once (``prefix_scale``, below 1 here), and the path goes on from
-    the stretched part without a jump. Control: without the stretch that part keeps the nominal speed."""
+    the stretched part without a jump. Control: without the stretch that part keeps the nominal speed. (The window is
+    2 s here whatever the default: the scene is 12 s long, and with a 3 s window only the first second, the least
+    regular, would have left it.)"""
     if not stretch:
         monkeypatch.setattr(Smoother, 'STRETCH_RANGE', (1.0, 1.0))
-    sm = Smoother(RIG, _config(nominal_speed=1.0))
+    sm = Smoother(RIG, _config(nominal_speed=1.0, lag_s=2.0))
     results, est, true = _replay(sm, loop, vergence=False, speed=True, aids_from_s=4.0)
     scales = [r.prefix_scale for r in results if r.prefix_scale != 1.0]
     t = np.array(loop.stamps) - loop.stamps[0]

@@ -15,7 +15,7 @@ from fixego_ros.estimation.twoframe import SolverConfig
 class SmootherConfig:
     """Options of the smoother (estimator_node's ``smoother_*`` parameters; pixels in pixels here)."""
 
-    lag_s: float = 2.0                  # variables older than this are marginalised
+    lag_s: float = 3.0                  # variables older than this are marginalised
     pixel_sigma_px: float = 1.0
     huber_k: float = 1.345              # projection residuals: Huber threshold in sigmas
     mount_rotation_sigma: float = 4e-4  # rad: how far a camera may sit from its pan/tilt readings

@@ -290,7 +290,7 @@ ESTIMATOR_PARAMS: Table = _table(
          live=True),
     _num('reject_translation_std', 1e6, 'm; a step whose translation std exceeds this is rejected (1e6: never)',
          gt=0.0, live=True),
-    _num('smoother_lag_s', 2.0, 'smoother: poses and landmarks older than this are marginalised (s); a vergence '
+    _num('smoother_lag_s', 3.0, 'smoother: poses and landmarks older than this are marginalised (s); a vergence '
                                 'measurement older than this when it arrives is not used', gt=0.0, le=60.0),
     _num('smoother_iterations', 1, 'smoother: extra relinearisations per frame (0 saves ~a quarter of the '
                                    'smoother\'s time but lost 3 of 9 test bags, docs/results.md "Stop 66")',
