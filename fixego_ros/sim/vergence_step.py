@@ -13,7 +13,8 @@ returns to its own point if it is still valid, otherwise it re-selects one as us
 This is not the left camera_node's schedule (:class:`~fixego_ros.tracking.vergence.VergenceScheduler`): the node waits
 for both fixations to settle before the head leaves and keeps ``vergence_min_interval_s`` between steps, so on the
 papers' loop it measures about half as often as this (3.3 against 6.7 measurements per run when the simulator was
-given the node's schedule, and 9 of 32 seeds within the papers' accuracy against 19; docs/results.md "Stop 76").
+given the node's schedule, and 9 of 32 seeds within the papers' accuracy against 19, both with the smoother's 2 s window
+of the time; docs/results.md "Stop 76").
 
 Fixation ids (``ground_truth/left/fixation``; one id = one static point, as downstream code assumes): the
 left id goes up by one when the step takes the right's point (from the next frame on, the left reports that
