@@ -14,7 +14,8 @@ from conftest import perturb_resection
 
 from fixego_ros.estimation.backend import make_backend
 from fixego_ros.estimation.config import EstimatorConfig
-from fixego_ros.estimation.live_smoother import LiveSmoother
+from fixego_ros.estimation.frames import FrameObservation
+from fixego_ros.estimation.live_smoother import LiveSmoother, Message, _Gate
 from fixego_ros.estimation.smoother import Smoother
 from fixego_ros.estimation.status import StepStatus
 from fixego_ros.estimation.twoframe import SolverConfig
@@ -224,7 +225,7 @@ def test_inline_the_smoother_takes_the_child_path_on_keyframes_and_is_determinis
     runs = []
     for _ in range(2):
         inline = LiveSmoother(RIG, config, inline=True)
-        inline._conn.MIN_GAP_S = 0.5           # > the 0.2 s frame period: some non-keyframes stay out
+        inline._conn.gate.min_gap_s = 0.5           # > the 0.2 s frame period: some non-keyframes stay out
         results, path = _feed(inline, sparse, wait=False)
         runs.append(path)
         assert all(r.placed and r.pose.is_finite() for r in results)
@@ -242,7 +243,7 @@ def test_inline_the_frame_of_each_vergence_measurement_goes_into_the_graph(loop,
     config = EstimatorConfig(solver=SolverConfig(sigma=1.0 / F))
     observations = [dataclasses.replace(o, keyframe=(k % 4 == 0)) for k, o in enumerate(loop.observations)]
     inline = LiveSmoother(RIG, config, inline=True)
-    inline._conn.MIN_GAP_S = 0.5           # > the 0.2 s frame period: frame 4k + 2 stays out without its point
+    inline._conn.gate.min_gap_s = 0.5           # > the 0.2 s frame period: frame 4k + 2 stays out without its point
     measured = [k for k in range(len(observations)) if k % 4 == 2][:5]
     for k, obs in enumerate(observations):
         if point_first and k in measured:
@@ -257,7 +258,7 @@ def test_inline_the_frame_of_each_vergence_measurement_goes_into_the_graph(loop,
     assert inline.smoothed_results + inline.frames_skipped == len(observations)
     assert inline.vergence_used == len(measured)        # what the node reports on /diagnostics
     left_out = LiveSmoother(RIG, config, inline=True)       # the control: without their points they stay out
-    left_out._conn.MIN_GAP_S = 0.5
+    left_out._conn.gate.min_gap_s = 0.5
     for obs in observations[:measured[-1] + 1]:
         left_out.update(obs)
     assert left_out.frames_skipped >= len(measured)
@@ -480,3 +481,70 @@ def test_inline_reports_the_resections_its_smoother_rejected(loop, monkeypatch):
     _feed(inline, loop, wait=False)
     assert inline.resections_rejected == inline._conn._server.smoother.resections_rejected
     assert inline.resections_rejected == clean.resections_rejected + 1
+
+
+class _Counting:
+    """What :class:`_Gate` needs of the smoother's side: measurements it knows of, and the skip count."""
+
+    def __init__(self, points=()) -> None:
+        self.points, self.skipped = list(points), 0
+
+    def wanted(self, stamp, queue=()) -> bool:
+        points = [p[0] for k, p in queue if k is Message.POINT] + self.points
+        return any(abs(s - stamp) <= 1e-6 for s in points)
+
+    def skip(self) -> None:
+        self.skipped += 1
+
+
+def _frame(stamp: float, keyframe: bool):
+    return Message.FRAME, FrameObservation(stamp, None, None, keyframe=keyframe)
+
+
+def test_the_gate_takes_keyframes_measured_frames_and_one_frame_per_gap():
+    """One rule for the child and for replay (stop 77): 30 Hz frames, a keyframe every 5th; between keyframes a frame
+    once ``MIN_GAP_S`` has passed since the last one taken, and the frame of a measurement whatever the gap. The newest
+    frame left out is held: a measurement that follows it, or a pause (``flush``), takes it in."""
+    server = _Counting(points=[7 / 30])
+    gate = _Gate(server)
+    taken = []
+    for k in range(12):
+        for _, obs in gate.admit(*_frame(k / 30, keyframe=k % 5 == 0)):
+            taken.append(round(obs.stamp * 30))
+    assert taken == [0, 3, 5, 7, 10]                # 3: the gap; 7: its measurement; 5 and 10: keyframes
+    assert server.skipped == 7 and gate.holding     # frame 11 held
+    assert [round(o.stamp * 30) for _, o in gate.flush()] == [11]
+    assert server.skipped == 6 and not gate.holding and gate.flush() == []
+    point = (Message.POINT, (13 / 30, 'right', np.zeros(3), np.eye(3)))
+    assert gate.admit(*_frame(13 / 30, keyframe=False)) == []          # 2 frames after 11: left out, held
+    admitted = gate.admit(*point)                                       # its measurement follows: it goes in first
+    assert [k for k, _ in admitted] == [Message.FRAME, Message.POINT]
+    assert admitted[0][1].stamp == 13 / 30
+
+
+def test_a_busy_child_also_leaves_out_a_frame_when_a_later_one_waits():
+    gate = _Gate(_Counting())
+    waiting = [_frame(1.0, keyframe=False)]
+    assert gate.admit(*_frame(0.0, keyframe=False), queue=waiting) == []
+    assert gate.admit(*_frame(0.5, keyframe=True), queue=waiting) != []      # a keyframe always goes in
+    assert gate.admit(*waiting[0]) != []
+
+
+@pytest.mark.parametrize('inline', [True, False], ids=['inline', 'child'])
+def test_the_last_frame_goes_into_the_graph_when_the_frames_stop(loop, inline):
+    """A run's last frame, left out by the gap (here 10 ms after the one before), still goes into the graph: inline
+    when the caller drains after its last frame, in the child once no frame has come for ``FLUSH_S``. Until stop 77
+    replay never smoothed such a frame, and its terminal pose was the fast one."""
+    backend = LiveSmoother(RIG, EstimatorConfig(solver=SolverConfig(sigma=1.0 / F)), inline=inline)
+    try:
+        observations = list(loop.observations[:12])
+        last = observations[-1]
+        observations.append(dataclasses.replace(last, stamp=last.stamp + 0.01, prev_stamp=last.stamp, keyframe=False))
+        for obs in observations:
+            backend.update(obs)
+        revised = dict(backend.drain(WAIT_S))
+        assert observations[-1].stamp in revised
+        assert backend.behind_s == 0.0 and backend.frames_skipped == 0
+        assert backend.smoothed_results == len(observations)
+    finally:
+        backend.close()

@@ -8,12 +8,11 @@ give with that translation. When the smoother has fallen behind by over ``MAX_CA
 rotation), the rotation of the two-frame coplanarity solve keyframe -> frame (2-11 ms) with the same translation;
 before the smoother has answered, that solve alone, its length at the nominal speed, placed on the keyframe. The
 smoother's results revise the path as they arrive (the live pose stays continuous; corrections go to the path).
-The child takes every keyframe (later flow starts from them, so they must be in its graph) and the newest
-non-keyframe whenever it is idle.
+The child takes every keyframe (later flow starts from them, so they must be in its graph), the frame of each
+vergence measurement, and another frame once 0.1 s has passed since the last one it took (:class:`_Gate`).
 
-Replay runs the same class with the smoother in the caller's process (``inline``): every keyframe goes into the graph,
-and another frame once 0.1 s has passed since the last one (:class:`_Inline`), so the output is deterministic and
-the replay does what the node does, without its timing.
+Replay runs the same class with the smoother in the caller's process (``inline``), through the same gate: the
+output is deterministic and the replay does what the node does when its child keeps up, without its timing.
 """
 
 from __future__ import annotations
@@ -157,84 +156,131 @@ class _Server:
 
 
 def serve(conn: Any, rig: Rig, config: EstimatorConfig) -> None:
-    """The child's loop: drain what the parent sent, then handle the oldest message; a non-keyframe is skipped
-    when a later frame is already waiting. Ends on STOP or when the parent's end closes (the parent exited). Ctrl-C
-    is the parent's (the terminal sends it to the whole process group; the parent stops us)."""
+    """The child's loop: drain what the parent sent, then handle the oldest message as :class:`_Gate` admits it (a
+    non-keyframe is also left out when a later frame is already waiting); when no message has come for
+    ``_Gate.FLUSH_S`` the frame it holds goes in (the end of a run). Ends on STOP or when the parent's end closes
+    (the parent exited). Ctrl-C is the parent's (the terminal sends it to the whole process group; the parent stops
+    us)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     with contextlib.suppress(OSError):      # the camera and flow nodes' frames come first on a busy machine
         os.nice(CHILD_NICENESS)
     server = _Server(rig, config)
+    gate = _Gate(server)
     queue: deque[tuple[Message, Any]] = deque()
     while True:
         try:
-            while conn.poll(0.0 if queue else 1.0):
+            while conn.poll(0.0 if queue else (_Gate.FLUSH_S if gate.holding else 1.0)):
                 queue.append(conn.recv())
         except (EOFError, OSError):
             return
-        if not queue:
-            continue
-        kind, payload = queue.popleft()
-        if kind is Message.STOP:
-            return
-        if kind is Message.FRAME and not payload.keyframe and not server.wanted(payload.stamp, queue) \
-                and any(k is Message.FRAME for k, _ in queue):
-            server.skip()
-            continue
-        reply = server.handle(kind, payload)
-        if reply is not None:
-            try:
-                conn.send(reply)
-            except (BrokenPipeError, OSError):
+        if queue:
+            kind, payload = queue.popleft()
+            if kind is Message.STOP:
                 return
+            admitted = gate.admit(kind, payload, queue)
+        else:
+            admitted = gate.flush()
+        for message in admitted:
+            reply = server.handle(*message)
+            if reply is not None:
+                try:
+                    conn.send(reply)
+                except (BrokenPipeError, OSError):
+                    return
+
+
+class _Gate:
+    """Which frames go into the smoother's graph, one rule for the child and for :class:`_Inline` (so a replay does
+    what the node does when its child keeps up): every keyframe (later flow starts from it), the frame of each
+    vergence measurement (:meth:`_Server.wanted`), and another frame once ``min_gap_s`` has passed since the last one
+    that went in. The newest frame left out is held: it goes in when a measurement for it follows, or when the
+    stream pauses (:meth:`flush`), so that a run's last frame is smoothed. The child also leaves out a non-keyframe
+    when a later frame already waits (it is behind).
+
+    Until stop 77 the child took the newest frame whenever it was idle (~12 frames per second of a 30 Hz demo,
+    against replay's ~10), so the live path was not the one its replay gives, and it was less accurate. Five demo
+    runs' recorded observations fed to the back end in a child at 30 Hz (docs/results.md "Stop 77"; mean / terminal
+    cm): the old child 2 of 5 within 5 / 5 cm (median 1.26 / 6.81), this gate 4 of 5 (0.75 / 4.59), within 0.2 cm of
+    the same replay inline. With every frame in the graph one of them went from 0.55 / 4.59 to 2.83 / 10.48: in
+    single updates the window slid 4-7 cm while the right head swung back from its pan limit."""
+
+    MIN_GAP_S = 0.1        # why 0.1 s and not 0.2: :class:`_Inline`
+    FLUSH_S = 0.2          # the child takes the frame it holds when nothing has come for this long
+
+    def __init__(self, server: _Server) -> None:
+        self.server = server
+        self.min_gap_s = self.MIN_GAP_S
+        self._last = -math.inf                      # the stamp of the last frame that went in
+        self._held: FrameObservation | None = None  # the newest frame left out, while no later one has come
+
+    @property
+    def holding(self) -> bool:
+        return self._held is not None
+
+    def admit(self, kind: Message, payload: Any, queue: Iterable[tuple[Message, Any]] = ()
+              ) -> list[tuple[Message, Any]]:
+        """The messages to handle now for this one (none, it, or the held frame and then it); ``queue``: what
+        waits behind it."""
+        if kind is Message.RESET:
+            self._last, self._held = -math.inf, None
+        admitted: list[tuple[Message, Any]] = []
+        if kind is Message.POINT and self._held is not None and self.server.wanted(self._held.stamp, [(kind, payload)]):
+            admitted = self.flush()         # the measurement came just after its frame: that frame goes in first
+        if kind is Message.FRAME and not payload.keyframe and not self.server.wanted(payload.stamp, queue) \
+                and (payload.stamp < self._last + self.min_gap_s - STAMP_TOLERANCE_S
+                     or any(k is Message.FRAME for k, _ in queue)):
+            self.server.skip()
+            self._held = payload
+            return admitted
+        if kind is Message.FRAME:
+            self._last, self._held = payload.stamp, None
+        return [*admitted, (kind, payload)]
+
+    def flush(self) -> list[tuple[Message, Any]]:
+        """The held frame, now to go in (no longer counted as skipped); none without one."""
+        if self._held is None:
+            return []
+        held, self._held = self._held, None
+        self._last = held.stamp
+        self.server.skipped -= 1
+        return [(Message.FRAME, held)]
 
 
 class _Inline:
     """The smoother in this process behind the child's pipe interface, deterministic (replay: the node's back end
-    without its timing). Every keyframe goes into the graph when it is sent, and another frame once ``MIN_GAP_S``
-    has passed since the last one that went in: a bag of 10 Hz or less has every frame in the graph, a 30 Hz one
-    its keyframes and about every third frame, as the node's child when it keeps up. Measured on 30 Hz bags (mean /
-    terminal cm, wall s; docs/results.md "Stop 38"): every frame -> this, a simulated loop 3.9 / 6.3 in 272 s ->
-    3.4 / 6.1 in 54 s, a simulated walk 2.9 / 4.0 in 107 s -> 4.0 / 5.2 in 41 s, a recorded demo 6.9 / 18.2 in
-    247 s -> 7.1 / 10.6 in 42 s. Keyframes only was faster still (22-35 s) but lost the walk's scale in its first
-    second (34 cm mean), as did a gap of 0.2 s. The frame of each vergence measurement goes in too (:meth:`_Server.
-    wanted`, and a frame held back until the next one in case its measurement follows it): that was why the 0.2 s gap
-    lost the walk's scale (stop 68). With it, 0.2 s keeps the walk (4.86 / 9.27 cm against 4.49 / 8.82) and takes a
-    third fewer updates (339 -> 231 on the 30 Hz loop, 80.6 -> 63.0 ms median each), but the shipped 10 Hz walk
-    without an aid, half its frames then out of the graph, goes from Sim(3) 2.39 to 47.18 cm: kept at 0.1 s."""
-
-    MIN_GAP_S = 0.1
+    without its timing): each frame goes in, or not, as :class:`_Gate` decides when it is sent, and the frame it holds
+    when the caller drains (the end of the run). Of a bag of 10 Hz or less every frame goes into the graph, of a
+    30 Hz one its keyframes and about every third frame. Measured on 30 Hz bags (mean / terminal cm, wall s;
+    docs/results.md "Stop 38"): every frame -> this, a simulated loop 3.9 / 6.3 in 272 s -> 3.4 / 6.1 in 54 s, a
+    simulated walk 2.9 / 4.0 in 107 s -> 4.0 / 5.2 in 41 s, a recorded demo 6.9 / 18.2 in 247 s -> 7.1 / 10.6 in
+    42 s. Keyframes only was faster still (22-35 s) but lost the walk's scale in its first second (34 cm mean), as
+    did a gap of 0.2 s. The frame of each vergence measurement goes in too: that was why the 0.2 s gap lost the
+    walk's scale (stop 68). With it, 0.2 s keeps the walk (4.86 / 9.27 cm against 4.49 / 8.82) and takes a third
+    fewer updates (339 -> 231 on the 30 Hz loop, 80.6 -> 63.0 ms median each), but the shipped 10 Hz walk without an
+    aid, half its frames then out of the graph, goes from Sim(3) 2.39 to 47.18 cm: kept at 0.1 s."""
 
     def __init__(self, rig: Rig, config: EstimatorConfig) -> None:
         self._server = _Server(rig, config, marginals=False)     # replay writes poses, no covariance
+        self.gate = _Gate(self._server)
         self._replies: deque[tuple[FrameResult, SmootherState]] = deque()
         self.closed = False
-        self._last = -math.inf
-        self._held: FrameObservation | None = None     # the newest frame left out, while no later one has come
 
     def send(self, message: tuple[Message, Any]) -> None:
         kind, payload = message
         if kind is Message.STOP:
             self.closed = True
             return
-        if kind is Message.RESET:
-            self._last, self._held = -math.inf, None
-        if kind is Message.POINT and self._held is not None and self._server.wanted(self._held.stamp, [message]):
-            self._take(Message.FRAME, self._held)   # the measurement came just after its frame: that frame goes in
-            self._server.skipped -= 1
-        if kind is Message.FRAME and not payload.keyframe \
-                and payload.stamp < self._last + self.MIN_GAP_S - STAMP_TOLERANCE_S \
-                and not self._server.wanted(payload.stamp):
-            self._server.skip()
-            self._held = payload        # (a frame that goes in clears it in _take)
-            return
-        self._take(kind, payload)
+        self._take(self.gate.admit(kind, payload))
 
-    def _take(self, kind: Message, payload: Any) -> None:
-        """Hand a message to the smoother and keep its reply."""
-        if kind is Message.FRAME:
-            self._last, self._held = payload.stamp, None
-        if (reply := self._server.handle(kind, payload)) is not None:
-            self._replies.append(reply)
+    def flush(self) -> None:
+        """The end of the caller's frames: the frame the gate holds goes in."""
+        self._take(self.gate.flush())
+
+    def _take(self, messages: list[tuple[Message, Any]]) -> None:
+        """Hand messages to the smoother and keep its replies."""
+        for kind, payload in messages:
+            if (reply := self._server.handle(kind, payload)) is not None:
+                self._replies.append(reply)
 
     def poll(self, timeout: float = 0.0) -> bool:
         return bool(self._replies)
@@ -425,7 +471,11 @@ class LiveSmoother:
         """Wait (at most ``timeout_s``; 0 = only what has arrived) until the smoother has answered or skipped every
         frame sent to it, and return its revisions not yet handed out by :meth:`update` (the node takes them
         between frames and after the last), in the path as the caller has it: before a stretch of the smoother's that
-        the next result carries (``prefix_scale``), so that stretching the path then stretches these too."""
+        the next result carries (``prefix_scale``), so that stretching the path then stretches these too. Inline,
+        the frame the gate holds goes in first: the caller drains after its last frame (the child takes it by itself
+        once the frames pause)."""
+        if isinstance(self._conn, _Inline):
+            self._conn.flush()
         end = time.monotonic() + timeout_s
         while self._sent_frames > self._answered + self._state.frames_skipped and time.monotonic() < end:
             if self._conn.poll(min(0.05, max(0.0, end - time.monotonic()))):
