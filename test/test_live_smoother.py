@@ -115,9 +115,9 @@ def test_every_frame_gets_a_pose_at_once_and_it_follows_the_smoother(loop, live)
 
 
 def test_a_busy_smoother_skips_non_keyframes_but_never_a_keyframe(loop, live):
-    """Frames sent faster than the child solves: it takes every keyframe (later flow starts there) and the newest
-    other frame; every frame still gets a pose, and the skipped ones move with the frame their flow starts from
-    when the smoother revises it (the path has no fast poses left among smoothed ones)."""
+    """Frames sent faster than the child solves: it takes every keyframe (later flow starts there) and, of the other
+    frames, what the gate admits; every frame still gets a pose, and the skipped ones move with the frame their flow
+    starts from when the smoother revises it (the path has no fast poses left among smoothed ones)."""
     observations = [dataclasses.replace(o, keyframe=(k % 4 == 0)) for k, o in enumerate(loop.observations)]
     results = [live.update(o) for o in observations]
     revised = dict(live.drain(WAIT_S))

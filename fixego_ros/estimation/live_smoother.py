@@ -323,9 +323,8 @@ class LiveSmoother:
                            # (then solved: a stale velocity bends it)
 
     def __init__(self, rig: Rig, config: EstimatorConfig | None = None, inline: bool = False) -> None:
-        """``inline``: the smoother in this process on every keyframe and one other frame per ``_Inline.MIN_GAP_S``,
-        deterministic (replay); else in a child process on every keyframe and the newest other frame whenever it is
-        idle (the node)."""
+        """``inline``: the smoother in this process, deterministic (replay); else in a child process (the node). Both
+        take the frames :class:`_Gate` admits (the child also leaves out a frame when a later one already waits)."""
         self.rig = rig
         self._config = config or EstimatorConfig()
         self.solver = TwoFrameSolver(self._config.solver)
