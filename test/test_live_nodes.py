@@ -529,10 +529,11 @@ def test_demo_runs_every_node_as_a_process_and_writes_a_report(tmp_path):
     # resections the smoother placed at the two-frame step's rotation instead, counted and reported
     assert int(est_diag['smoother_resections_rejected']) >= 0
     assert 'resections rejected' in (out / 'report.txt').read_text()
-    # how many frames the child smoothed and how many it left out to keep up, as the report says
+    # how many frames the child smoothed and how many it left out (its gate, or behind), as the report says
     smoothed, left_out = int(est_diag['smoother_results']), int(est_diag['smoother_skipped_frames'])
     assert smoothed > 0
-    assert f'{smoothed} frames smoothed and {left_out} left out to keep up' in (out / 'report.txt').read_text()
+    expected = f'{smoothed} frames smoothed and {left_out} left out (one per 0.1 s goes in, fewer when behind)'
+    assert expected in (out / 'report.txt').read_text()
     # and what each took in the child (its own time per frame)
     assert 0.0 < float(est_diag['smoother_update_ms_p50']) <= float(est_diag['smoother_update_ms_p95'])
     assert (f'p50 {est_diag["smoother_update_ms_p50"]} / p95 {est_diag["smoother_update_ms_p95"]} ms per frame '

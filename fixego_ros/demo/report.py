@@ -338,7 +338,7 @@ def write_report(out: Path, rec, t_start: float, run_args: dict[str, Any],
                      f'{est.get("smoother_resections_rejected", "?")} resections rejected, '
                      f'{est.get("smoother_vergence_used", "?")} vergence measurements used, '
                      f'{est.get("smoother_results", "?")} frames smoothed and '
-                     f'{est.get("smoother_skipped_frames", "?")} left out to keep up, '
+                     f'{est.get("smoother_skipped_frames", "?")} left out (one per 0.1 s goes in, fewer when behind), '
                      f'p50 {est.get("smoother_update_ms_p50", "?")} / p95 {est.get("smoother_update_ms_p95", "?")} '
                      f'ms per frame smoothed; its newest '
                      f'result behind the newest frame p50 {est.get("smoother_behind_s_p50", "?")} / p95 '

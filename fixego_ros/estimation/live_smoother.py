@@ -381,7 +381,7 @@ class LiveSmoother:
 
     @property
     def frames_skipped(self) -> int:
-        """Non-keyframes the smoother process skipped to keep up (they still got a pose here)."""
+        """Non-keyframes the smoother left out (:class:`_Gate`; they still got a pose here)."""
         return self._state.frames_skipped
 
     @property

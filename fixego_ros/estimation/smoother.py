@@ -825,7 +825,7 @@ class Smoother:
         self._points = kept
 
     def _carried(self, p: _PendingPoint, up: _Update) -> tuple[_Frame | None, _PendingPoint]:
-        """A measurement whose frame is not in the graph (the live back end skips frames to keep up), came without
+        """A measurement whose frame is not in the graph (the live back end leaves frames out), came without
         that camera (a single-camera frame of a loaded flow_node), or whose frame's fixation is another point (replay's
         passive tracker re-selects at the measured point on a later frame), moved into a graph frame around its
         stamp, within ``CARRY_MAX_S``, that has the camera's fixation: the rig's motion from that frame to the stamp
