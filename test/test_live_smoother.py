@@ -15,7 +15,7 @@ from conftest import perturb_resection
 from fixego_ros.estimation.backend import make_backend
 from fixego_ros.estimation.config import EstimatorConfig
 from fixego_ros.estimation.frames import FrameObservation
-from fixego_ros.estimation.live_smoother import LiveSmoother, Message, _Gate
+from fixego_ros.estimation.live_smoother import LiveSmoother, Message, _Gate, _Server
 from fixego_ros.estimation.smoother import Smoother
 from fixego_ros.estimation.status import StepStatus
 from fixego_ros.estimation.twoframe import SolverConfig
@@ -483,18 +483,12 @@ def test_inline_reports_the_resections_its_smoother_rejected(loop, monkeypatch):
     assert inline.resections_rejected == clean.resections_rejected + 1
 
 
-class _Counting:
-    """What :class:`_Gate` needs of the smoother's side: measurements it knows of, and the skip count."""
-
-    def __init__(self, points=()) -> None:
-        self.points, self.skipped = list(points), 0
-
-    def wanted(self, stamp, queue=()) -> bool:
-        points = [p[0] for k, p in queue if k is Message.POINT] + self.points
-        return any(abs(s - stamp) <= 1e-6 for s in points)
-
-    def skip(self) -> None:
-        self.skipped += 1
+def _server(points=()) -> _Server:
+    """The smoother's side as the gate sees it: the vergence stamps it has been told of (none matched to a frame yet)
+    and its skip count."""
+    server = _Server(RIG, EstimatorConfig())
+    server._points = list(points)
+    return server
 
 
 def _frame(stamp: float, keyframe: bool):
@@ -505,7 +499,7 @@ def test_the_gate_takes_keyframes_measured_frames_and_one_frame_per_gap():
     """One rule for the child and for replay (stop 77): 30 Hz frames, a keyframe every 5th; between keyframes a frame
     once ``MIN_GAP_S`` has passed since the last one taken, and the frame of a measurement whatever the gap. The newest
     frame left out is held: a measurement that follows it, or a pause (``flush``), takes it in."""
-    server = _Counting(points=[7 / 30])
+    server = _server(points=[7 / 30])
     gate = _Gate(server)
     taken = []
     for k in range(12):
@@ -523,7 +517,7 @@ def test_the_gate_takes_keyframes_measured_frames_and_one_frame_per_gap():
 
 
 def test_a_busy_child_also_leaves_out_a_frame_when_a_later_one_waits():
-    gate = _Gate(_Counting())
+    gate = _Gate(_server())
     waiting = [_frame(1.0, keyframe=False)]
     assert gate.admit(*_frame(0.0, keyframe=False), queue=waiting) == []
     assert gate.admit(*_frame(0.5, keyframe=True), queue=waiting) != []      # a keyframe always goes in

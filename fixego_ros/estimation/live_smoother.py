@@ -202,9 +202,19 @@ class _Gate:
     runs' recorded observations fed to the back end in a child at 30 Hz (docs/results.md "Stop 77"; mean / terminal
     cm): the old child 2 of 5 within 5 / 5 cm (median 1.26 / 6.81), this gate 4 of 5 (0.75 / 4.59), within 0.2 cm of
     the same replay inline. With every frame in the graph one of them went from 0.55 / 4.59 to 2.83 / 10.48: in
-    single updates the window slid 4-7 cm while the right head swung back from its pan limit."""
+    single updates the window slid 4-7 cm while the right head swung back from its pan limit.
 
-    MIN_GAP_S = 0.1        # why 0.1 s and not 0.2: :class:`_Inline`
+    The gap: of a bag of 10 Hz or less every frame goes into the graph, of a 30 Hz one its keyframes and about every
+    third frame. Measured on 30 Hz bags in replay (mean / terminal cm, wall s; docs/results.md "Stop 38"): every frame
+    -> the gap, a simulated loop 3.9 / 6.3 in 272 s -> 3.4 / 6.1 in 54 s, a simulated walk 2.9 / 4.0 in 107 s -> 4.0 /
+    5.2 in 41 s, a recorded demo 6.9 / 18.2 in 247 s -> 7.1 / 10.6 in 42 s. Keyframes only was faster still (22-35 s)
+    but lost the walk's scale in its first second (34 cm mean), as did a gap of 0.2 s. The frame of each vergence
+    measurement goes in too: that was why the 0.2 s gap lost the walk's scale (stop 68). With it, 0.2 s keeps the walk
+    (4.86 / 9.27 cm against 4.49 / 8.82) and takes a third fewer updates (339 -> 231 on the 30 Hz loop, 80.6 -> 63.0
+    ms median each), but the shipped 10 Hz walk without an aid, half its frames then out of the graph, goes from
+    Sim(3) 2.39 to 47.18 cm: kept at 0.1 s."""
+
+    MIN_GAP_S = 0.1        # see the class docstring for why not 0.2
     FLUSH_S = 0.2          # the child takes the frame it holds when nothing has come for this long
 
     def __init__(self, server: _Server) -> None:
@@ -249,15 +259,7 @@ class _Gate:
 class _Inline:
     """The smoother in this process behind the child's pipe interface, deterministic (replay: the node's back end
     without its timing): each frame goes in, or not, as :class:`_Gate` decides when it is sent, and the frame it holds
-    when the caller drains (the end of the run). Of a bag of 10 Hz or less every frame goes into the graph, of a
-    30 Hz one its keyframes and about every third frame. Measured on 30 Hz bags (mean / terminal cm, wall s;
-    docs/results.md "Stop 38"): every frame -> this, a simulated loop 3.9 / 6.3 in 272 s -> 3.4 / 6.1 in 54 s, a
-    simulated walk 2.9 / 4.0 in 107 s -> 4.0 / 5.2 in 41 s, a recorded demo 6.9 / 18.2 in 247 s -> 7.1 / 10.6 in
-    42 s. Keyframes only was faster still (22-35 s) but lost the walk's scale in its first second (34 cm mean), as
-    did a gap of 0.2 s. The frame of each vergence measurement goes in too: that was why the 0.2 s gap lost the
-    walk's scale (stop 68). With it, 0.2 s keeps the walk (4.86 / 9.27 cm against 4.49 / 8.82) and takes a third
-    fewer updates (339 -> 231 on the 30 Hz loop, 80.6 -> 63.0 ms median each), but the shipped 10 Hz walk without an
-    aid, half its frames then out of the graph, goes from Sim(3) 2.39 to 47.18 cm: kept at 0.1 s."""
+    when the caller drains (the end of the run)."""
 
     def __init__(self, rig: Rig, config: EstimatorConfig) -> None:
         self._server = _Server(rig, config, marginals=False)     # replay writes poses, no covariance
