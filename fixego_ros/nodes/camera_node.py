@@ -502,6 +502,7 @@ class CameraNode(Node):
                               pixel_sigma_px=float(g('vergence_pixel_sigma_px')),
                               joint_sigma_deg=float(g('vergence_joint_sigma_deg')),
                               timing_sigma_s=1e-3 * float(g('vergence_timing_sigma_ms')),
+                              timing_bias_s=1e-3 * float(g('vergence_timing_bias_ms')),
                               settle_px=float(g('vergence_settle_px')), frames=int(g('vergence_frames')),
                               max_rate_deg_s=float(g('vergence_max_rate_deg_s')),
                               max_interruption_s=float(g('vergence_max_interruption_s')),

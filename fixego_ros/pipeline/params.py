@@ -426,6 +426,10 @@ CAMERA_NODE_PARAMS: Table = _table(
     _num('vergence_timing_sigma_ms', 5.0, 'vergence: time uncertainty of a joint reading at an image stamp, times the '
                                          "head's rate for the covariance (the demo's readings: -1.2 to +2.9 ms p10-p90 "
                                          'while turning, docs/results.md "Stop 36")', gt=0.0, le=1000.0),
+    _num('vergence_timing_bias_ms', 1.0, 'vergence: a time error of the joint readings common to all frames of a step '
+                                        "(it does not average out), times the heads' rates for the covariance (on the "
+                                        "demo's arcs the left head's readings lagged 0.2-1.8 ms over a step, "
+                                        'docs/results.md "Stop 78")', ge=0.0, le=1000.0),
 )
 
 FLOW_NODE_PARAMS: Table = _table(

@@ -51,6 +51,7 @@ class VergenceParams:
     pixel_sigma_px: float = 0.3      # fixation pixel noise (each camera; one correspondence per step)
     joint_sigma_deg: float = 0.033   # joint reading noise (EVI-D30: 1 unit = 0.114 deg, /sqrt(12))
     timing_sigma_s: float = 0.005    # time uncertainty of a reading at an image stamp (x head speed: its error)
+    timing_bias_s: float = 0.001     # ... the part common to a step's frames, which averaging does not reduce
     select_px: float = 60.0          # a match this close to the centre is fixated directly (no centring move)
     max_interruption_s: float = 1.8  # bound on a step's head moves (out, search, back; predicted): a longer one is
                                      # refused, an extra move that would exceed it is not made (the head returns)
@@ -371,7 +372,7 @@ def _joint_sigma(joint_sigma_rad: float, timing_sigma_s: float, rate: float, mov
 
 def average_samples(samples: list[VergenceSample], c_l: np.ndarray, pixel_sigma_rad: float, joint_sigma_rad: float,
                     min_angle_rad: float = math.radians(0.5), max_scatter: float = 5.0,
-                    timing_sigma_s: float = 0.005) -> AveragedFixation:
+                    timing_sigma_s: float = 0.005, timing_bias_s: float = 0.0) -> AveragedFixation:
     """Combine frames into one measurement of the right fixation point. The rig may move meanwhile, so the
     distance is fitted as a line in time (each frame weighted by its first-order variance) and read at the
     frame nearest the weighted mean time; the point is that distance along that frame's right ray.
@@ -379,7 +380,10 @@ def average_samples(samples: list[VergenceSample], c_l: np.ndarray, pixel_sigma_
     Variance of the fitted distance, honestly: the pixel part is one correspondence, found once and then tracked,
     so averaging does not reduce it; the joint-reading part (quantisation, and reading time x head speed) is
     independent only between frames whose readings differ (a head at rest repeats its reading); and that part
-    is never taken below what the frames' own scatter about the line says. Frames scattering more than
+    is never taken below what the frames' own scatter about the line says. A reading-time error common to the
+    frames (``timing_bias_s``, times each head's rate) does not average either: on the demo's arcs (heads at
+    20-30 deg/s) the left head's readings lagged 0.2-1.8 ms over a step, and steps there were 1-5 % off with a
+    stated std that had averaged it away. Frames scattering more than
     ``max_scatter`` times their first-order std (a partner point lost or slipped) are rejected."""
     if not samples:
         return AveragedFixation(False, 'no frame with both fixations settled')
@@ -417,7 +421,9 @@ def average_samples(samples: list[VergenceSample], c_l: np.ndarray, pixel_sigma_
             return AveragedFixation(False, f'the frames disagree (distances scatter {math.sqrt(chi2_dof):.1f} times '
                                            f'their std)', frames=n)
         var_scatter = chi2_dof * float((c * c) @ (v_pix + v_joint))
-    var = var_pix + max(var_joint, var_scatter)
+    v_bias = timing_bias_s ** 2 * (a * np.array([[s.rates[0] ** 2, s.rates[1] ** 2] for s in samples])).sum(axis=1)
+    var_bias = float(np.abs(c) @ np.sqrt(v_bias)) ** 2
+    var = var_pix + var_bias + max(var_joint, var_scatter)
     s_ref = samples[ref]
     tri = triangulate_fixation(s_ref.ray_r, s_ref.ray_l, c_l,
                                (math.hypot(pixel_sigma_rad, sig_j[ref, 0]), math.hypot(pixel_sigma_rad, sig_j[ref, 1])),
@@ -967,7 +973,7 @@ class VergenceStep:
     def _measure(self, samples: list[VergenceSample], now: float) -> VergenceResult | None:
         avg = average_samples(samples, self.rig.c_L, self.p.pixel_sigma_px / self.rig.left.fx,
                               math.radians(self.p.joint_sigma_deg), math.radians(self.p.min_angle_deg),
-                              self.p.max_scatter, self.p.timing_sigma_s)
+                              self.p.max_scatter, self.p.timing_sigma_s, self.p.timing_bias_s)
         if not avg.ok:
             self._fail(now, avg.reason)
             return None
