@@ -421,7 +421,7 @@ def average_samples(samples: list[VergenceSample], c_l: np.ndarray, pixel_sigma_
             return AveragedFixation(False, f'the frames disagree (distances scatter {math.sqrt(chi2_dof):.1f} times '
                                            f'their std)', frames=n)
         var_scatter = chi2_dof * float((c * c) @ (v_pix + v_joint))
-    v_bias = timing_bias_s ** 2 * (a * np.array([[s.rates[0] ** 2, s.rates[1] ** 2] for s in samples])).sum(axis=1)
+    v_bias = timing_bias_s ** 2 * (a * np.array([s.rates for s in samples]) ** 2).sum(axis=1)
     var_bias = float(np.abs(c) @ np.sqrt(v_bias)) ** 2
     var = var_pix + var_bias + max(var_joint, var_scatter)
     s_ref = samples[ref]
