@@ -209,17 +209,19 @@ class _Camera:
 
 
 def test_a_reading_the_host_took_late_is_dated_by_the_commanded_motion():
-    """The narrowest sample window is the camera's answering delay, so a reading was sampled in the last ``excess``
-    of its window. Within reading_window_s it is dated in the middle of that; wider (the host read the reply late),
-    where the commanded motion puts its value in it; a head at rest fits any time there, and gets the middle."""
+    """A reading was sampled somewhere in its window; the narrowest window is the camera's own delay, on either side
+    of the sample. Within reading_window_s of the narrowest a reading is dated in the middle of its window; wider
+    (the host read the reply late), where the commanded motion puts its value in it; a head at rest fits any time
+    there, and gets the middle."""
     from fixego_ros.tracking.servo import ServoLoop, ServoParams
     from fixego_ros.visca.driver import PositionReading
     base = 1000.0
     cam = _Camera([])
     units_s = 80.0 * cam.profile.pan_units_per_deg          # the head at 80 deg/s from base on (commanded)
-    # sample time, window: on time (the narrowest), then read 11 ms and 21 ms late
+    # sample time, window: on time (the narrowest: the camera's 1 ms, half before the sample), then read 11 ms and
+    # 21 ms late
     spec = [(0.0110, 0.0010), (0.0410, 0.0120), (0.0800, 0.0220)]
-    cam.readings = [PositionReading(round(units_s * ts), 0, base + ts - 0.001, base + ts - 0.001 + w)
+    cam.readings = [PositionReading(round(units_s * ts), 0, base + ts - 0.0005, base + ts - 0.0005 + w)
                     for ts, w in spec]
     loop = ServoLoop(cam, ServoParams(reading_window_s=0.003), clock=time.monotonic)
     loop.predictor.add_command(base, math.radians(90.0), 0.0, math.radians(80.0), 0.0)
@@ -227,22 +229,22 @@ def test_a_reading_the_host_took_late_is_dated_by_the_commanded_motion():
         loop.step()
     ts = [t - base for t in loop.history._t]        # the loop's clock is the driver's (monotonic)
     assert len(ts) == 3 and loop.stats['late_readings'] == 2
-    assert ts[0] == pytest.approx(0.011, abs=1e-6)              # on time: the end of its (narrowest) window
+    assert ts[0] == pytest.approx(0.011, abs=1e-6)              # on time: the middle of its (narrowest) window
     for dated, (true, w) in zip(ts[1:], spec[1:], strict=True):
         assert abs(dated - true) < 0.0015                       # the middle would be off by ~(w - 1 ms) / 2
-        assert abs(dated - (true + 0.5 * (w - 0.001))) > 0.004  # where the middle of what is left is
+        assert abs(dated - (true - 0.0005 + 0.5 * w)) > 0.004   # where the middle of the window is
     # a head at rest: every time in the window fits its reading, and the middle is taken
     rest = _Camera([PositionReading(5, 0, base + 0.0, base + 0.001), PositionReading(5, 0, base + 0.03, base + 0.041)])
     still = ServoLoop(rest, ServoParams(reading_window_s=0.003), clock=time.monotonic)
     still.step()
     still.step()
-    assert still.history._t[-1] - base == pytest.approx(0.041 - 0.5 * 0.010, abs=1e-6)
+    assert still.history._t[-1] - base == pytest.approx(0.5 * (0.03 + 0.041), abs=1e-6)
 
 
-def test_a_command_whose_ack_the_host_read_late_is_dated_in_the_middle_of_what_is_left(monkeypatch):
-    """The camera took a command between its last byte's arrival (write + serial time) and the start of its ACK. The
-    narrowest such window seen is the camera's own delay; a wider one means the ACK was read late (or the camera
-    was slow), and the command is dated in the middle of what is left rather than at the late ACK."""
+def test_a_command_is_dated_in_the_middle_of_its_window(monkeypatch):
+    """The camera took a command between its last byte's arrival (write + serial time) and the start of its ACK: on
+    time, its own delay lies on either side of it; a wider window means the ACK was read late (or the camera was
+    slow). Either way the command is dated in the middle of the window rather than at the (late) ACK."""
     from fixego_ros.tracking import servo as servo_mod
     from fixego_ros.tracking.servo import ServoLoop
     cam = _Camera([])
@@ -255,8 +257,8 @@ def test_a_command_whose_ack_the_host_read_late_is_dated_in_the_middle_of_what_i
         now[0] = ack_start + 3 * byte
         loop._commanded(100, 0, 10, 10)
     first, second = loop.predictor.commands()
-    assert first.t == pytest.approx(10.0004, abs=1e-9)
-    assert second.t == pytest.approx(11.0104 - 0.5 * (0.0104 - 0.0004), abs=1e-9)
+    assert first.t == pytest.approx(10.0002, abs=1e-9)
+    assert second.t == pytest.approx(11.0052, abs=1e-9)
     assert second.pan == pytest.approx(math.radians(100 / cam.profile.pan_units_per_deg))
 
 

@@ -6,7 +6,11 @@ Images come at 30 Hz; for each, as camera_node does in ``joint_mode`` predict, t
 :class:`~fixego_ros.tracking.joint_prediction.JointPredictor` answers at once with what the loop knows then; in
 wait mode the node waits for the reading after the stamp and interpolates. Prints and returns the error of each
 against the emulator's true angles at the stamp (deg, the worse axis: p50/p95/max), that of holding the last
-reading (no prediction), how often the prediction stayed within 2 sigma, and the wait it saves (ms).
+reading (no prediction), how often the prediction stayed within 2 sigma, and the wait it saves (ms). Also how the
+servo dates what the camera did against the emulator's own log: each reading's time minus the moment the emulator
+sampled the head for it, each command's minus the moment the head took it (ms, p50/p95), and the lag of the angles
+between readings (``wait`` mode) fitted along the motion (ms; positive = late) - a bias there is common to every
+frame of a vergence step and does not average (docs/results.md "Stop 79").
 
     python -m fixego_ros.bench.joints
 """
@@ -16,11 +20,13 @@ from __future__ import annotations
 import json
 import math
 import time
+from collections import deque
 
 import numpy as np
 
 from fixego_ros.tracking.joint_prediction import JointSource
 from fixego_ros.tracking.servo import ServoLoop, ServoParams, Target
+from fixego_ros.visca import protocol as vp
 from fixego_ros.visca.driver import ViscaCamera
 from fixego_ros.visca.emulator import ViscaEmulator
 
@@ -33,10 +39,32 @@ def _stats(prefix: str, values: list[float]) -> dict[str, float]:
             f'{prefix}_max': round(float(a.max()), 4)}
 
 
+def _dating_ms(dated: list[float], true: list[float]) -> list[float]:
+    """Each dated time minus the nearest true one (ms), for those within 5 ms of one (the emulator's log starts
+    later than the servo's history when the run is long)."""
+    if not true:
+        return []
+    t = np.sort(np.asarray(true, dtype=float))
+    out = []
+    for d in dated:
+        i = int(np.clip(np.searchsorted(t, d), 1, len(t) - 1))
+        near = t[i - 1] if abs(d - t[i - 1]) <= abs(d - t[i]) else t[i]
+        if abs(d - near) < 0.005:
+            out.append(1e3 * (d - near))
+    return out
+
+
+def _lag_ms(errors: list[float], rates: list[float]) -> float:
+    """The time shift (ms) that best explains angle errors by the head's rates: least squares of e = -lag * rate."""
+    e, v = np.asarray(errors, dtype=float), np.asarray(rates, dtype=float)
+    return round(float(-1e3 * (e @ v) / (v @ v)), 3) if len(v) and v @ v > 0 else math.nan
+
+
 def run_moves(duration_s: float = 8.0, baud: int = 9600, fps: float = 30.0, seed: int = 0,
               verbose: bool = False) -> dict[str, float]:
     rng = np.random.default_rng(seed)
     emu = ViscaEmulator('evi_d30', baud=baud)
+    emu.log = deque(maxlen=1_000_000)      # every packet of the run, to date the servo's readings and commands by
     port = emu.start()
     driver = ViscaCamera(port, baud=baud).open()
     pr = driver.profile
@@ -83,6 +111,8 @@ def run_moves(duration_s: float = 8.0, baud: int = 9600, fps: float = 30.0, seed
         driver.close()
         emu.stop()
     hist = loop.history
+    # each frame's true pan rate, from its neighbours
+    rates = [(b['truth'][0] - a['truth'][0]) / (b['t'] - a['t']) for a, b in zip(frames[:-2], frames[2:], strict=True)]
     err_pred, err_wait, err_hold, err_line, waits, within, horizons = [], [], [], [], [], [], []
     predicted = 0
     for f in frames:
@@ -116,6 +146,18 @@ def run_moves(duration_s: float = 8.0, baud: int = 9600, fps: float = 30.0, seed
     out.update(_stats('line_err_deg', err_line))
     out.update(_stats('wait_saved_ms', waits))
     out.update(_stats('horizon_ms', horizons))
+    inquiry = vp.pan_tilt_pos_inquiry(driver.address)
+    sampled = [t for t, way, pkt in emu.log if way == 'rx' and pkt == inquiry]
+    taken = [t for t, way, pkt in emu.log if way == 'rx' and pkt[1:4] == b'\x01\x06\x02']   # AbsolutePosition
+    out.update(_stats('reading_dated_late_ms', _dating_ms(hist.times(), sampled)))
+    out.update(_stats('command_dated_late_ms', _dating_ms([c.t for c in pred.commands()], taken)))
+    lag_err, lag_rate = [], []
+    for f, rate in zip(frames[1:-1], rates, strict=True):
+        w = pred.estimate(f['t'])
+        if abs(rate) > math.radians(5.0) and w is not None and w.source is JointSource.INTERPOLATED:
+            lag_err.append(w.pan - f['truth'][0])
+            lag_rate.append(rate)
+    out['wait_lag_ms'] = _lag_ms(lag_err, lag_rate)
     out['commands'] = float(len(pred.commands()))
     out['servo_loop_hz'] = round(loop.stats['cycles'] / duration_s, 2)
     if verbose:

@@ -40,6 +40,11 @@ class JointHistory:
     def __len__(self) -> int:
         return len(self._t)
 
+    def times(self) -> list[float]:
+        """The readings' times, oldest first."""
+        with self._lock:
+            return list(self._t)
+
     def latest(self) -> tuple[float, float, float] | None:
         with self._lock:
             return (self._t[-1], *self._q[-1]) if self._t else None

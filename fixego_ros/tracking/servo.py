@@ -169,7 +169,6 @@ class ServoLoop:
         self.last_error = ''
         self._t_start = 0.0
         self._windows: deque[float] = deque(maxlen=64)     # recent readings' sample windows (s)
-        self._ack_windows: deque[float] = deque(maxlen=64)     # recent commands' windows (s)
 
     def set_target(self, target: Target | None) -> None:
         with self._lock:
@@ -262,22 +261,25 @@ class ServoLoop:
 
     def _keep_reading(self, r: PositionReading) -> None:
         """Add a reading to the joint history at its sample time. The camera sampled it between the inquiry's arrival
-        and the start of its reply (:class:`PositionReading`); the narrowest such window of the recent readings is the
-        camera's own answering delay, so the sample lies in the last part of the window, ``excess`` long. When that is
-        at most :attr:`ServoParams.reading_window_s`, the reading is dated in its middle. Wider, the host read the
-        reply late (or a busy camera answered late), and the time is uncertain by the excess (at 80 deg/s, 8 ms is
-        0.64 deg): the reading is dated where the head's commanded motion since the earlier readings puts its value
-        within that part (:meth:`_date_by_motion`). Before, such readings were left out unless none had come for
-        50 ms and then dated in the middle: on a demo (emulator's log against the servo's dates) the forced ones were
-        off by up to 0.46 deg (5.8 ms at 80 deg/s), and every prediction from them by as much."""
+        and the start of its reply (:class:`PositionReading`). The narrowest such window of the recent readings is the
+        camera's own answering delay, whose share before the sample is unknown; the rest, ``excess``, is how late the
+        host read the reply (or a busy camera answered). When that is at most :attr:`ServoParams.reading_window_s`,
+        the reading is dated in the middle of its window. Dated at the window's end, as until stop 79 (the delay
+        counted as all before the sample), readings were late by a median 0.3 ms against the emulator's own log
+        (0.07 ms in the middle), and the joint angles between them lagged by about as much. Wider, the time is
+        uncertain by the excess (at 80 deg/s, 8 ms is 0.64 deg): the reading is dated where the head's commanded
+        motion since the earlier readings puts its value within the window (:meth:`_date_by_motion`). Before, such
+        readings were left out unless none had come for 50 ms and then dated in the middle: on a demo (emulator's log
+        against the servo's dates) the forced ones were off by up to 0.46 deg (5.8 ms at 80 deg/s), and every
+        prediction from them by as much."""
         excess = _beyond_narrowest(self._windows, r.window_s)
         pr = self.cam.profile
         pan, tilt = pr.pan_rad(r.pan), pr.tilt_rad(r.tilt)
-        lo = self._to_clock(r.latest - excess)
-        t = lo + 0.5 * excess
+        lo, hi = self._to_clock(r.earliest), self._to_clock(r.latest)
+        t = 0.5 * (lo + hi)
         if excess > self.params.reading_window_s:
             self.stats['late_readings'] += 1
-            t = self._date_by_motion(lo, lo + excess, pan, tilt)
+            t = self._date_by_motion(lo, hi, pan, tilt)
         self.history.add(t, pan, tilt)
 
     def _date_by_motion(self, lo: float, hi: float, pan: float, tilt: float) -> float:
@@ -319,11 +321,12 @@ class ServoLoop:
     def _commanded(self, pan_u: int, tilt_u: int, pan_code: int, tilt_code: int) -> None:
         """Tell the predictor about a command just ACKed, dated like the readings: the camera took it between its
         last byte's arrival (the write plus its serial time) and the start of its ACK (3 bytes before the host read
-        it). A busy host reads the ACK late, a busy camera takes the command late; the narrowest window seen is the
-        camera's own delay, and the command is dated in the middle of what is left. Dated at the ACK alone, as
-        before, a command was late by p50 0.5-0.8 ms, p95 7-8 ms, at most 22-25 ms on a demo (270 commands per camera
-        against the emulator's own log); so: rms 3.9 -> 2.6 ms, at most 13-16 ms (at 50 deg/s, 1 ms is 0.05 deg)."""
+        it). A busy host reads the ACK late, a busy camera takes the command late, and the camera's own delay may lie on
+        either side: the command is dated in the middle of the window. Dated at the ACK alone, as before stop 63, a
+        command was late by p50 0.5-0.8 ms, p95 7-8 ms, at most 22-25 ms on a demo (270 commands per camera against the
+        emulator's own log); in the middle of what the narrowest window seen left (until stop 79), rms 2.6 ms, at most
+        13-16 ms, but a median 0.35 ms late on the bare emulator, 0.08 ms in the middle of the whole window (at
+        50 deg/s, 1 ms is 0.05 deg)."""
         ack = time.monotonic() - 3 * self.cam.byte_time
-        excess = _beyond_narrowest(self._ack_windows, max(0.0, ack - self.cam.last_arrival))
-        self.predictor.add_command(self._to_clock(ack - 0.5 * excess),
+        self.predictor.add_command(self._to_clock(0.5 * (ack + min(ack, self.cam.last_arrival))),
                                    *self._in_rad(pan_u, tilt_u, pan_code, tilt_code))
