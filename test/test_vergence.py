@@ -151,6 +151,28 @@ def test_textureless_and_ambiguous_scenes_are_rejected_with_a_reason():
     assert not m.ok and ('no match' in m.reason or 'ambiguous' in m.reason)
 
 
+def test_a_match_that_correlates_too_weakly_is_not_measured(room):
+    """Finding the point (best NCC >= ncc_min) is not enough to measure it: a refined match correlating below
+    match_ncc_min (live, such steps were 1-26 % off) is refused with its NCC, and taken when the bound allows it."""
+    rig, _, renderer = room
+    pose = make_trajectory('paper').pose_at(0.0)
+    rq = (math.radians(22.5), 0.0)
+    centre = (rig.right.cx, rig.right.cy)
+    ray = rig.pixels_to_rig_rays('right', np.array([centre]), *rq)[0]
+    p = VergenceParams()
+    lq = rig.aim_readings('left', ray * vergence_aim_depths(rig, ray, p.min_depth_m, p.max_depth_m,
+                                                             p.patch_half + 4)[0])
+    left = renderer.render('left', pose, *lq).astype(float)
+    noisy = np.clip(left + np.random.default_rng(0).normal(0.0, 10.0, left.shape), 0, 255).astype(np.uint8)
+    right = renderer.render('right', pose, *rq)
+    m = find_partner_point(right, centre, rq, noisy, lq, rig, p)
+    assert not m.ok and m.pixel is None and 'correlates too weakly' in m.reason
+    assert p.ncc_min < m.ncc < p.match_ncc_min
+    loose = find_partner_point(right, centre, rq, noisy, lq, rig, VergenceParams(match_ncc_min=0.85))
+    assert loose.ok and loose.ncc == pytest.approx(m.ncc)
+    assert find_partner_point(right, centre, rq, left.astype(np.uint8), lq, rig, p).ok      # the clean image
+
+
 # ------------------------------------------------------------------------------------------------ averaging
 def _samples(X_of_t, c, times, rng, joint_sigma=0.0, moving=True, rate=0.02):
     """Rays at each time towards the (moving, in the rig frame) point X_of_t(t), both with independent joint

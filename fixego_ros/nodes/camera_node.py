@@ -498,6 +498,7 @@ class CameraNode(Node):
         return VergenceParams(min_depth_m=float(g('vergence_min_depth_m')),
                               max_depth_m=float(g('vergence_max_depth_m')), prior_depth_m=prior_depth_m,
                               ncc_min=float(g('vergence_ncc_min')),
+                              match_ncc_min=float(g('vergence_match_ncc_min')),
                               margin_min=float(g('vergence_margin_min')),
                               pixel_sigma_px=float(g('vergence_pixel_sigma_px')),
                               joint_sigma_deg=float(g('vergence_joint_sigma_deg')),

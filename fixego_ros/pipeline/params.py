@@ -417,6 +417,8 @@ CAMERA_NODE_PARAMS: Table = _table(
     _num('vergence_min_depth_m', 0.8, 'nearest depth searched along the right fixation ray', gt=0.0),
     _num('vergence_max_depth_m', 10.0, 'farthest depth searched along the right fixation ray', gt=0.0),
     _num('vergence_ncc_min', 0.8, 'partner point: best NCC below this is no match', ge=-1.0, le=1.0),
+    _num('vergence_match_ncc_min', 0.95, 'partner point: its refined match correlating below this is not measured '
+                                         '(such steps were 1-13 % off)', ge=-1.0, le=1.0),
     _num('vergence_margin_min', 0.1, 'partner point: best minus second-best NCC peak below this is ambiguous',
          ge=0.0, le=2.0),
     _num('vergence_pixel_sigma_px', 0.3, 'vergence: pixel noise of the two fixations used for the covariance (one '
