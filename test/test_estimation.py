@@ -13,7 +13,7 @@ from fixego_ros.estimation.estimator import Estimator
 from fixego_ros.estimation.frames import CameraFrame, FrameObservation, fixations_of, step_pairs
 from fixego_ros.estimation.local_ba import BAProblem, BATerm, refine_latest
 from fixego_ros.estimation.status import StepStatus
-from fixego_ros.estimation.twoframe import Fallback, SolverConfig, TwoFrameSolver
+from fixego_ros.estimation.twoframe import MIN_STAND_PAIRS, Fallback, SolverConfig, TwoFrameSolver
 from fixego_ros.experiments.point_scene import PRESETS, PointScene, random_motion_sequence
 from fixego_ros.geometry.rotation import Pose, exp_so3
 
@@ -135,6 +135,25 @@ def test_a_rig_at_rest_whose_heads_read_differently_stands_still():
     for direction in ([1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, 1.0, 0.0]):
         step = 0.2 / 30.0 * np.asarray(direction)
         assert solver.solve(_two_heads(step, 0.0)).status is not StepStatus.STATIONARY
+
+
+def test_a_handful_of_rays_without_parallax_is_no_evidence_of_rest():
+    """Stop 80: six rays that a moving rig's step leaves almost without parallax (points near the direction of
+    travel, the only tracks that survived both heads' swing) were taken as the rig standing, and the back end held
+    the frame still. Below MIN_STAND_PAIRS pairs the step is solved, not stood; with as many rays it stands."""
+    solver = TwoFrameSolver(SolverConfig())
+    rng = np.random.default_rng(3)
+    ahead = np.c_[rng.uniform(-0.02, 0.02, (MIN_STAND_PAIRS, 2)), np.ones(MIN_STAND_PAIRS)] * 4.0
+    step = np.array([0.0, 0.0, 0.04])                  # 0.2 s at 0.2 m/s, straight at the points
+    moved = ahead - step
+
+    def pairs(n: int) -> RayPairs:
+        return RayPairs.build([(ahead[:n], moved[:n], np.zeros(3), 1.0)])
+    few = solver.solve(pairs(MIN_STAND_PAIRS - 1))
+    assert few.status is not StepStatus.STATIONARY
+    assert solver.solve(pairs(MIN_STAND_PAIRS)).status is StepStatus.STATIONARY     # the same rays, enough of them
+    rest = RayPairs.build([(ahead[:6], ahead[:6], np.zeros(3), 1.0)])
+    assert solver.solve(rest).status is not StepStatus.STATIONARY       # six rays never stand, not even at rest
 
 
 def _ba_setup(seed, noise, true_prefix=False):

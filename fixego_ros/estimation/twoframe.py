@@ -88,6 +88,7 @@ class TwoFrameResult:
 
 
 MIN_ROTATION_PAIRS = 8           # ray pairs for a Kabsch rotation worth predicting with
+MIN_STAND_PAIRS = 2 * MIN_ROTATION_PAIRS     # ray pairs for a "the rig stood" verdict (:func:`stands_still`)
 MIN_KNOWN_TRANSLATION_M = 1e-4   # a given step shorter than this leaves its rotation to Kabsch (no parallax to read)
 
 
@@ -116,7 +117,14 @@ def stands_still(pairs: RayPairs, R: np.ndarray, cfg: SolverConfig) -> bool:
     stood. Per camera it left 0.01-0.09 px. Why the heads' agreement: per camera, a 30 Hz step's parallax mostly fits
     a rotation too (0.15-0.27 px at the 5th percentile), but of another axis in each head. Together the two tests
     stood 27 of 27 of those frames and none of 292 moving ones. The joint test stays: with the readings right, a
-    tracker's noise alone (0.05 px a ray) can leave ~0.1 px per camera."""
+    tracker's noise alone (0.05 px a ray) can leave ~0.1 px per camera.
+
+    Fewer than ``MIN_STAND_PAIRS`` pairs never stand: a median over a handful of rays is no evidence of rest. A few
+    tracks that survive both heads' swing (six, all near the direction of travel on the papers' loop, seed 2) show
+    little parallax while the rig moves on, and the back end held such a frame still over 0.2 s (4 cm of a 0.2 m/s
+    walk lost; docs/results.md "Stop 80"). A rig at rest keeps every track, so its steps have many pairs."""
+    if len(pairs) < MIN_STAND_PAIRS:
+        return False
     if _median_parallax(pairs.a, pairs.b, R) < cfg.min_parallax:
         return True
     if not (cfg.camera_parallax > 0.0 and cfg.head_sigma > 0.0):

@@ -263,7 +263,9 @@ ESTIMATOR_PARAMS: Table = _table(
     _num('fixation_weight', 1.0, 'weight of the fixation constraints relative to one flow point', ge=0.0, le=1e6,
          live=True),
     _num('stationary_parallax_px', 0.3, 'median rotation-compensated parallax (px) below which the rig is taken as '
-                                        'standing still (T = 0): with no parallax the scale is pure noise', ge=0.0),
+                                        'standing still (T = 0): with no parallax the scale is pure noise. A step '
+                                        'with fewer than 16 ray pairs never stands (a handful is no evidence of '
+                                        'rest)', ge=0.0),
     _num('stationary_camera_parallax_px', 0.1, 'with both cameras: standing still needs each camera\'s parallax, '
                                                'with a rotation of its own, below this (px; 0 = one rotation for both '
                                                'against stationary_parallax_px) ...', ge=0.0),
