@@ -25,7 +25,7 @@ import yaml
 
 from fixego_ros.estimation.config import REFINEMENTS, EstimatorConfig, SmootherConfig
 from fixego_ros.estimation.local_ba import MODES
-from fixego_ros.estimation.twoframe import BACKENDS, LOSSES, SolverConfig
+from fixego_ros.estimation.twoframe import BACKENDS, LOSSES, MIN_STAND_PAIRS, SolverConfig
 from fixego_ros.geometry.rig import SIDES, Rig
 from fixego_ros.pipeline.frontend import KeyframePolicy
 from fixego_ros.pipeline.odometry import SPEED_PARAMS as _SPEED_TEXTS
@@ -264,8 +264,8 @@ ESTIMATOR_PARAMS: Table = _table(
          live=True),
     _num('stationary_parallax_px', 0.3, 'median rotation-compensated parallax (px) below which the rig is taken as '
                                         'standing still (T = 0): with no parallax the scale is pure noise. A step '
-                                        'with fewer than 16 ray pairs never stands (a handful is no evidence of '
-                                        'rest)', ge=0.0),
+                                        f'with fewer than {MIN_STAND_PAIRS} ray pairs never stands (a handful is no '
+                                        'evidence of rest)', ge=0.0),
     _num('stationary_camera_parallax_px', 0.1, 'with both cameras: standing still needs each camera\'s parallax, '
                                                'with a rotation of its own, below this (px; 0 = one rotation for both '
                                                'against stationary_parallax_px) ...', ge=0.0),
