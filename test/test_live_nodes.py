@@ -538,6 +538,9 @@ def test_demo_runs_every_node_as_a_process_and_writes_a_report(tmp_path):
     assert 0.0 < float(est_diag['smoother_update_ms_p50']) <= float(est_diag['smoother_update_ms_p95'])
     assert (f'p50 {est_diag["smoother_update_ms_p50"]} / p95 {est_diag["smoother_update_ms_p95"]} ms per frame '
             'smoothed') in (out / 'report.txt').read_text()
+    # ... and where that time went, stage by stage (the elimination always runs)
+    assert float(est_diag['smoother_eliminate_ms_p50']) > 0.0
+    assert f'eliminate {est_diag["smoother_eliminate_ms_p50"]}' in (out / 'report.txt').read_text()
     # how each pose was made: every published frame counted once (carried, solved, predicted...)
     steps = report['fast_pose_steps']
     assert steps and sum(steps.values()) >= int(est_diag['published']) > 0, (steps, est_diag['published'])

@@ -17,6 +17,7 @@ from fixego_ros.estimation.config import EstimatorConfig
 from fixego_ros.estimation.frames import FrameObservation
 from fixego_ros.estimation.live_smoother import LiveSmoother, Message, _Gate, _Server
 from fixego_ros.estimation.smoother import Smoother
+from fixego_ros.estimation.stage_times import Stage
 from fixego_ros.estimation.status import StepStatus
 from fixego_ros.estimation.twoframe import SolverConfig
 from fixego_ros.experiments.landmark_scene import LandmarkScene, LandmarkSceneConfig
@@ -81,6 +82,13 @@ def test_the_path_is_the_in_process_smoothers(loop, live):
     assert results[-1].scale_observed and 'vergence' in results[-1].scale_note
     # the child's own time for each frame it answered (/diagnostics smoother_update_ms): one each, positive
     assert len(live.update_ms) == len(loop.observations) and all(0.0 < ms < 1e3 * WAIT_S for ms in live.update_ms)
+    # ... by stage (/diagnostics smoother_<stage>_ms): every stage has one sample per answer, the passes always run,
+    # and the stages add up to no more than the update they belong to
+    assert {k: len(v) for k, v in live.stage_ms.items()} == {s.value: len(loop.observations) for s in Stage}
+    assert all(ms > 0.0 for s in (Stage.LINEARISE, Stage.ELIMINATE, Stage.SOLVE) for ms in live.stage_ms[s.value])
+    totals = np.sum([list(v) for v in live.stage_ms.values()], axis=0)
+    assert np.all(totals <= np.array(live.update_ms) + 1e-6)
+    assert {k: len(v) for k, v in live.stage_samples(3).items()} == {s.value: 3 for s in Stage}
 
 
 def test_the_first_measurements_stretch_reaches_the_caller_as_in_process(loop):

@@ -6,6 +6,7 @@ they still fail when the estimate does not follow the rig (stays put, runs away,
 
 from __future__ import annotations
 
+import re
 import shutil
 import subprocess
 import sys
@@ -17,6 +18,7 @@ import pytest
 
 from fixego_ros.bags.reader import Bag, BagError, DecodeError
 from fixego_ros.estimation.smoother import Smoother
+from fixego_ros.estimation.stage_times import Stage
 from fixego_ros.evaluation.metrics import evaluate
 from fixego_ros.evaluation.tum import read_tum
 from fixego_ros.geometry.rig import load_rig
@@ -114,6 +116,10 @@ def test_cli_on_walk_bag_writes_tum_and_prints_ate(tmp_path):
     assert len(stamps) == 41 and np.array_equal(stamps, raw_stamps)
     assert all(p.is_finite() for p in poses)
     assert 'ATE rmse' in p.stdout and 'real time' in p.stdout
+    # where the back end's time went, stage by stage (its Gauss-Newton passes always linearise and eliminate)
+    stages = dict(re.findall(r'(smoother_\w+) ([\d.]+)', p.stdout))
+    assert {f'smoother_{s.value}' for s in Stage} <= stages.keys()
+    assert float(stages['smoother_linearise']) > 0.0 and float(stages['smoother_eliminate']) > 0.0
     gt_stamps, gt_poses = read_tum(WALK / 'ground_truth.tum')
     s = accuracy(stamps, poses, gt_stamps, gt_poses)
     assert 0.4 < s['path_length_m']['ratio'] < 2.5       # 1.07 measured

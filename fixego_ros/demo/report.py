@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 
 from fixego_ros.estimation.covariance import std_along
+from fixego_ros.estimation.stage_times import Stage
 from fixego_ros.evaluation.metrics import EvaluationError, evaluate
 from fixego_ros.evaluation.plot import plot_evaluation
 from fixego_ros.evaluation.tum import write_tum
@@ -345,6 +346,10 @@ def write_report(out: Path, rec, t_start: float, run_args: dict[str, Any],
                      f'{est.get("smoother_behind_s_p95", "?")} s (last 300 frames); '
                      + (f'done {done:.1f} s after the last pose' if done is not None
                         else 'not done within the wait after the last pose (the path ends in fast poses)'))
+        stages = [(stage.value, est.get(f'smoother_{stage.value}_ms_p50')) for stage in Stage]
+        if any(ms is not None for _, ms in stages):
+            lines.append('  smoother ms per frame smoothed by stage, p50: '
+                         + ', '.join(f'{name} {ms}' for name, ms in stages if ms is not None))
     if report['fast_pose_steps']:
         lines.append('  fast poses by step (carried: on the smoother\'s velocity, it close behind; ok/weak: solved, '
                      'it further behind): ' + ', '.join(f'{k} {v}' for k, v in report['fast_pose_steps'].items()))

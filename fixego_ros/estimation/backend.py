@@ -21,6 +21,17 @@ def make_backend(rig: Rig, config: EstimatorConfig, live: bool = False) -> Backe
     return LiveSmoother(rig, config, inline=not live)
 
 
+def answers(backend: Backend) -> int:
+    """How many frames the smoother has answered so far (0 for the papers' method)."""
+    return backend.smoothed_results if isinstance(backend, LiveSmoother) else 0
+
+
+def smoother_stage_ms(backend: Backend, since: int) -> dict[str, list[float]]:
+    """The smoother's ms by stage (:class:`.stage_times.Stage`) for its answers after the first ``since`` (none for
+    the papers' method)."""
+    return backend.stage_samples(backend.smoothed_results - since) if isinstance(backend, LiveSmoother) else {}
+
+
 def final_revisions(backend: Backend) -> tuple[tuple[float, Pose], ...]:
     """The revisions a back end still holds after its last frame (the smoother's answer to that frame)."""
     return backend.drain(0.0) if isinstance(backend, LiveSmoother) else ()

@@ -45,6 +45,7 @@ import gtsam
 import numpy as np
 
 from fixego_ros.estimation.keys import camera_key, is_landmark, is_pose, landmark_key, pose_key
+from fixego_ros.estimation.stage_times import Stage, StageTimes
 
 _CHR_POSE, _CHR_CAMERA, _CHR_LANDMARK = (np.uint64(gtsam.Symbol(k).chr())
                                          for k in (pose_key(0), camera_key(0, 'left'), landmark_key(0)))
@@ -88,8 +89,9 @@ class FixedLagWindow:
     REPAIR_SIGMAS = (1.0, 10.0)         # the weak prior on a pose or camera it failed near (rad, m)
     STEP_TOLERANCE = (1e-3, 2e-3)       # a pass that moves no pose by more (rad, m) ends the update's passes
 
-    def __init__(self, lag_s: float) -> None:
+    def __init__(self, lag_s: float, times: StageTimes | None = None) -> None:
         self.lag_s = lag_s
+        self.times = times or StageTimes()     # where each pass's time goes (the caller clears it)
         self.repairs: list[str] = []    # what each repair did (the caller reports them)
         self.dropped: list[int] = []    # landmarks dropped behind a camera (the caller forgets them)
         self._graph = gtsam.NonlinearFactorGraph()      # a removed factor leaves an empty slot until compaction
@@ -123,7 +125,8 @@ class FixedLagWindow:
             last = step == passes - 1
             moved = self._step(newest, anchored)
             if step == 0 and old:
-                self._marginalise(old)
+                with self.times(Stage.MARGINALISE):
+                    self._marginalise(old)
             dropped = self._drop_behind()
             if dropped:
                 self._remove(dropped)
@@ -216,12 +219,15 @@ class FixedLagWindow:
             lin = gtsam.Values(self._theta)
             for k in self._fixed:
                 lin.update(k, _value(self._lin, k))
-            linear = self._graph.linearize(lin)
+            with self.times(Stage.LINEARISE):
+                linear = self._graph.linearize(lin)
             present = [k for k in newest if self._theta.exists(k)]
-            order = (gtsam.Ordering.ColamdConstrainedLastGaussianFactorGraph(linear, gtsam.KeyVector(present))
-                     if present else gtsam.Ordering.ColamdGaussianFactorGraph(linear))
+            with self.times(Stage.ORDER):
+                order = (gtsam.Ordering.ColamdConstrainedLastGaussianFactorGraph(linear, gtsam.KeyVector(present))
+                         if present else gtsam.Ordering.ColamdGaussianFactorGraph(linear))
             try:
-                tree = linear.eliminateMultifrontal(order)
+                with self.times(Stage.ELIMINATE):
+                    tree = linear.eliminateMultifrontal(order)
                 break
             except RuntimeError as error:
                 if self._repaired >= self.MAX_REPAIRS:
@@ -229,8 +235,9 @@ class FixedLagWindow:
                 self._repaired += 1
                 self._repair(error, anchored)
         self._tree, self._tree_dims, self._root, self._lin = tree, lin.dims(), None, lin
-        delta = tree.optimize()
-        self._theta = lin.retract(delta)
+        with self.times(Stage.SOLVE):
+            delta = tree.optimize()
+            self._theta = lin.retract(delta)
         rotation, translation = self.STEP_TOLERANCE
         for k in _split_keys(lin)[1]:
             d = delta.at(int(k))

@@ -26,7 +26,7 @@ import signal
 import time
 from collections import deque
 from collections.abc import Iterable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from enum import Enum
 from typing import Any
 
@@ -46,6 +46,7 @@ from fixego_ros.estimation.frames import (
     span_start,
     step_pairs,
 )
+from fixego_ros.estimation.stage_times import Stage
 from fixego_ros.estimation.status import StepStatus
 from fixego_ros.estimation.twoframe import (
     MIN_ROTATION_PAIRS,
@@ -98,6 +99,7 @@ class SmootherState:
     vergence_used: int = 0
     update_ms: float = 0.0      # the smoother's own time for the frame this state came with (its process's CPU share
                                 # decides how far behind that puts it)
+    stage_ms: dict[str, float] = field(default_factory=dict)    # that time by stage (:class:`.stage_times.Stage`)
 
 
 def _state(smoother: Any, skipped: int, error: str, update_ms: float) -> SmootherState:
@@ -107,7 +109,7 @@ def _state(smoother: Any, skipped: int, error: str, update_ms: float) -> Smoothe
                          repairs=smoother.repairs, dropped=smoother.dropped,
                          resections_rejected=smoother.resections_rejected, speed_scale=smoother.speed_scale,
                          speed_scale_estimated=smoother.speed_scale_estimated, vergence_used=smoother.vergence_used,
-                         update_ms=update_ms)
+                         update_ms=update_ms, stage_ms=smoother.stage_ms)
 
 
 class _Server:
@@ -343,6 +345,7 @@ class LiveSmoother:
             child.close()
         self.smoothed_results = 0
         self.update_ms: deque[float] = deque(maxlen=300)   # the smoother's time per frame it answered (newest last)
+        self.stage_ms: dict[str, deque[float]] = {s.value: deque(maxlen=300) for s in Stage}   # ... by stage
         self._local_reset()
 
     # ------------------------------------------------------------------------------------------- interface
@@ -427,6 +430,12 @@ class LiveSmoother:
     @property
     def last_stamp(self) -> float | None:
         return self._recent[-1].stamp if self._recent else None
+
+    def stage_samples(self, newest: int) -> dict[str, list[float]]:
+        """The smoother's ms by stage for its ``newest`` answers (at most the last 300; replay counts its answers by
+        :attr:`smoothed_results` around each update)."""
+        n = min(max(newest, 0), 300)
+        return {stage: list(ms)[len(ms) - min(n, len(ms)):] for stage, ms in self.stage_ms.items()}
 
     def wait_for_answer(self, timeout_s: float) -> bool:
         """Whether the smoother process has sent something not yet taken, after waiting at most ``timeout_s``; False
@@ -614,6 +623,8 @@ class LiveSmoother:
         self._answered += 1
         self.smoothed_results += 1
         self.update_ms.append(state.update_ms)
+        for stage, ms in state.stage_ms.items():
+            self.stage_ms[stage].append(ms)
         if not result.placed:
             return 1
         self._smoothed_stamp = result.stamp

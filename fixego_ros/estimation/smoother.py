@@ -65,6 +65,7 @@ from fixego_ros.estimation.keys import LandmarkId, LandmarkKind, camera_key, lan
 from fixego_ros.estimation.resection import Sightings, resect
 from fixego_ros.estimation.scale_requests import vergence_measurement
 from fixego_ros.estimation.speed_samples import SpeedSamples
+from fixego_ros.estimation.stage_times import Stage, StageTimes
 from fixego_ros.estimation.status import StepStatus
 from fixego_ros.estimation.twoframe import Fallback, TwoFrameResult, TwoFrameSolver
 from fixego_ros.geometry.rig import SIDES, Rig
@@ -214,6 +215,7 @@ class Smoother:
         self.vergence = Vergence()
         self.speed_step = SpeedStep(c.speed_scale_sigma)
         self._depth_prior = gtsam.noiseModel.Isotropic.Sigma(3, c.far_guess_m)    # landmarks seen from one place
+        self.times = StageTimes()     # the last update's ms by stage (``stage_ms``)
         self.reset()
 
     @property
@@ -252,7 +254,7 @@ class Smoother:
         """A new graph (start, or after a numerical failure): later frames start from the last estimate, moving on
         with its motion (:meth:`_carried_motion`)."""
         self._carry = self._carried_motion()
-        self._window = FixedLagWindow(self.settings.lag_s)
+        self._window = FixedLagWindow(self.settings.lag_s, self.times)
         self._estimate = gtsam.Values()
         self._landmarks: dict[LandmarkId, int] = {}
         self._views: dict[LandmarkId, list[_View]] = {}
@@ -323,6 +325,11 @@ class Smoother:
     def last_stamp(self) -> float | None:
         return self._frames[-1].stamp if self._frames else None
 
+    @property
+    def stage_ms(self) -> dict[str, float]:
+        """Where the last frame's update went, ms by stage (:class:`.stage_times.Stage`)."""
+        return self.times.as_dict()
+
     # ------------------------------------------------------------------------------------------- frames
     def _in_graph(self, frame: _Frame) -> bool:
         return frame.index >= self._graph_start and self._estimate.exists(pose_key(frame.index))
@@ -368,6 +375,7 @@ class Smoother:
         """Place one frame and smooth the lag. Never raises on bad data: a frame that cannot be placed is rejected
         (state unchanged); a frame nothing constrains is predicted by the constant-twist prior."""
         last = self.last_stamp
+        self.times.clear()
         if last is not None and not obs.stamp > last:
             return self._reject(obs, f'stamp {obs.stamp:.6f} not after the last frame {last:.6f}: ignored')
         self._index += 1
@@ -390,12 +398,14 @@ class Smoother:
             messages.append('flow reference not in the graph: placed by landmarks and the motion prior')
         blind = self._blind(fix)
         predicted = self._predict(obs.stamp)
-        pose0 = predicted if blind else self._resect(obs, predicted)
+        with self.times(Stage.RESECTION):
+            pose0 = predicted if blind else self._resect(obs, predicted)
         # a resection that turns far from the prediction is checked against the two-frame step, solved from the
         # prediction (the resection's wrong minimum would be the solve's warm start)
         turned = self._turn_deg(predicted, pose0)
         doubtful = ref is not None and turned > self.RESECTION_AGREEMENT_DEG
-        raw, step_raw = self._two_frame(stepped, ref, predicted if doubtful else pose0)
+        with self.times(Stage.TWO_FRAME):
+            raw, step_raw = self._two_frame(stepped, ref, predicted if doubtful else pose0)
         tf = None if blind else raw         # what enters the graph; the raw chain keeps the two-frame solve
         if doubtful and self._good(tf):
             solved = ref.pose @ tf.pose
@@ -416,7 +426,8 @@ class Smoother:
         if i == self._graph_start:
             anchor = gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)      # the graph's origin: this frame's pose
             up.graph.add(gtsam.PriorFactorPose3(pose_key(i), to_gtsam(pose0), anchor))
-        self._observe(i, obs, pose0, up, sightings=not blind)
+        with self.times(Stage.SIGHTINGS):
+            self._observe(i, obs, pose0, up, sightings=not blind)
         if self._good(tf) and ref is not None:
             up.graph.add(self.steps.factor(ref.index, i, tf.pose, tf.covariance, obs.stamp - ref.stamp,
                                             self.scale_observed))
@@ -452,7 +463,8 @@ class Smoother:
         status, why = self._status(tf, up)
         if why:
             messages.append(why)
-        pose_cov = self._covariance(frame)
+        with self.times(Stage.COVARIANCE):
+            pose_cov = self._covariance(frame)
         ref_pose = ref.pose if ref is not None else frame.pose
         prefix_scale, self._prefix_scale = self._prefix_scale, 1.0
         # with the stretch: also the frames that left the window since the aid (the caller stretched them too)

@@ -591,6 +591,8 @@ class EstimatorNode(Node):
                            'smoother_behind_s': f'{self.estimator.behind_s:.2f}',
                            **percentile_values('smoother_behind_s', self.behind_s or (0.0,)),
                            **percentile_values('smoother_update_ms', self.estimator.update_ms or (0.0,)),
+                           **{k: v for stage, ms in self.estimator.stage_ms.items() if ms
+                              for k, v in percentile_values(f'smoother_{stage}_ms', ms).items()},
                            'smoother_restarts': self.estimator.restarts,
                            'smoother_repairs': self.estimator.repairs,
                            'smoother_dropped_landmarks': self.estimator.dropped,

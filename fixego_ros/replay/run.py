@@ -57,7 +57,7 @@ from typing import Any
 import numpy as np
 
 from fixego_ros.bags.reader import Bag, DecodeError
-from fixego_ros.estimation.backend import Backend, final_revisions, make_backend
+from fixego_ros.estimation.backend import Backend, answers, final_revisions, make_backend, smoother_stage_ms
 from fixego_ros.estimation.config import EstimatorConfig
 from fixego_ros.estimation.frames import STAMP_TOLERANCE_S, FrameObservation
 from fixego_ros.geometry.rig import SIDES, Rig
@@ -201,6 +201,7 @@ class _Estimate:
     prefix_scale: float = 1.0       # the scale was measured here: earlier positions are multiplied by it
     corrected: tuple[float, Pose, Pose] | None = None   # a blind step re-estimated: (stamp, pose, pose_raw)
     revised: tuple[tuple[float, Pose], ...] = ()        # the smoother's newer poses of earlier frames
+    smoother_ms: dict[str, list[float]] = field(default_factory=dict)  # its answers' ms by stage, during this update
 
 
 @dataclass
@@ -231,6 +232,7 @@ def _add_point(estimator: Backend, p: _FixationPoint) -> _Refused | None:
 
 def _update(estimator: Backend, stamp: float, obs) -> _Estimate:
     t0 = time.perf_counter()
+    before = answers(estimator)
     r = estimator.update(obs)
     mount = estimator.rig.mount
     corrected = None
@@ -240,7 +242,7 @@ def _update(estimator: Backend, stamp: float, obs) -> _Estimate:
     revised = tuple((s, rig_pose_to_base_link(p, mount)) for s, p in r.revised)
     return _Estimate(stamp, r.placed, r.status.value, r.message, rig_pose_to_base_link(r.pose, mount),
                      rig_pose_to_base_link(r.pose_raw, mount), (time.perf_counter() - t0) * 1e3, r.prefix_scale,
-                     corrected, revised)
+                     corrected, revised, smoother_stage_ms(estimator, before))
 
 
 @dataclass
@@ -702,6 +704,8 @@ def replay(bag: Bag, rig: Rig, settings: ReplaySettings, topics: ReplayTopics = 
     index_of: dict[float, int] = {}
     for e in estimates:
         res.stage_ms.setdefault('estimate', []).append(e.ms)
+        for stage, ms in e.smoother_ms.items():
+            res.stage_ms.setdefault(f'smoother_{stage}', []).extend(ms)
         if not e.placed:
             res.note('frames_not_placed', f'frame at {e.stamp:.3f} s not placed: {e.message}')
             continue
