@@ -602,7 +602,11 @@ class Smoother:
     def _pose_of(self, index: int, up: _Update) -> Pose | None:
         if up.values.exists(pose_key(index)):
             return from_gtsam(up.values.atPose3(pose_key(index)))
-        for f in reversed(self._frames):
+        frames = self._frames
+        at = index - frames[0].index if frames else -1     # the frames' indices run on by one (update appends each)
+        if 0 <= at < len(frames) and frames[at].index == index:
+            return frames[at].pose
+        for f in reversed(frames):
             if f.index == index:
                 return f.pose
         return None
@@ -619,12 +623,18 @@ class Smoother:
         """Triangulate a landmark from its views; fixation points without parallax enter at a far guess (their
         rays hold the rotation even so)."""
         cfg = self.settings
+        ends = [self._pose_of(v.frame, up) for v in (views[0], views[-1])]
+        if any(p is None for p in ends):
+            return
+        parallax = math.degrees(math.acos(float(np.clip((ends[0].R @ views[0].ray) @ (ends[1].R @ views[-1].ray),
+                                                        -1.0, 1.0))))
+        if parallax < cfg.min_parallax_deg and lid.kind is not LandmarkKind.FIXATION and len(views) < cfg.patient_views:
+            return      # (the common case, decided below too: unplaced, and not yet seen often enough to enter far)
         poses = [self._pose_of(v.frame, up) for v in views]
         if any(p is None for p in poses):
             return
         rays = [p.R @ v.ray for p, v in zip(poses, views, strict=True)]
         centers = [p.apply(self.rig.center(v.side)) for p, v in zip(poses, views, strict=True)]
-        parallax = math.degrees(math.acos(float(np.clip(rays[0] @ rays[-1], -1.0, 1.0))))
         baseline = max(float(np.linalg.norm(c - centers[0])) for c in centers)
         far_baseline = cfg.far_guess_m * math.tan(math.radians(cfg.min_parallax_deg))
         point = triangulate(rays, centers) if parallax >= cfg.min_parallax_deg else None
