@@ -13,6 +13,7 @@ from fixego_ros.estimation.status import StepStatus
 from fixego_ros.estimation.twoframe import (
     BACKENDS,
     LOSSES,
+    Fallback,
     MotionPrior,
     SolverConfig,
     TwoFrameSolver,
@@ -285,3 +286,32 @@ def test_rotation_given_the_translation_reads_parallax_that_kabsch_takes_for_rot
     assert np.array_equal(rotation_given_translation(pairs, kabsch, np.full(3, np.nan), sigma), kabsch)
     wrong = rotation_given_translation(pairs, kabsch, np.array([1.0, 0.0, 0.0]), sigma, max_turn=np.radians(0.2))
     assert np.degrees(np.arccos(np.clip((np.trace(wrong @ kabsch.T) - 1.0) / 2.0, -1.0, 1.0))) <= 0.2 + 1e-9
+
+
+def _same(a, b) -> bool:
+    """Two solve results alike to the bit (pose, status, cost, covariance, cheirality, message)."""
+    if a is None or b is None:
+        return a is b
+    return (a.status is b.status and np.array_equal(a.pose.R, b.pose.R) and np.array_equal(a.pose.t, b.pose.t)
+            and a.cost == b.cost and np.array_equal(a.covariance, b.covariance) and a.cheirality == b.cheirality
+            and a.message == b.message)
+
+
+@pytest.mark.parametrize('seed', range(4))
+def test_the_batched_cold_check_is_the_two_solves(seed):
+    """``solve_checked`` refines the warm start and the closed-form starts in one batch: the smoother's warm solve and
+    its cold check come out as the two separate solves, bit for bit, from a good start, from a start behind the
+    cameras (the warm solve then takes the cold starts too), for a rig at rest and with too few pairs."""
+    truth, pairs, sigma = problem(seed, 0.5)
+    solver = TwoFrameSolver(SolverConfig(sigma=sigma, prior_step=0.05))
+    behind = Pose(truth.R, -truth.t)
+    rest = RayPairs(pairs.a, pairs.a @ truth.R, pairs.centers * 0.0, pairs.weights)    # b = R^T a: rotation only
+    few = RayPairs(pairs.a[:5], pairs.b[:5], pairs.centers[:5], pairs.weights[:5])
+    for p, start in ((pairs, perturbed(truth)), (pairs, behind), (rest, truth), (few, truth)):
+        warm, cold = solver.solve_checked(p, start)
+        expected_warm = solver.solve(p, initial=start)
+        assert _same(warm, expected_warm)
+        usable = expected_warm.status in (StepStatus.OK, StepStatus.WEAK)
+        assert _same(cold, solver.solve(p, fallback=Fallback.CLOSED_FORM) if usable else None)
+    assert solver.solve_checked(pairs, perturbed(truth))[1] is not None          # the check ran
+    assert solver.solve_checked(rest, truth)[0].status is StepStatus.STATIONARY

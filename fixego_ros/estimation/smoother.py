@@ -67,7 +67,7 @@ from fixego_ros.estimation.scale_requests import vergence_measurement
 from fixego_ros.estimation.speed_samples import SpeedSamples
 from fixego_ros.estimation.stage_times import Stage, StageTimes
 from fixego_ros.estimation.status import StepStatus
-from fixego_ros.estimation.twoframe import Fallback, TwoFrameResult, TwoFrameSolver
+from fixego_ros.estimation.twoframe import TwoFrameResult, TwoFrameSolver
 from fixego_ros.geometry.rig import SIDES, Rig
 from fixego_ros.geometry.rotation import Pose, log_so3, rotation_angle
 
@@ -501,12 +501,11 @@ class Smoother:
             return None, Pose.identity()
         dt = obs.stamp - ref.stamp
         pairs = step_pairs(self.rig, ref.fixation, obs, self.config.fixation_weight)
-        warm = self.solver.solve(pairs, initial=ref.pose.inverse() @ pose0)
+        warm, cold = self.solver.solve_checked(pairs, ref.pose.inverse() @ pose0)    # (cold: None unless OK/WEAK)
         tf = warm
-        if warm.status in (StepStatus.OK, StepStatus.WEAK):       # (no parallax or too few pairs: no starts)
-            cold = self.solver.solve(pairs, fallback=Fallback.CLOSED_FORM)
-            if cold.status.usable and cold.cheirality >= 0.5 and cold.cost < self.COLD_START_GAIN * warm.cost:
-                tf = cold
+        if cold is not None and cold.status.usable and cold.cheirality >= 0.5 \
+                and cold.cost < self.COLD_START_GAIN * warm.cost:
+            tf = cold
         return tf, self.steps.scaled(tf.pose if self._good(tf) else ref.pose.inverse() @ pose0, dt)
 
     @staticmethod
