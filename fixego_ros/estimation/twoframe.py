@@ -579,21 +579,14 @@ class TwoFrameSolver:
             return self.solve(pairs, initial=initial), None      # stationary: no refinement, no check
         closed = self._starts(Fallback.CLOSED_FORM, pairs, R_rot)
         found = self._minimise_lm(pairs, [initial, *closed], None)
-
-        def best_of(minima: list[_Minimum | None]) -> TwoFrameResult | None:     # as :meth:`_best`, fresh results
-            best: TwoFrameResult | None = None
-            for minimum in minima:
-                best = self._better(best, self._result(pairs, minimum))
-            return best
-
-        warm = best_of(found[:1])
+        warm = self._best_of(pairs, found[:1])
         if warm is None or warm.cheirality < 0.5:     # as :meth:`solve`: a warm solve behind the cameras gets the
             canonical = [Pose(R_rot, p.t) for p in canonical_starts(self.config.prior_step)]     # cold starts
-            warm = self._better(best_of([*found[1:], *self._minimise_lm(pairs, canonical, None)]), warm)
+            warm = self._better(self._best_of(pairs, [*found[1:], *self._minimise_lm(pairs, canonical, None)]), warm)
         warm = self._finished(warm, initial, len(pairs))
         if warm.status not in (StepStatus.OK, StepStatus.WEAK):
             return warm, None
-        return warm, self._finished(best_of(found[1:]), None, len(pairs))
+        return warm, self._finished(self._best_of(pairs, found[1:]), None, len(pairs))
 
     @staticmethod
     def _finished(best: TwoFrameResult | None, initial: Pose | None, m: int) -> TwoFrameResult:
@@ -624,9 +617,12 @@ class TwoFrameSolver:
     def _best(self, pairs: RayPairs, starts: list[Pose],
               prior: MotionPrior | None = None) -> TwoFrameResult | None:
         """Refine every start; prefer solutions in front of the cameras, then the lowest cost."""
+        return self._best_of(pairs, self._minimise_lm(pairs, starts, prior) if self.config.backend == 'lm'
+                             else [self._minimise_scipy(pairs, start, prior) for start in starts])
+
+    def _best_of(self, pairs: RayPairs, found: list[_Minimum | None]) -> TwoFrameResult | None:
+        """The best of refined minima, as :meth:`_better` ranks them (each a new result)."""
         best: TwoFrameResult | None = None
-        found = (self._minimise_lm(pairs, starts, prior) if self.config.backend == 'lm'
-                 else [self._minimise_scipy(pairs, start, prior) for start in starts])
         for minimum in found:
             best = self._better(best, self._result(pairs, minimum))
         return best
