@@ -111,10 +111,19 @@ class _Update:
     values: gtsam.Values = field(default_factory=gtsam.Values)
     stamps: dict[int, float] = field(default_factory=dict)
     observations: int = 0
+    _poses: dict[int, Pose] = field(default_factory=dict)      # rig poses among the values, as :func:`from_gtsam` gave
 
     def add_value(self, key: int, value: gtsam.Pose3 | np.ndarray, stamp: float) -> None:
         self.values.insert(key, value)
         self.stamps[key] = stamp
+
+    def pose(self, key: int) -> Pose | None:
+        """A rig pose added in this update (None if none was), converted once: every new landmark's views ask."""
+        if key not in self._poses:
+            if not self.values.exists(key):
+                return None
+            self._poses[key] = from_gtsam(self.values.atPose3(key))
+        return self._poses[key]
 
 
 def triangulate(rays: list[np.ndarray], centers: list[np.ndarray]) -> np.ndarray | None:
@@ -599,8 +608,8 @@ class Smoother:
                 self._try_landmark(lid, views, up, stamp)
 
     def _pose_of(self, index: int, up: _Update) -> Pose | None:
-        if up.values.exists(pose_key(index)):
-            return from_gtsam(up.values.atPose3(pose_key(index)))
+        if (pose := up.pose(pose_key(index))) is not None:
+            return pose
         frames = self._frames
         at = index - frames[0].index if frames else -1     # the frames' indices run on by one (update appends each)
         if 0 <= at < len(frames) and frames[at].index == index:
