@@ -542,17 +542,10 @@ class TwoFrameSolver:
         the warm one lands behind the cameras (the live pose has a time budget and takes the closed-form starts
         only; so does the smoother's cold check of its warm solve)."""
         prior = MotionPrior.build(prior_t, prior_sigma_t, prior_length)
-        cfg = self.config
         m = len(pairs)
-        if m < 6:
-            return TwoFrameResult(Pose.identity(), StepStatus.INSUFFICIENT, n_constraints=m,
-                                  message=f'{m} constraints for 6 unknowns')
-        # zero flow: a pure rotation explains every pair exactly -> stationary (T unobservable, 0)
-        R_rot = kabsch_rotation(pairs.a, pairs.b)
-        if stands_still(pairs, R_rot, cfg):
-            return TwoFrameResult(Pose(R_rot, np.zeros(3)), StepStatus.STATIONARY, np.zeros(m),
-                                  np.diag([cfg.sigma**2] * 3 + [VAR_MAX] * 3), 0.0, m,
-                                  'no parallax: rotation only')
+        done, R_rot = self._unrefined(pairs)
+        if done is not None:
+            return done
         warm = initial is not None and initial.is_finite()
         best = self._best(pairs, [initial] if warm else self._starts(fallback, pairs, R_rot), prior)
         # a poor warm start gets the cold starts too, unless a prior on T anchors it (real time: the cold starts
@@ -570,13 +563,13 @@ class TwoFrameSolver:
         :func:`levenberg_marquardt_many` batch, each taking exactly the steps it takes alone, and the pairs' rest test
         runs once. The smoother checks every warm solve this way (:meth:`.smoother.Smoother._two_frame`): alone, the
         warm solve and the check cost 5.2 + 7.1 ms per frame on the 30 Hz loop, batched the refinements 7.8."""
-        if len(pairs) < 6 or not initial.is_finite() or self.config.backend != 'lm':
+        if not initial.is_finite() or self.config.backend != 'lm':
             warm = self.solve(pairs, initial=initial)      # (scipy refines one start at a time: no batch to share)
             return warm, (self.solve(pairs, fallback=Fallback.CLOSED_FORM)
                           if warm.status in (StepStatus.OK, StepStatus.WEAK) else None)
-        R_rot = kabsch_rotation(pairs.a, pairs.b)
-        if stands_still(pairs, R_rot, self.config):
-            return self.solve(pairs, initial=initial), None      # stationary: no refinement, no check
+        done, R_rot = self._unrefined(pairs)
+        if done is not None:
+            return done, None       # too few pairs, or the rig at rest: no refinement, no check
         closed = self._starts(Fallback.CLOSED_FORM, pairs, R_rot)
         found = self._minimise_lm(pairs, [initial, *closed], None)
         warm = self._best_of(pairs, found[:1])
@@ -587,6 +580,20 @@ class TwoFrameSolver:
         if warm.status not in (StepStatus.OK, StepStatus.WEAK):
             return warm, None
         return warm, self._finished(self._best_of(pairs, found[1:]), None, len(pairs))
+
+    def _unrefined(self, pairs: RayPairs) -> tuple[TwoFrameResult | None, np.ndarray]:
+        """The answer that needs no refinement (too few pairs; a rig at rest: a pure rotation explains every pair,
+        T unobservable and 0), else None; and the pairs' Kabsch rotation (identity with too few pairs)."""
+        cfg, m = self.config, len(pairs)
+        if m < 6:
+            return TwoFrameResult(Pose.identity(), StepStatus.INSUFFICIENT, n_constraints=m,
+                                  message=f'{m} constraints for 6 unknowns'), np.eye(3)
+        R_rot = kabsch_rotation(pairs.a, pairs.b)
+        if stands_still(pairs, R_rot, cfg):
+            return TwoFrameResult(Pose(R_rot, np.zeros(3)), StepStatus.STATIONARY, np.zeros(m),
+                                  np.diag([cfg.sigma**2] * 3 + [VAR_MAX] * 3), 0.0, m,
+                                  'no parallax: rotation only'), R_rot
+        return None, R_rot
 
     @staticmethod
     def _finished(best: TwoFrameResult | None, initial: Pose | None, m: int) -> TwoFrameResult:
