@@ -625,3 +625,151 @@ def test_bad_or_refused_vergence_is_skipped_and_noted(vergence_bag, tmp_path, mo
                          ('/fixego/ground_truth/pose', 'expected geometry_msgs/msg/PoseWithCovarianceStamped')):
         with pytest.raises(ReplayError, match=match):
             replay(Bag(vergence_bag), rig, ReplaySettings.from_getters(rig, vergence_topic=topic))
+
+
+# ------------------------------------------------------------------------------------------ observations
+def _observation_bag(src: Path, dst: Path, monkeypatch) -> tuple[Path, object]:
+    """Replay ``src`` from its images, keeping what the estimator got in the order it got it (the front end's
+    observations and the vergence measurements), and write that as a bag of the estimator's inputs the way
+    ``fixego demo`` writes one (``flow/observation`` clouds, ``vergence``, ``ground_truth/pose``, no images).
+    Returns the bag and the image replay's result (its estimator given each observation as the message carries it,
+    as the live estimator_node gets it)."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    from fixego_ros.pipeline.messages import POINT_FIELD_TYPES
+    from fixego_ros.pipeline.observation import observation_to_rows, rows_to_observation
+    from fixego_ros.replay import run as replay_run
+
+    fed: list[tuple[str, object]] = []     # ('frame', (stamp, obs)) / ('point', stamp), in the estimator's order
+    submit, point = replay_run._InProcess.submit, replay_run._InProcess.submit_fixation_point
+    monkeypatch.setattr(replay_run._InProcess, 'submit',
+                        lambda self, stamp, obs: (fed.append(('frame', (stamp, obs))), submit(self, stamp, obs)))
+    monkeypatch.setattr(replay_run._InProcess, 'submit_fixation_point',
+                        lambda self, stamp, *a: (fed.append(('point', stamp)), point(self, stamp, *a)))
+    rig = load_rig(src / 'rig.yaml')
+    bag = Bag(src)
+    # what the estimator gets is the observation as flow_node's message carries it (rotations as rotation vectors)
+    # (the message's rows are written from the front end's own observation, as flow_node writes them)
+    rows = {}
+
+    def as_the_message_carries_it(obs):
+        rows[obs.stamp] = observation_to_rows(obs)
+        return rows_to_observation(obs.stamp, rows[obs.stamp])
+
+    res = replay(bag, rig, ReplaySettings.from_getters(rig, vergence_topic='/fixego/vergence'), workers=1,
+                 observe=as_the_message_carries_it)
+    monkeypatch.undo()
+    store = bag._store()
+    types = store.types
+    vergence = {}       # stamp -> message
+    for m in bag.messages(['/fixego/vergence']):
+        v = bag.decode(m)
+        vergence[v.header.stamp.sec + 1e-9 * v.header.stamp.nanosec] = v
+    truth = [bag.decode(m) for m in bag.messages(['/fixego/ground_truth/pose'])]
+
+    def stamp_of(t: float):
+        sec = int(np.floor(t))
+        return types['builtin_interfaces/msg/Time'](sec=sec, nanosec=round((t - sec) * 1e9))
+
+    def cloud(stamp: float, _obs):
+        table = rows[stamp]
+        fields = [types['sensor_msgs/msg/PointField'](name=n, offset=int(off), datatype=POINT_FIELD_TYPES[dt],
+                                                        count=1) for n, (dt, off) in table.dtype.fields.items()]
+        return types['sensor_msgs/msg/PointCloud2'](
+            header=types['std_msgs/msg/Header'](stamp=stamp_of(stamp), frame_id='rig'), height=1, width=len(table),
+            fields=fields, is_bigendian=False, point_step=table.dtype.itemsize,
+            row_step=table.dtype.itemsize * len(table), data=np.frombuffer(table.tobytes(), np.uint8), is_dense=True)
+
+    with Writer(dst, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        conns = {t: w.add_connection(t, mt, typestore=store) for t, mt in (
+            ('/fixego/flow/observation', 'sensor_msgs/msg/PointCloud2'),
+            ('/fixego/vergence', 'geometry_msgs/msg/PoseWithCovarianceStamped'),
+            ('/fixego/ground_truth/pose', 'geometry_msgs/msg/PoseStamped'))}
+        t_ns = 1
+        for msg in truth:
+            w.write(conns['/fixego/ground_truth/pose'], t_ns, bytes(store.serialize_cdr(msg, msg.__msgtype__)))
+            t_ns += 1
+        for kind, what in fed:
+            if kind == 'frame':
+                data = store.serialize_cdr(cloud(*what), 'sensor_msgs/msg/PointCloud2')
+                w.write(conns['/fixego/flow/observation'], t_ns, bytes(data))
+            else:
+                msg = vergence[min(vergence, key=lambda s: abs(s - what))]
+                w.write(conns['/fixego/vergence'], t_ns, bytes(store.serialize_cdr(msg, msg.__msgtype__)))
+            t_ns += 1
+    shutil.copy(src / 'rig.yaml', dst / 'rig.yaml')
+    assert sum(k == 'point' for k, _ in fed) >= 1 and sum(k == 'frame' for k, _ in fed) == 16
+    return dst, res
+
+
+def test_a_bag_of_observations_replays_the_estimator_alone_to_the_same_trajectory(vergence_bag, tmp_path,
+                                                                                   monkeypatch, capsys):
+    """The estimator's inputs as the demo records them (the flow node's observations, the vergence measurements,
+    the truth) replay the estimator alone, picked from the bag by default, and give the trajectory the images gave
+    (the same observations in the same order: the same poses, bit for bit), with one or two workers."""
+    from fixego_ros.cli import main as fixego
+    from fixego_ros.replay.run import ReplayInput, bag_defaults
+
+    obs_bag, from_images = _observation_bag(vergence_bag, tmp_path / 'inputs', monkeypatch)
+    bag = Bag(obs_bag)
+    defaults = bag_defaults(bag, ReplayTopics())
+    assert defaults['inputs'] is ReplayInput.OBSERVATIONS and defaults['vergence_topic'] == '/fixego/vergence'
+    assert bag_defaults(Bag(vergence_bag), ReplayTopics())['inputs'] is ReplayInput.IMAGES
+    rig = load_rig(obs_bag / 'rig.yaml')
+    res = replay(bag, rig, ReplaySettings.from_getters(rig, **defaults))
+    assert res.counts['frames'] == 16 and res.counts['images'] == 0 and res.counts['vergence'] >= 1
+    assert res.stamps == from_images.stamps and res.gt_stamps == from_images.gt_stamps
+    for i, (a, b) in enumerate(zip(res.poses + res.poses_raw, from_images.poses + from_images.poses_raw, strict=True)):
+        assert np.array_equal(a.R, b.R) and np.array_equal(a.t, b.t), (i, np.abs(a.t - b.t).max())
+    outs = []
+    for workers in ('1', '2'):
+        out = tmp_path / f'w{workers}' / 'est.tum'
+        assert fixego(['replay', str(obs_bag), '--out', str(out), '--workers', workers, '--no-progress']) == 0
+        outs.append(out.read_bytes())
+        printed = capsys.readouterr().out
+        assert '16 observations (the estimator alone), 16 poses' in printed, printed
+        assert 'fixations: those of the observations' in printed and 'ATE rmse' in printed
+    assert outs[0] == outs[1]
+    stamps, poses = read_tum(tmp_path / 'w1' / 'est.tum')
+    assert np.allclose(stamps, from_images.stamps) and np.allclose([p.t for p in poses],
+                                                                   [p.t for p in from_images.poses], atol=1e-9)
+    # options that act on the images are refused with observations (they would change nothing)
+    assert fixego(['replay', str(obs_bag), '--out', str(tmp_path / 'x.tum'), '--preset', 'full']) == 2
+    assert '--preset act on the images' in capsys.readouterr().err
+    # asked to replay the images of a bag that has none: the missing topic is named
+    assert fixego(['replay', str(obs_bag), '--out', str(tmp_path / 'x.tum'), '--inputs', 'images']) == 2
+    assert 'no topic /fixego/right/image_raw' in capsys.readouterr().err
+
+
+def test_bad_observations_are_skipped_and_said_once(vergence_bag, tmp_path, monkeypatch):
+    """A cloud whose layout is not the observation table, one whose rows are not an observation (a ray that is not
+    of unit length) and one that comes after a later frame are each skipped with one note; the rest replays."""
+    obs_bag, _ = _observation_bag(vergence_bag, tmp_path / 'inputs', monkeypatch)
+    seen = {'n': 0}
+    held: list = []
+
+    def damage(topic, msgtype, msg, t):
+        if topic != '/fixego/flow/observation':
+            return [(topic, msgtype, msg, t)]
+        seen['n'] += 1
+        if seen['n'] == 3:
+            msg.point_step -= 1                                  # not the table's layout
+        elif seen['n'] == 5:
+            data = bytearray(msg.data.tobytes())
+            data[-32:-24] = np.float64(7.0).tobytes()            # x1 of the last row: not a unit ray
+            msg.data = np.frombuffer(bytes(data), np.uint8)
+        elif seen['n'] == 8:
+            held.append((topic, msgtype, msg, t))                # comes after the next one: out of order
+            return []
+        elif seen['n'] == 9:
+            return [(topic, msgtype, msg, t), *held]
+        return [(topic, msgtype, msg, t)]
+
+    src = rewrite(obs_bag, tmp_path / 'damaged', damage)
+    rig = load_rig(src / 'rig.yaml')
+    from fixego_ros.replay.run import ReplayInput
+    res = replay(Bag(src), rig, ReplaySettings.from_getters(rig, inputs=ReplayInput.OBSERVATIONS))
+    assert res.counts['bad_observation'] == 2 and res.counts['observation_out_of_order'] == 1, res.counts
+    assert len(res.notes) == 2, res.notes
+    assert 'point_step' in res.notes[0] and 'go backwards' in res.notes[1]
+    assert res.counts['frames'] == 13 and len(res.stamps) == 13 and all(p.is_finite() for p in res.poses)

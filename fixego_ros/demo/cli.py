@@ -7,7 +7,9 @@ resets the estimator and starts the rig on its trajectory; when the rig stops, s
 writes a report folder: TUM files (refined, raw, ground truth), ATE/RPE (evo), the trajectory plot and
 error per step, the scale error (estimated / true path length - 1), the vergence steps (measurements seen,
 the left camera node's attempts/successes and interruption), latency image -> pose and dropped frames, and
-every node's log.
+every node's log; and the estimator's inputs from the reset on (``estimator_inputs/``: the flow node's observations,
+the vergence measurements and the ground truth, with the rig file), so ``fixego replay`` reproduces the run's
+estimate offline without the images.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import argparse
 import json
 import math
 import os
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -33,6 +36,7 @@ PROG = 'fixego demo'
 READY_TIMEOUT_MAX = 3600.0     # s
 SMOOTHER_CATCH_UP_S = 15.0     # s: after the last pose, the smoother's last results (its lag, and a diagnostics period)
 SCALE_AT_REST_TIMEOUT_S = 15.0  # s: the request may wait out the camera node's vergence_min_interval_s, then ~3 s
+INPUTS_DIR = 'estimator_inputs'  # the estimator's inputs, a bag for fixego replay
 
 
 def register(subparsers) -> None:
@@ -189,6 +193,7 @@ def _run(args: argparse.Namespace, out: Path, rig_path: Path, launcher) -> int:
             if client is node.reset_client:
                 node.clear()
                 t_reset = node.get_clock().now().nanoseconds * 1e-9
+                _record_inputs(node, out / INPUTS_DIR)
         t_run = time.monotonic()
         last_print = last_cpu = 0.0
         cpu = CpuSampler({n: p.pid for n, p in launcher.procs.items()}, {'fixego demo (recorder)': os.getpid()})
@@ -221,13 +226,42 @@ def _run(args: argparse.Namespace, out: Path, rig_path: Path, launcher) -> int:
         cpu.sample(time.monotonic())
         launcher.stop_all()
         from fixego_ros.demo.report import write_report
-        report = write_report(out, node, t_reset, vars(args), cpu.shares())
+        inputs = _close_inputs(node, rig_path, out / INPUTS_DIR)
+        report = write_report(out, node, t_reset, vars(args), cpu.shares(), inputs)
     finally:
+        node.close_inputs()         # a failed run: the bag is still closed (idempotent)
         ex.shutdown()
         node.destroy_node()
         rclpy.try_shutdown()
     _say(args, report['console'])
     return 0
+
+
+def _record_inputs(node, bag: Path) -> None:
+    """Start writing the estimator's inputs to ``bag`` (a previous run's in a reused --out is replaced); a bag that
+    cannot be created costs the run nothing but the bag (said once)."""
+    from fixego_ros.bags.recorder import RecordError
+    try:
+        if bag.exists():
+            shutil.rmtree(bag)
+        node.record_inputs(bag)
+    except (OSError, RecordError) as e:
+        print(f'fixego demo: the estimator inputs are not recorded: {" ".join(str(e).split())}', file=sys.stderr)
+
+
+def _close_inputs(node, rig_path: Path, bag: Path) -> dict | None:
+    """Finish the inputs bag and put the rig file beside it (``fixego replay BAG`` finds it there); what the report
+    says of it, None when none was written."""
+    summary = node.close_inputs()
+    if summary is None:
+        return None
+    error = summary.error
+    if not error:
+        try:
+            shutil.copyfile(rig_path, bag / 'rig.yaml')
+        except OSError as e:
+            error = f'cannot copy the rig file: {e}'
+    return {'bag': str(bag), 'messages': {t: c.written for t, c in summary.topics.items()}, 'error': error}
 
 
 def _path_period() -> float:

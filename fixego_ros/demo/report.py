@@ -229,13 +229,14 @@ def fast_pose_steps(estimator_status: dict[str, str]) -> dict[str, int]:
 
 
 def write_report(out: Path, rec, t_start: float, run_args: dict[str, Any],
-                 cpu: dict[str, float] | None = None) -> dict[str, Any]:
+                 cpu: dict[str, float] | None = None, inputs: dict[str, Any] | None = None) -> dict[str, Any]:
     """Write ``estimate.live.tum`` (each pose as published), ``estimate.tum`` (the last path: the smoother's
     refined trajectory), ``estimate.raw.tum`` (the last path_raw), ``ground_truth.tum``, ``report.json``,
     ``trajectory.png`` under ``out`` from what the recorder saw at or after ``t_start`` (the vergence measurements:
     all it saw); returns the report (with a ``console`` summary). ``cpu``: % of one core per process over the run
     (:class:`~fixego_ros.demo.cpu.CpuSampler`). The vergence measurements are checked against the simulated world
-    when ``out`` holds the run's ``rig.yaml``."""
+    when ``out`` holds the run's ``rig.yaml``. ``inputs``: the bag of the estimator's inputs (``bag``, ``messages``
+    per topic, ``error``), when one was written."""
     keep = [(i, t, p) for i, (t, p) in enumerate(rec.poses) if t >= t_start]
     live = [(t, p) for _, t, p in keep]
     latency = [rec.latency_s[i] for i, _, _ in keep if i < len(rec.latency_s)]
@@ -359,6 +360,12 @@ def write_report(out: Path, rec, t_start: float, run_args: dict[str, Any],
           for side, e in report['joint_error_deg'].items() if e]
     if je:
         lines.append('  joint states against the true angles, deg: ' + '; '.join(je))
+    if inputs is not None:
+        report['estimator_inputs'] = inputs
+        counts = ', '.join(f'{t} {n}' for t, n in inputs['messages'].items())
+        lines.append(f'  estimator inputs: {inputs["bag"]} ({counts})'
+                     + (f'; ERROR: {inputs["error"]}' if inputs['error'] else
+                        f'; replay them: fixego replay {inputs["bag"]} --out EST.tum'))
     lines.append('  papers (real images): raw 17.51 cm mean / ~35 cm terminal; local BA 3.36 cm / ~4 cm')
     report['console'] = '\n'.join(lines)
     (out / 'report.json').write_text(json.dumps({k: v for k, v in report.items() if k != 'console'}, indent=1))

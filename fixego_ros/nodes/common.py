@@ -34,7 +34,10 @@ from fixego_ros.geometry.rotation import Pose, quat_xyzw
 from fixego_ros.nodes.dds_profile import use_image_profile
 from fixego_ros.pipeline.messages import (  # noqa: F401 - re-exported: nodes import them from here
     ENCODINGS,
+    POINT_FIELD_TYPES,
+    CloudError,
     ImageError,
+    cloud_to_table,
     image_to_gray,
     msg_to_pose,
     stamp_to_sec,
@@ -60,17 +63,6 @@ def in_namespace(kwargs: dict) -> dict:
 
 OK, WARN, ERROR, STALE = (DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR,
                           DiagnosticStatus.STALE)
-
-
-class CloudError(ValueError):
-    """A PointCloud2 whose layout does not match the table we expect."""
-
-
-# numpy scalar type -> PointField datatype (sensor_msgs_py is not available as a wheel)
-_POINT_FIELD_TYPES = {np.dtype('<i1'): PointField.INT8, np.dtype('<u1'): PointField.UINT8,
-                      np.dtype('<i2'): PointField.INT16, np.dtype('<u2'): PointField.UINT16,
-                      np.dtype('<i4'): PointField.INT32, np.dtype('<u4'): PointField.UINT32,
-                      np.dtype('<f4'): PointField.FLOAT32, np.dtype('<f8'): PointField.FLOAT64}
 
 
 _ROS_TYPES = {bool: ParameterType.PARAMETER_BOOL, int: ParameterType.PARAMETER_INTEGER,
@@ -482,7 +474,7 @@ def table_to_cloud(rows: np.ndarray, stamp: Time, frame_id: str) -> PointCloud2:
     msg.header.stamp = stamp
     msg.header.frame_id = frame_id
     msg.height, msg.width = 1, len(rows)
-    msg.fields = [PointField(name=name, offset=int(off), datatype=_POINT_FIELD_TYPES[dt], count=1)
+    msg.fields = [PointField(name=name, offset=int(off), datatype=POINT_FIELD_TYPES[dt], count=1)
                   for name, (dt, off) in rows.dtype.fields.items()]
     msg.is_bigendian = False
     msg.point_step = int(rows.dtype.itemsize)
@@ -490,22 +482,3 @@ def table_to_cloud(rows: np.ndarray, stamp: Time, frame_id: str) -> PointCloud2:
     msg.data = np.ascontiguousarray(rows).tobytes()
     msg.is_dense = True
     return msg
-
-
-def cloud_to_table(msg: PointCloud2, dtype: np.dtype) -> np.ndarray:
-    """The structured array of a PointCloud2 written by :func:`table_to_cloud`; :class:`CloudError`
-    names what does not match (fields, types, offsets, sizes)."""
-    want = {name: (_POINT_FIELD_TYPES[dt], int(off)) for name, (dt, off) in dtype.fields.items()}
-    have = {f.name: (int(f.datatype), int(f.offset)) for f in msg.fields}
-    if want != have:
-        bad = sorted(n for n in set(want) | set(have) if want.get(n) != have.get(n))
-        raise CloudError(f'point fields do not match the expected layout: {bad}')
-    if msg.is_bigendian:
-        raise CloudError('big-endian point clouds are not supported')
-    if int(msg.point_step) != dtype.itemsize:
-        raise CloudError(f'point_step {msg.point_step}, expected {dtype.itemsize}')
-    n = int(msg.width) * int(msg.height)
-    if len(msg.data) != n * dtype.itemsize:
-        raise CloudError(f'{len(msg.data)} data bytes for {n} points of {dtype.itemsize} bytes')
-    data = msg.data if isinstance(msg.data, (bytes, bytearray, memoryview)) else bytes(msg.data)
-    return np.frombuffer(data, dtype=dtype, count=n).copy()

@@ -6,6 +6,11 @@ the rig's vergence measurements, the last raw path (subscribed without deseriali
 diagnostics traffic the console progress line shows. For the latency breakdown it also notes when each joint state,
 fixation and flow observation arrives, minus its (image) stamp; the observations are not deserialised (the stamp is
 read from the message's first bytes). Names are relative in the default namespace /fixego, like the pipeline's nodes.
+
+From :meth:`Recorder.record_inputs` on (the demo calls it when it resets the estimator) it also writes the estimator's
+inputs, the serialised observations and vergence measurements with the ground truth, to a bag that ``fixego replay``
+runs the estimator alone on (``replay.run.ReplayInput.OBSERVATIONS``): a live run's estimate can be reproduced
+offline, its failures replayed, without recording the images.
 """
 
 from __future__ import annotations
@@ -24,8 +29,10 @@ from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import JointState, PointCloud2
 from std_srvs.srv import Trigger
 
+from fixego_ros.bags.recorder import BagRecorder, RecordSummary
 from fixego_ros.geometry.rig import SIDES
 from fixego_ros.geometry.rotation import Pose
+from fixego_ros.nodes.bag_recorder import qos_dict
 from fixego_ros.nodes.common import LATCHED_QOS, RELIABLE_QOS, in_namespace, msg_to_pose, stamp_to_sec
 
 
@@ -41,6 +48,10 @@ def cdr_stamp(data: bytes) -> float | None:
 # the stages the recorder sees arrive (s after the image stamp); see fixego_ros.demo.report.latency_stages
 PATHS = ('path', 'path_raw')
 STAGES = ('joint_state_right', 'joint_state_left', 'fixation_right', 'fixation_left', 'observation')
+# what record_inputs writes: relative topic -> (type, the publishers' QoS)
+INPUTS = {'flow/observation': ('sensor_msgs/msg/PointCloud2', RELIABLE_QOS),
+          'vergence': ('geometry_msgs/msg/PoseWithCovarianceStamped', LATCHED_QOS),
+          'ground_truth/pose': ('geometry_msgs/msg/PoseStamped', RELIABLE_QOS)}
 
 
 class Recorder(Node):
@@ -67,8 +78,9 @@ class Recorder(Node):
         # the last path / path_raw received (bytes: deserialised only when asked for, then cached with its bytes)
         self._paths: dict[str, bytes | None] = dict.fromkeys(PATHS)
         self._parsed: dict[str, tuple[bytes, Path]] = {}
+        self._inputs: BagRecorder | None = None     # the estimator's inputs, from record_inputs() on
         self.create_subscription(PoseStamped, 'pose', self._on_pose, RELIABLE_QOS)
-        self.create_subscription(PoseStamped, 'ground_truth/pose', self._on_truth, RELIABLE_QOS)
+        self.create_subscription(PoseStamped, 'ground_truth/pose', self._on_truth, RELIABLE_QOS, raw=True)
         for name in PATHS:
             self.create_subscription(Path, name, lambda data, n=name: self._paths.__setitem__(n, data), RELIABLE_QOS,
                                      raw=True)
@@ -81,7 +93,7 @@ class Recorder(Node):
             self.create_subscription(JointState, f'ground_truth/{side}/joint_states',
                                      lambda m, s=side: self._keep_joints(self.true_joints[s], m), RELIABLE_QOS)
         self.create_subscription(PointCloud2, 'flow/observation', self._on_observation, RELIABLE_QOS, raw=True)
-        self.create_subscription(PoseWithCovarianceStamped, 'vergence', self._on_vergence, LATCHED_QOS)
+        self.create_subscription(PoseWithCovarianceStamped, 'vergence', self._on_vergence, LATCHED_QOS, raw=True)
         self.reset_client = self.create_client(Trigger, 'estimator_node/reset')
         self.start_client = self.create_client(Trigger, 'sim_rig_node/start')
 
@@ -111,12 +123,32 @@ class Recorder(Node):
         self.fixation_valid[side][stamp_to_sec(msg.header.stamp)] = msg.point.z >= 0
         self._arrived(f'fixation_{side}', msg.header.stamp)
 
+    def record_inputs(self, bag) -> None:
+        """Write every observation, vergence measurement and true pose received from now on to the new bag
+        directory ``bag`` (:class:`~fixego_ros.bags.recorder.RecordError` when it cannot be created)."""
+        recorder = BagRecorder(bag)
+        for topic, (msgtype, qos) in INPUTS.items():
+            recorder.add_topic(self.resolve_topic_name(topic), msgtype, [qos_dict(qos)])
+        self._inputs = recorder
+
+    def close_inputs(self) -> RecordSummary | None:
+        """Finish the inputs bag (bounded); its summary, None when none is being written."""
+        recorder, self._inputs = self._inputs, None
+        return None if recorder is None else recorder.close()
+
+    def _keep_input(self, topic: str, data: bytes) -> None:
+        if self._inputs is not None:
+            self._inputs.put(self.resolve_topic_name(topic), self.get_clock().now().nanoseconds, data)
+
     def _on_observation(self, data: bytes) -> None:
+        self._keep_input('flow/observation', data)
         t = cdr_stamp(data)
         if t is not None:
             self.stage_s['observation'].append(self._now() - t)
 
-    def _on_vergence(self, msg: PoseWithCovarianceStamped) -> None:
+    def _on_vergence(self, data: bytes) -> None:
+        self._keep_input('vergence', data)
+        msg = deserialize_message(data, PoseWithCovarianceStamped)
         p = msg.pose.pose.position
         cov = np.asarray(msg.pose.covariance, dtype=float).reshape(6, 6)[:3, :3].copy()
         self.vergence.append((stamp_to_sec(msg.header.stamp), np.array([p.x, p.y, p.z]), cov))
@@ -126,7 +158,9 @@ class Recorder(Node):
         self.latency_s.append(self._now() - t)
         self.poses.append((t, msg_to_pose(msg.pose)))
 
-    def _on_truth(self, msg: PoseStamped) -> None:
+    def _on_truth(self, data: bytes) -> None:
+        self._keep_input('ground_truth/pose', data)
+        msg = deserialize_message(data, PoseStamped)
         self.truth.append((stamp_to_sec(msg.header.stamp), msg_to_pose(msg.pose)))
 
     def _on_diag(self, msg: DiagnosticArray) -> None:

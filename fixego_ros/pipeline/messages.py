@@ -136,3 +136,32 @@ def fixation_from_msg(msg: Any) -> tuple[tuple[float, float] | None, int]:
     if not (math.isfinite(x) and math.isfinite(y)):
         raise ValueError(f'non-finite fixation pixel ({x}, {y})')
     return (x, y), round(z)
+
+
+class CloudError(ValueError):
+    """A PointCloud2 whose layout does not match the table we expect."""
+
+
+# numpy scalar type -> sensor_msgs/PointField datatype constant (sensor_msgs_py is not available as a wheel)
+POINT_FIELD_TYPES = {np.dtype('<i1'): 1, np.dtype('<u1'): 2, np.dtype('<i2'): 3, np.dtype('<u2'): 4,
+                     np.dtype('<i4'): 5, np.dtype('<u4'): 6, np.dtype('<f4'): 7, np.dtype('<f8'): 8}
+
+
+def cloud_to_table(msg: Any, dtype: np.dtype) -> np.ndarray:
+    """The structured array of a PointCloud2 (an rclpy or a rosbags one) whose points are the rows of ``dtype``,
+    packed little endian (``nodes.common.table_to_cloud`` writes them); :class:`CloudError` names what does not
+    match (fields, types, offsets, sizes)."""
+    want = {name: (POINT_FIELD_TYPES[dt], int(off)) for name, (dt, off) in dtype.fields.items()}
+    have = {f.name: (int(f.datatype), int(f.offset)) for f in msg.fields}
+    if want != have:
+        bad = sorted(n for n in set(want) | set(have) if want.get(n) != have.get(n))
+        raise CloudError(f'point fields do not match the expected layout: {bad}')
+    if msg.is_bigendian:
+        raise CloudError('big-endian point clouds are not supported')
+    if int(msg.point_step) != dtype.itemsize:
+        raise CloudError(f'point_step {msg.point_step}, expected {dtype.itemsize}')
+    n = int(msg.width) * int(msg.height)
+    if len(msg.data) != n * dtype.itemsize:
+        raise CloudError(f'{len(msg.data)} data bytes for {n} points of {dtype.itemsize} bytes')
+    data = msg.data if isinstance(msg.data, (bytes, bytearray, memoryview, np.ndarray)) else bytes(msg.data)
+    return np.frombuffer(data, dtype=dtype, count=n).copy()

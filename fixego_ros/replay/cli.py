@@ -8,7 +8,9 @@ to the estimator as a scale aid; the vergence measurements (``<namespace>/vergen
 the rig's repeated vergence step and by ``fixego sim``) are used when the bag has them (``--vergence-topic``
 names another topic, ``''`` turns them off). The fixations are the bag's ``<side>/fixation`` messages when it has
 both (a bag recorded on the rig: the points the heads fixated), else a passive tracker finds them in the images
-(``--fixations tracked`` forces that).
+(``--fixations tracked`` forces that). A bag of the estimator's own inputs (``<namespace>/flow/observation``,
+no images: what ``fixego demo`` writes as ``estimator_inputs/``, or ``fixego record`` of that topic on a rig)
+replays the estimator alone on the live flow node's observations (``--inputs``).
 
 Exit codes: 0 done (possibly with documented degradations, printed); 2 the bag or the options cannot be
 used, or the bag is corrupt: then what precedes the first damaged record has been replayed and written
@@ -33,9 +35,11 @@ from fixego_ros.interrupt import signals_interrupt
 
 PROG = 'fixego replay'
 FIXATION_CHOICES = ('recorded', 'tracked')    # replay.run.FixationSource's values (not imported: quick --help)
+INPUT_CHOICES = ('images', 'observations')     # replay.run.ReplayInput's values
 # node parameters that replay takes as options instead
 REPLAY_OPTION = {'vergence_topic': 'use --vergence-topic', 'rig_file': 'use --rig',
-                 'observation_topic': 'replay reads the image topics; see --remap and --namespace'}
+                 'observation_topic': 'replay reads <namespace>/flow/observation with --inputs observations; see '
+                                      '--remap and --namespace'}
 
 
 def register(subparsers) -> None:
@@ -76,6 +80,10 @@ def register(subparsers) -> None:
                    help="recorded = the bag's <namespace>/<side>/fixation messages (camera_node's); tracked = a "
                         'passive tracker on the images (for bags without them). Default: recorded when the bag has '
                         'both, else tracked')
+    p.add_argument('--inputs', choices=INPUT_CHOICES,
+                   help="images = the flow front end on the bag's images and joint states; observations = the "
+                        "estimator alone on the bag's <namespace>/flow/observation (flow_node's output, e.g. fixego "
+                        "demo's estimator_inputs/). Default: observations when the bag has them and no images")
     p.add_argument('--eval-out', type=Path, metavar='DIR',
                    help='with ground truth: also write DIR/ground_truth.tum, DIR/eval.json and DIR/eval.png')
     p.add_argument('--workers', type=int, choices=(1, 2), default=2 if (os.cpu_count() or 1) > 1 else 1,
@@ -109,7 +117,7 @@ def settings_from_args(args: argparse.Namespace, rig):
         params_getter,
         parse_value,
     )
-    from fixego_ros.replay.run import FixationSource, ReplaySettings
+    from fixego_ros.replay.run import FixationSource, ReplayInput, ReplaySettings
 
     nodes = {'camera_node': FIXATION_PARAMS, 'flow_node': FLOW_PARAMS,
              'estimator_node': {**ESTIMATOR_PARAMS, **SPEED_PARAMS}}
@@ -138,7 +146,8 @@ def settings_from_args(args: argparse.Namespace, rig):
     return ReplaySettings.from_getters(rig, getters['camera_node'], getters['flow_node'], getters['estimator_node'],
                                        SpeedSettings.from_getter(getters['estimator_node']),
                                        vergence_topic=args.vergence_topic or '',
-                                       fixations=FixationSource(args.fixations or FixationSource.TRACKED.value))
+                                       fixations=FixationSource(args.fixations or FixationSource.TRACKED.value),
+                                       inputs=ReplayInput(args.inputs or ReplayInput.IMAGES.value))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -166,6 +175,7 @@ def _run(args: argparse.Namespace, bars: list) -> int:
     from fixego_ros.replay.run import (
         FixationSource,
         ReplayError,
+        ReplayInput,
         ReplayTopics,
         bag_defaults,
         intrinsics_from_bag,
@@ -195,10 +205,14 @@ def _run(args: argparse.Namespace, bars: list) -> int:
         for problem in problems:
             print(f'{PROG}: error: {problem}', file=sys.stderr)
         defaults = bag_defaults(bag, topics)     # the bag's vergence measurements and fixations, when it has them
+        image_options = [o for o, v in (('--preset', args.preset), ('--keyframe-max-frames', args.keyframe_max_frames),
+                                        ('--fixations', args.fixations)) if v is not None]
         if args.vergence_topic is None:
             args.vergence_topic = defaults['vergence_topic']
         if args.fixations is None:
             args.fixations = defaults['fixations'].value
+        if args.inputs is None:
+            args.inputs = defaults['inputs'].value
         settings = settings_from_args(args, rig)
         if settings.speed.topic and not settings.speed.topic.startswith('/'):
             # a relative speed_topic (as the node takes it, in its namespace) names the bag topic under --namespace
@@ -206,8 +220,14 @@ def _run(args: argparse.Namespace, bars: list) -> int:
                 settings.speed, topic=topics.name(settings.speed.topic)))
     except (RigError, ParamsError, ValueError, ReplayError, BagError) as e:
         return fail(str(e))
-    counts = [bag.topics[t].count for t in (topics.name(f'{s}/image_raw') for s in SIDES) if t in bag.topics]
-    bar = Progress(sum(c or 0 for c in counts), PROG, enabled=not (args.no_progress or args.quiet), unit='images')
+    observed = settings.inputs is ReplayInput.OBSERVATIONS
+    if observed and image_options:
+        return fail(f'{" and ".join(image_options)} act on the images, and this replay starts from the flow node\'s '
+                    'observations (--inputs observations): leave them out, or replay a bag with images')
+    counted = [topics.name('flow/observation')] if observed else [topics.name(f'{s}/image_raw') for s in SIDES]
+    counts = [bag.topics[t].count for t in counted if t in bag.topics]
+    bar = Progress(sum(c or 0 for c in counts), PROG, enabled=not (args.no_progress or args.quiet),
+                   unit='observations' if observed else 'images')
     bars.append(bar)
     try:
         res = replay(bag, rig, settings, topics, progress=bar.update, workers=args.workers)
@@ -227,15 +247,19 @@ def _run(args: argparse.Namespace, bars: list) -> int:
         if line != res.corrupt:          # said last, as the error it is
             print(f'{PROG}: note: {line}', file=sys.stderr)
     c = res.counts
-    say(f'replayed {bag.path}: {c["images"]} images, {c["frames"]} frames ({c["stereo_frames"]} stereo), '
-        f'{len(res.stamps)} poses over {res.bag_duration_s:.2f} s in {res.wall_s:.2f} s '
+    what = (f'{c["frames"]} observations (the estimator alone)' if observed else
+            f'{c["images"]} images, {c["frames"]} frames ({c["stereo_frames"]} stereo)')
+    say(f'replayed {bag.path}: {what}, {len(res.stamps)} poses over {res.bag_duration_s:.2f} s in {res.wall_s:.2f} s '
         f'({res.realtime_factor:.1f}x real time); steps: '
         + ', '.join(f'{k} {v}' for k, v in sorted(res.steps.items())))
     stages = ', '.join(f'{k} {np.median(v):.2f}' for k, v in res.stage_ms.items() if v)
-    fixations = ("the bag's messages" if settings.fixations is FixationSource.RECORDED
-                 else 'tracked on the images')
-    say(f'median ms per call: {stages}; fixations: {fixations}, re-selections right {c["reselections:right"]}, '
-        f'left {c["reselections:left"]}')
+    if observed:
+        say(f'median ms per call: {stages}; fixations: those of the observations')
+    else:
+        fixations = ("the bag's messages" if settings.fixations is FixationSource.RECORDED
+                     else 'tracked on the images')
+        say(f'median ms per call: {stages}; fixations: {fixations}, re-selections right {c["reselections:right"]}, '
+            f'left {c["reselections:left"]}')
     if settings.speed.topic:
         say(f'speed aid {settings.speed.topic}: {c["speed_samples"]} samples given to the estimator')
     if settings.vergence_topic:

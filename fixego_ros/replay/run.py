@@ -14,6 +14,12 @@ back: that tracker carries its point across the head's limit swings by template 
 follows another point than the head, 40-90 px off the centre, and the vergence steps measured a point it does
 not follow.
 
+Inputs (:class:`ReplayInput`): a bag of the estimator's own inputs, ``flow_node``'s ``<ns>/flow/observation``
+messages (what ``fixego demo`` writes beside its report, or ``fixego record`` of that topic on a rig), replays the
+estimator alone (``OBSERVATIONS``): each observation goes to the back end as the live node got it, with the bag's
+vergence measurements and speed samples, so a live run's estimate can be reproduced and re-run with other estimator
+parameters without the images. Such a bag has no images; one with images replays from the images (``IMAGES``).
+
 With ``workers=2`` the estimator runs in a second process fed through a queue (front end and
 estimator overlap on two cores); the estimator sees the same observations in the same order, so
 the output is identical to ``workers=1``.
@@ -66,7 +72,9 @@ from fixego_ros.interrupt import sigint_ignored
 from fixego_ros.pipeline.camera_info import CAMERA_INFO_TYPE, IntrinsicsFromInfo
 from fixego_ros.pipeline.frontend import CameraSample, KeyframePolicy, StereoFrontEnd
 from fixego_ros.pipeline.messages import (
+    CloudError,
     ImageError,
+    cloud_to_table,
     fixation_from_msg,
     gray_for_camera,
     joint_sigma,
@@ -74,6 +82,7 @@ from fixego_ros.pipeline.messages import (
     pan_tilt,
     stamp_to_sec,
 )
+from fixego_ros.pipeline.observation import ROW_DTYPE, ObservationError, rows_to_observation
 from fixego_ros.pipeline.odometry import (
     ODOMETRY_TYPE,
     VERGENCE_TYPE,
@@ -104,6 +113,14 @@ IMAGE_TYPES = ('sensor_msgs/msg/Image', 'sensor_msgs/msg/CompressedImage')
 JOINTS_TYPE = 'sensor_msgs/msg/JointState'
 POSE_TYPE = 'geometry_msgs/msg/PoseStamped'
 FIXATION_TYPE = 'geometry_msgs/msg/PointStamped'
+OBSERVATION_TYPE = 'sensor_msgs/msg/PointCloud2'
+
+
+class ReplayInput(enum.Enum):
+    """What a replay starts from (see the module docstring)."""
+
+    IMAGES = 'images'                # images and joint states: fixations, synchroniser, flow front end, estimator
+    OBSERVATIONS = 'observations'    # flow_node's <ns>/flow/observation messages: the estimator alone
 
 
 class FixationSource(enum.Enum):
@@ -128,8 +145,12 @@ class ReplayTopics:
         default = f'{self.namespace.rstrip("/")}/{suffix}'
         return dict(self.remap).get(default, default)
 
-    def routes(self, fixations: FixationSource = FixationSource.TRACKED) -> dict[str, tuple[str, str]]:
+    def routes(self, fixations: FixationSource = FixationSource.TRACKED,
+               inputs: ReplayInput = ReplayInput.IMAGES) -> dict[str, tuple[str, str]]:
         """bag topic -> (kind, side)."""
+        if inputs is ReplayInput.OBSERVATIONS:
+            return {self.name('flow/observation'): ('observation', ''),
+                    self.name('ground_truth/pose'): ('ground_truth', '')}
         out = {self.name(f'{side}/image_raw'): ('image', side) for side in SIDES}
         out.update({self.name(f'{side}/joint_states'): ('joints', side) for side in SIDES})
         if fixations is FixationSource.RECORDED:
@@ -148,17 +169,19 @@ class ReplaySettings:
     speed: SpeedSettings = field(default_factory=SpeedSettings)      # scale aid; topic '' = off
     vergence_topic: str = ''                                          # vergence measurements; '' = off
     fixations: FixationSource = FixationSource.TRACKED
+    inputs: ReplayInput = ReplayInput.IMAGES
 
     @classmethod
     def from_getters(cls, rig: Rig, camera: Getter | None = None, flow: Getter | None = None,
                      estimator: Getter | None = None, speed: SpeedSettings | None = None,
-                     vergence_topic: str = '', fixations: FixationSource = FixationSource.TRACKED) -> ReplaySettings:
+                     vergence_topic: str = '', fixations: FixationSource = FixationSource.TRACKED,
+                     inputs: ReplayInput = ReplayInput.IMAGES) -> ReplaySettings:
         """The nodes' parameters (defaults of :mod:`~fixego_ros.pipeline.params` unless a getter is given)."""
         camera = camera or params_getter(FIXATION_PARAMS)
         flow = flow or params_getter(FLOW_PARAMS)
         estimator = estimator or params_getter(ESTIMATOR_PARAMS)
         return cls(fixation_params(camera), flow_params(flow), keyframe_policy(flow), sync_params(flow),
-                   estimator_config(estimator, rig), speed or SpeedSettings(), vergence_topic, fixations)
+                   estimator_config(estimator, rig), speed or SpeedSettings(), vergence_topic, fixations, inputs)
 
 
 @dataclass
@@ -454,9 +477,20 @@ def vergence_topic_in(bag: Bag, topics: ReplayTopics) -> str:
 
 def bag_defaults(bag: Bag, topics: ReplayTopics) -> dict[str, Any]:
     """What ``fixego replay`` takes from the bag unless told otherwise (the :class:`ReplaySettings` fields
-    ``vergence_topic`` and ``fixations``): its vergence measurements and its recorded fixations, when it has them.
-    The benchmarks use the same, so they measure what a user's replay does."""
-    return {'vergence_topic': vergence_topic_in(bag, topics), 'fixations': fixations_in(bag, topics)}
+    ``vergence_topic``, ``fixations`` and ``inputs``): its vergence measurements, its recorded fixations and its
+    images, when it has them (its observations when it has those and no images). The benchmarks use the same, so
+    they measure what a user's replay does."""
+    return {'vergence_topic': vergence_topic_in(bag, topics), 'fixations': fixations_in(bag, topics),
+            'inputs': inputs_in(bag, topics)}
+
+
+def inputs_in(bag: Bag, topics: ReplayTopics) -> ReplayInput:
+    """OBSERVATIONS when the bag lists ``<ns>/flow/observation`` (PointCloud2) and neither camera's images, else
+    IMAGES (a bag recorded with images replays through the front end, which is what produced its observations)."""
+    images = [topics.name(f'{side}/image_raw') for side in SIDES]
+    t = bag.topics.get(topics.name('flow/observation'))
+    has_obs = t is not None and t.msgtype == OBSERVATION_TYPE
+    return ReplayInput.OBSERVATIONS if has_obs and not any(n in bag.topics for n in images) else ReplayInput.IMAGES
 
 
 def fixations_in(bag: Bag, topics: ReplayTopics) -> FixationSource:
@@ -467,7 +501,8 @@ def fixations_in(bag: Bag, topics: ReplayTopics) -> FixationSource:
 
 
 def check_topics(bag: Bag, topics: ReplayTopics, speed_topic: str = '', vergence_topic: str = '',
-                 fixations: FixationSource = FixationSource.TRACKED) -> None:
+                 fixations: FixationSource = FixationSource.TRACKED, inputs: ReplayInput = ReplayInput.IMAGES
+                 ) -> None:
     """Fail early when the bag lists its topics and a required one is missing or of the wrong type."""
     if not bag.topics:
         return          # a cut file without summary or metadata: topics are only known while reading
@@ -484,16 +519,18 @@ def check_topics(bag: Bag, topics: ReplayTopics, speed_topic: str = '', vergence
     required = [('image_raw', IMAGE_TYPES), ('joint_states', (JOINTS_TYPE,))]
     if fixations is FixationSource.RECORDED:
         required.append(('fixation', (FIXATION_TYPE,)))
-    for side in SIDES:
-        for suffix, types in ((f'{side}/{name}', types) for name, types in required):
-            name = topics.name(suffix)
-            t = bag.topics.get(name)
-            if t is None:
-                raise ReplayError(f'{bag.path}: no topic {name} (topics in the bag: {listed}); '
-                                  f'use --namespace or --remap {name}:=TOPIC')
-            if t.msgtype not in types:
-                raise ReplayError(f'{bag.path}: {name} is {t.msgtype or "of unknown type"}, expected '
-                                  f'{" or ".join(types)}')
+    suffixes = [(f'{side}/{name}', types) for side in SIDES for name, types in required]
+    if inputs is ReplayInput.OBSERVATIONS:
+        suffixes = [('flow/observation', (OBSERVATION_TYPE,))]
+    for suffix, types in suffixes:
+        name = topics.name(suffix)
+        t = bag.topics.get(name)
+        if t is None:
+            raise ReplayError(f'{bag.path}: no topic {name} (topics in the bag: {listed}); '
+                              f'use --namespace or --remap {name}:=TOPIC')
+        if t.msgtype not in types:
+            raise ReplayError(f'{bag.path}: {name} is {t.msgtype or "of unknown type"}, expected '
+                              f'{" or ".join(types)}')
 
 
 def intrinsics_from_bag(bag: Bag, rig: Rig, topics: ReplayTopics = ReplayTopics()) -> tuple[Rig, list[str]]:
@@ -535,9 +572,10 @@ def replay(bag: Bag, rig: Rig, settings: ReplaySettings, topics: ReplayTopics = 
     CPU)."""
     portable_opencv()
     speed_topic = settings.speed.topic
-    recorded = settings.fixations is FixationSource.RECORDED
-    check_topics(bag, topics, speed_topic, settings.vergence_topic, settings.fixations)
-    routes = topics.routes(settings.fixations)
+    observed = settings.inputs is ReplayInput.OBSERVATIONS
+    tracked = not observed and settings.fixations is FixationSource.TRACKED    # a passive tracker per camera
+    check_topics(bag, topics, speed_topic, settings.vergence_topic, settings.fixations, settings.inputs)
+    routes = topics.routes(settings.fixations, settings.inputs)
     if speed_topic:
         routes[speed_topic] = ('speed', '')
     if settings.vergence_topic:
@@ -546,7 +584,7 @@ def replay(bag: Bag, rig: Rig, settings: ReplaySettings, topics: ReplayTopics = 
     last_frame: float | None = None      # stamp of the newest frame given to the estimator
     res = ReplayResult()
     clock = _Timer(res)
-    trackers = {} if recorded else {side: FixationTracker(rig.camera(side), settings.fixation) for side in SIDES}
+    trackers = {side: FixationTracker(rig.camera(side), settings.fixation) for side in SIDES} if tracked else {}
     gate_px = settings.estimator.smoother.gate_px
     sync = StereoSync(settings.sync)
     frontend = StereoFrontEnd(rig, settings.flow, settings.keyframes)
@@ -586,7 +624,7 @@ def replay(bag: Bag, rig: Rig, settings: ReplaySettings, topics: ReplayTopics = 
     def process(frame: SyncedFrame) -> None:
         nonlocal last_frame
         t0 = time.perf_counter()
-        if verged and not recorded:
+        if verged and tracked:
             follow_the_head(frame)
         samples = {side: None if c is None else CameraSample(c.image, c.pan, c.tilt, c.fixation_px, c.fixation_id,
                                                        c.joint_sigma)
@@ -628,9 +666,25 @@ def replay(bag: Bag, rig: Rig, settings: ReplaySettings, topics: ReplayTopics = 
                     continue
                 estimator.submit_fixation_point(v_stamp, 'right', point, cov)
                 res.counts['vergence'] += 1
-                if not recorded:
+                if tracked:
                     verged.append((v_stamp, point))
-
+                continue
+            if kind == 'observation':    # flow_node's output: the estimator's input as the live node got it
+                try:
+                    obs = rows_to_observation(stamp, cloud_to_table(msg, ROW_DTYPE))
+                except (CloudError, ObservationError) as e:
+                    res.note('bad_observation', f'observation at {stamp:.3f} s unusable ({e}): such messages are '
+                                                'skipped')
+                    continue
+                if last_frame is not None and stamp <= last_frame:
+                    res.note('observation_out_of_order', f'observation stamps go backwards at {stamp:.3f} s: such '
+                                                         'observations are skipped')
+                    continue
+                estimator.submit(stamp, obs if observe is None else observe(obs))
+                last_frame = stamp
+                res.counts['frames'] += 1
+                if progress is not None:
+                    progress(res.counts['frames'])
                 continue
             if kind == 'image':
                 res.counts['images'] += 1
@@ -647,7 +701,7 @@ def replay(bag: Bag, rig: Rig, settings: ReplaySettings, topics: ReplayTopics = 
                 last_image[side] = stamp
                 t0 = clock('decode', t0)
                 sync.add_image(side, stamp, gray, max(now, stamp))
-                if not recorded:         # recorded: the bag's fixation message completes the camera's part
+                if tracked:              # recorded: the bag's fixation message completes the camera's part
                     fix = trackers[side].update(gray, stamp)
                     clock('fixation', t0)
                     # as camera_node: a fixation or an explicit "none" for every image (the frame need not wait)
@@ -740,10 +794,13 @@ def replay(bag: Bag, rig: Rig, settings: ReplaySettings, topics: ReplayTopics = 
     res.counts.update({'sync_frames': s.frames, 'stereo_frames': s.stereo_frames,
                        'single_camera_frames': s.single_camera_frames, 'late_images': s.late_images,
                        'frames_without_joints': s.no_joints})
-    if not recorded:
+    if tracked:
         for side in SIDES:
             res.counts[f'reselections:{side}'] = len(trackers[side].reselections)
-    if res.counts['images'] == 0:
+    if observed and res.counts['frames'] == 0:
+        raise ReplayError(f'{bag.path}: no observation on {topics.name("flow/observation")} could be '
+                          f'read{damaged}')
+    if not observed and res.counts['images'] == 0:
         raise ReplayError(f'{bag.path}: no image on {topics.name("right/image_raw")} or '
                           f'{topics.name("left/image_raw")} could be read{damaged}')
     if not res.stamps:
