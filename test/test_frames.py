@@ -204,3 +204,32 @@ def test_optical_transform_follows_pan_tilt_and_the_calibration(side):
     np.testing.assert_allclose((zero @ pose).R, rig.cam_to_rig(side, 0.3, -0.1), atol=1e-12)
     with pytest.raises(ValueError, match='finite'):
         optical_transform(rig, side, float('nan'), 0.0)
+
+
+def test_a_camera_whose_reading_is_unsure_weighs_less_in_the_step():
+    """JointWeighting: a camera whose stated pan/tilt sigma is at most the nominal one counts fully (steady heads,
+    every simulated bag), above it its pairs (flow and fixation) are weighted by the rays' noise over the rays' plus
+    the reading's; nominal 0 turns it off."""
+    import math
+
+    from fixego_ros.estimation.frames import CameraFrame, FrameObservation, JointWeighting, step_pairs
+    ray, nominal = 1.0 / 1727.0, math.radians(0.1)
+    joints = JointWeighting(ray, nominal)
+    assert joints.weight(0.0) == joints.weight(nominal) == 1.0
+    sure, unsure = joints.weight(math.radians(0.2)), joints.weight(math.radians(0.5))
+    assert 1.0 > sure > unsure > 0.0
+    assert unsure == pytest.approx(math.sqrt((ray ** 2 + nominal ** 2) / (ray ** 2 + math.radians(0.5) ** 2)))
+    assert JointWeighting(ray, 0.0).weight(math.radians(5.0)) == 1.0
+    rig = load_rig(default_rig_path())
+    rng = np.random.default_rng(0)
+    rays = lambda n: rng.normal(size=(n, 3)) + np.array([0.0, 0.0, 5.0])  # noqa: E731
+    cams = {side: CameraFrame(np.array([0.0, 0.0, 1.0]), 7, np.eye(3), rays(5), rays(5), joint_sigma=sigma)
+            for side, sigma in (('right', math.radians(0.02)), ('left', math.radians(0.5)))}
+    obs = FrameObservation(1.0, cams['right'], cams['left'])
+    prev = {side: (np.array([0.0, 0.01, 1.0]), 7) for side in cams}
+    pairs = step_pairs(rig, prev, obs, 2.0, joints)
+    right = np.all(pairs.centers == rig.center('right'), axis=1)
+    # five flow pairs and the fixation pair per camera; the fixation pair at fixation_weight times the camera's
+    assert sorted(pairs.weights[right]) == [1.0] * 5 + [2.0]
+    assert sorted(pairs.weights[~right]) == pytest.approx([unsure] * 5 + [2.0 * unsure])
+    assert np.all(step_pairs(rig, prev, obs, 2.0).weights[~right] >= 1.0)     # the default: no weighting

@@ -398,7 +398,7 @@ def test_generated_files_apply_under_any_node_name_but_replay_gives_each_to_its_
     for order in (files, files[::-1]):
         args = argparse.Namespace(params_file=order, preset=None, keyframe_max_frames=None, window=None, mode=None,
                                   speed_topic=None, speed_default_std=None, param=[], vergence_topic=None,
-                                  fixations=None)
+                                  fixations=None, inputs=None)
         s = settings_from_args(args, rig)
         assert s.fixation.fb_max_px == 1.0 and s.flow.fb_max_px == 0.5
     # a file without the marker: its /** block reaches every node that has the parameter, as in ROS

@@ -110,3 +110,32 @@ def test_a_point_behind_a_camera_neither_pulls_nor_breaks_the_fit():
 def test_a_start_that_is_not_finite_gives_none():
     seen = _scene(np.random.default_rng(8), _truth(), 0.0)
     assert resect(seen, 1.0, 1.345, Pose(np.eye(3), np.array([np.nan, 0.0, 0.0]))) is None
+
+
+@pytest.mark.parametrize('seed', [8, 9])
+def test_a_camera_whose_reading_is_off_counts_as_little_as_its_stated_sigma_says(seed):
+    """The left head's pan reading 1 deg off (its angle predicted in a fast turn; the camera node states 1 deg):
+    every pixel of that camera is then ~7 px off, so its sightings pull the pose. With one sigma per sighting (the
+    left camera's from its stated reading sigma, JointWeighting) the pose follows the right camera; with one sigma
+    for all it does not (so the test can tell)."""
+    from fixego_ros.estimation.frames import JointWeighting
+    truth = _truth()
+    seen = _scene(np.random.default_rng(seed), truth, 0.3)
+    left = np.all(seen.centers == LEFT_CENTER, axis=1)
+    wrong = exp_so3(np.array([0.0, np.radians(1.0), 0.0]))
+    rotations = seen.cam_to_rig.copy()
+    rotations[left] = np.einsum('ij,njk->nik', wrong, rotations[left])
+    off = Sightings(seen.points, seen.pixels, rotations, seen.centers, seen.focal)
+    joints = JointWeighting(1.0 / FOCAL, np.radians(0.1))
+    sigmas = np.where(left, 1.0 / joints.weight(np.radians(1.0)), 1.0 / joints.weight(np.radians(0.02)))
+    assert sigmas[~left].max() == 1.0 and sigmas[left].min() > 5.0
+    start = Pose(truth.R, truth.t + np.array([0.02, 0.0, -0.02]))
+    weighted, flat = resect(off, sigmas, 1.345, start), resect(off, 1.0, 1.345, start)
+    assert weighted is not None and flat is not None
+    err = lambda p: (np.degrees(rotation_angle(p.R.T @ truth.R)), np.linalg.norm(p.t - truth.t))  # noqa: E731
+    assert err(weighted)[0] < 0.6 * err(flat)[0] and err(weighted)[1] < 0.6 * err(flat)[1], (err(weighted), err(flat))
+    # per-sighting sigmas are the residuals' units: one value for all gives the scalar's residuals
+    r1, J1 = seen.residuals(truth.R, truth.t, 0.7)
+    r2, J2 = seen.residuals(truth.R, truth.t, np.full(len(seen.points), 0.7))
+    np.testing.assert_array_equal(r1, r2)
+    np.testing.assert_array_equal(J1, J2)

@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from fixego_ros.estimation.covariance import VAR_MAX
+from fixego_ros.estimation.frames import JointWeighting
 from fixego_ros.estimation.local_ba import MODES
 from fixego_ros.estimation.twoframe import SolverConfig
 
@@ -66,6 +67,9 @@ class EstimatorConfig:
     window: int = 3                  # n: frames in the local BA (3..10); 0 or 1 disables it
     mode: str = 'joint'              # 'paper' (BA cost alone, Powell) or 'joint'
     fixation_weight: float = 1.0     # weight of the fixation constraints relative to flow points
+    # rad: a camera whose stated pan/tilt 1-sigma exceeds this counts less in the two-frame step and the smoother's
+    # resection (:class:`~fixego_ros.estimation.frames.JointWeighting`); 0 = every camera counts fully
+    joint_sigma_nominal: float = math.radians(0.1)
     max_step_translation: float = 0.5  # m; larger steps are rejected as jumps
     max_step_rotation: float = math.radians(20.0)  # rad
     max_speed: float = 1.5             # m/s; a step implying a faster rig is rejected as a jump
@@ -98,6 +102,13 @@ class EstimatorConfig:
             raise ValueError(f'mode must be one of {MODES}, got {self.mode!r}')
         if self.window not in (0, 1) and not 3 <= self.window <= 10:
             raise ValueError(f'window must be 3..10 (or 0 to disable the local BA), got {self.window}')
+        if not (math.isfinite(self.joint_sigma_nominal) and self.joint_sigma_nominal >= 0.0):
+            raise ValueError(f'joint_sigma_nominal must be finite and >= 0, got {self.joint_sigma_nominal}')
+
+    @property
+    def joint_weighting(self) -> JointWeighting:
+        """How the two-frame step weighs each camera by its pan/tilt reading's stated sigma."""
+        return JointWeighting(self.solver.sigma, self.joint_sigma_nominal)
 
 
 def papers_solver(**overrides: Any) -> SolverConfig:

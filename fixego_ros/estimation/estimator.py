@@ -345,7 +345,8 @@ class Estimator:
                                Pose.identity(), Pose.identity(), np.zeros((6, 6)), self._key_cov.copy(),
                                'first frame', scale_observed=self.scale_observed, scale_note=self.scale_note())
         dt = obs.stamp - self._key_stamp
-        pairs = step_pairs(self.rig, self._window[-1].fixation, obs, self.config.fixation_weight)
+        pairs = step_pairs(self.rig, self._window[-1].fixation, obs, self.config.fixation_weight,
+                           self.config.joint_weighting)
         prediction = self._predict(dt)
         start = self._latest.motion_raw if self._latest is not None else (prediction[1] if prediction else None)
         cfg = self.config

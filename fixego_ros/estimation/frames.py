@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from typing import Protocol, TypeVar
@@ -131,20 +132,40 @@ def span_start(frames: Sequence[_Stamped], seconds: float) -> _Stamped | None:
     return next((f for f in reversed(frames[:-1]) if last - f.stamp >= seconds), None)
 
 
+@dataclass(frozen=True)
+class JointWeighting:
+    """How much a camera's rays count, given how sure its pan/tilt reading is (``CameraFrame.joint_sigma``, the
+    1-sigma the camera node states: small when the head stands or turns slowly, 0.2-0.8 deg when a fast turn's angle
+    is predicted). The reading rotates every ray the camera gives, so its variance adds to each ray's own. Readings
+    up to ``nominal`` count fully (every simulated bag's and a steady head's), so the weighting only acts on fast
+    turns: there a predicted angle was off by up to 1.4 deg in recorded demo runs, and bent the two-frame steps and
+    the resection (docs/results.md "Stop 82": 13 runs' estimator inputs, within 5 / 5 cm 3 -> 6)."""
+
+    ray_sigma: float = 0.0      # rad: one ray's noise (pixel noise / focal length)
+    nominal: float = 0.0        # rad: readings at most this uncertain count fully; 0 = every camera counts fully
+
+    def weight(self, joint_sigma: float) -> float:
+        """In (0, 1]: the factor on the camera's residuals in units of their noise."""
+        if self.nominal <= 0.0 or not joint_sigma > self.nominal:
+            return 1.0
+        return math.sqrt((self.ray_sigma ** 2 + self.nominal ** 2) / (self.ray_sigma ** 2 + joint_sigma ** 2))
+
+
 def step_pairs(rig: Rig, prev: dict[str, Fixation | None], obs: FrameObservation,
-               fixation_weight: float = 1.0) -> RayPairs:
+               fixation_weight: float = 1.0, joints: JointWeighting = JointWeighting()) -> RayPairs:
     """All ray pairs of one step: each camera's flow pairs, and its fixation pair when the fixation
-    point was not re-selected between the two frames (same id)."""
+    point was not re-selected between the two frames (same id); a camera's pairs weighted by ``joints``."""
     groups = []
     for side in SIDES:
         cam = obs.camera(side)
         if cam is None:
             continue
         c = rig.center(side)
-        groups.append((cam.flow_prev, cam.flow_curr, c, 1.0))
+        w = joints.weight(cam.joint_sigma)
+        groups.append((cam.flow_prev, cam.flow_curr, c, w))
         p = prev.get(side)
         if p is not None and cam.fixation_ray is not None and p[1] == cam.fixation_id:
-            groups.append((p[0], cam.fixation_ray, c, fixation_weight))
+            groups.append((p[0], cam.fixation_ray, c, fixation_weight * w))
     return RayPairs.build(groups)
 
 

@@ -520,7 +520,7 @@ class LiveSmoother:
             # once the smoother has answered: its motion carried to this stamp, the rotation from the rays (~0.3 ms);
             # before, the two-frame solve (~2 ms warm; the cold starts cost ~16 ms, so a failed warm solve tries the
             # closed-form starts only, and a frame that still fails is predicted; the child solves it fully)
-            pairs = step_pairs(self.rig, ref.fixation, obs, self._config.fixation_weight)
+            pairs = step_pairs(self.rig, ref.fixation, obs, self._config.fixation_weight, self._config.joint_weighting)
             rays = kabsch_rotation(pairs.a, pairs.b)         # the rotation-only fit, read by both tests below
             standing = self._standing(pairs, rays)
             tf = None if standing else self._carried(ref, pairs, rays, obs.stamp)

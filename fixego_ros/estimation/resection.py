@@ -31,10 +31,10 @@ class Sightings:
     centers: np.ndarray
     focal: np.ndarray
 
-    def residuals(self, R: np.ndarray, T: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray]:
-        """Pixel residuals (2n, in units of ``sigma``) of the rig pose ``(R, T)`` (rig -> world) and their Jacobian
-        (2n, 6) over ``[delta, dT]`` with ``R -> exp(delta) R``. A point behind its camera gives a constant residual
-        and no gradient (as GTSAM's projection factor does)."""
+    def residuals(self, R: np.ndarray, T: np.ndarray, sigma: float | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Pixel residuals (2n, in units of ``sigma``: one for all, or one per sighting) of the rig pose ``(R, T)``
+        (rig -> world) and their Jacobian (2n, 6) over ``[delta, dT]`` with ``R -> exp(delta) R``. A point behind
+        its camera gives a constant residual and no gradient (as GTSAM's projection factor does)."""
         n = len(self.points)
         CT = np.transpose(self.cam_to_rig, (0, 2, 1))       # rig -> optical
         d = self.points - T                                 # world offset from the rig origin
@@ -43,22 +43,25 @@ class Sightings:
         front = z > Projection.MIN_DEPTH          # the smoother's pixels: no pixel this close to the image plane
         zs = np.where(front, z, 1.0)
         fx, fy = self.focal[:, 0], self.focal[:, 1]
-        r = (self.focal * pc[:, :2] / zs[:, None] - self.pixels) / sigma
+        s = np.asarray(sigma, float).reshape(-1, 1)             # (1, 1) or (n, 1)
+        r = (self.focal * pc[:, :2] / zs[:, None] - self.pixels) / s
         # d pc / d [delta, dT] = C^T R^T [ [P - t]x | -I ]
         dq = np.concatenate([np.einsum('ji,njk->nik', R, skew(d)), np.broadcast_to(-R.T, (n, 3, 3))], axis=2)
         dpc = np.einsum('nij,njk->nik', CT, dq)
         zero = np.zeros(n)
         dpix = np.stack([np.stack([fx / zs, zero, -fx * pc[:, 0] / zs**2], 1),
                          np.stack([zero, fy / zs, -fy * pc[:, 1] / zs**2], 1)], 1)
-        J = np.einsum('nij,njk->nik', dpix, dpc) / sigma
-        r[~front] = 2.0 * self.focal[~front] / sigma
+        J = np.einsum('nij,njk->nik', dpix, dpc) / s[:, :, None]
+        r[~front] = (2.0 * self.focal / s)[~front]
         J[~front] = 0.0
         return r.reshape(-1), J.reshape(-1, 6)
 
 
-def resect(sightings: Sightings, sigma: float, huber_k: float, start: Pose, max_nfev: int = 30) -> Pose | None:
+def resect(sightings: Sightings, sigma: float | np.ndarray, huber_k: float, start: Pose, max_nfev: int = 30
+           ) -> Pose | None:
     """The rig pose (rig -> world) that best projects the sightings' points onto their pixels: residuals in units
-    of ``sigma`` px, Huber beyond ``huber_k``, from ``start``. None when the start or the end is not finite."""
+    of ``sigma`` px (one for all, or one per sighting), Huber beyond ``huber_k``, from ``start``. None when the start
+    or the end is not finite."""
     found = levenberg_marquardt(lambda R, T: sightings.residuals(R, T, sigma), start.R, start.t, 'jac',
                                 loss='huber', f_scale=huber_k, max_nfev=max_nfev)
     if found is None:

@@ -53,6 +53,7 @@ from fixego_ros.estimation.frames import (
     Fixation,
     FrameObservation,
     FrameResult,
+    JointWeighting,
     Tracks,
     at_stamp,
     fixations_of,
@@ -509,7 +510,7 @@ class Smoother:
         if ref is None:
             return None, Pose.identity()
         dt = obs.stamp - ref.stamp
-        pairs = step_pairs(self.rig, ref.fixation, obs, self.config.fixation_weight)
+        pairs = step_pairs(self.rig, ref.fixation, obs, self.config.fixation_weight, self.config.joint_weighting)
         warm, cold = self.solver.solve_checked(pairs, ref.pose.inverse() @ pose0)    # (cold: None unless OK/WEAK)
         tf = warm
         if cold is not None and cold.status.usable and cold.cheirality >= 0.5 \
@@ -539,7 +540,8 @@ class Smoother:
     def _resect(self, obs: FrameObservation, start: Pose) -> Pose:
         """Pose-only fit of the new frame to the landmarks already in the graph (held where the window has them,
         :func:`.resection.resect`); the start when there are too few of them or the fit fails."""
-        points, pixels, rotations, centers, focal = [], [], [], [], []
+        points, pixels, rotations, centers, focal, sigmas = [], [], [], [], [], []
+        cfg = self.settings
         for side, lid, ray, cam in self._sightings(obs):
             index = self._landmarks.get(lid)
             if index is None:
@@ -553,12 +555,14 @@ class Smoother:
             rotations.append(cam.cam_to_rig)
             centers.append(self.rig.center(side))
             focal.append((proj.fx, proj.fy))
-        if len(points) < self.settings.min_resection:
+            # a camera whose reading is less sure counts less, as in the two-frame step (JointWeighting)
+            joints = JointWeighting(cfg.pixel_sigma_px / proj.fx, self.config.joint_sigma_nominal)
+            sigmas.append(cfg.pixel_sigma_px / joints.weight(cam.joint_sigma))
+        if len(points) < cfg.min_resection:
             return start
-        cfg = self.settings
         seen = Sightings(np.array(points, float), np.array(pixels), np.array(rotations), np.array(centers),
                          np.array(focal, float))
-        pose = resect(seen, cfg.pixel_sigma_px, cfg.huber_k, start)
+        pose = resect(seen, np.array(sigmas), cfg.huber_k, start)
         return start if pose is None else pose
 
     @staticmethod

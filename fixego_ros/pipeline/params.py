@@ -262,6 +262,11 @@ ESTIMATOR_PARAMS: Table = _table(
                           'so where it stops depends on rounding)', choices=MODES),
     _num('fixation_weight', 1.0, 'weight of the fixation constraints relative to one flow point', ge=0.0, le=1e6,
          live=True),
+    _num('joint_sigma_nominal_deg', 0.1, 'a camera whose pan/tilt reading is less sure than this (the 1-sigma its '
+                                         'camera node states in joint_states effort: a fast turn, its angle '
+                                         'predicted) counts less in the two-frame step and the smoother\'s '
+                                         'resection: the reading rotates every ray, so its variance adds to the '
+                                         "rays' (deg; 0 = every camera counts fully)", ge=0.0, le=10.0),
     _num('stationary_parallax_px', 0.3, 'median rotation-compensated parallax (px) below which the rig is taken as '
                                         'standing still (T = 0): with no parallax the scale is pure noise. A step '
                                         f'with fewer than {MIN_STAND_PAIRS} ray pairs never stands (a handful is no '
@@ -620,6 +625,7 @@ def estimator_config(g: Getter, rig: Rig) -> EstimatorConfig:
     try:
         return EstimatorConfig(
             window=int(g('window')), mode=str(g('mode')), fixation_weight=float(g('fixation_weight')),
+            joint_sigma_nominal=math.radians(float(g('joint_sigma_nominal_deg'))),
             max_step_translation=float(g('max_step_translation')), max_speed=float(g('max_speed')),
             max_step_rotation=math.radians(float(g('max_step_rotation_deg'))),
             reject_translation_std=float(g('reject_translation_std')), velocity_prior=bool(g('velocity_prior')),
