@@ -570,6 +570,15 @@ def test_demo_runs_every_node_as_a_process_and_writes_a_report(tmp_path):
     assert len(r_est) == n_obs and all(p.is_finite() for p in r_est)
     r_yaw = [abs(math.degrees(math.atan2(p.R[1, 0], p.R[0, 0]))) for p in r_est]
     assert max(r_yaw) < 15.0, max(r_yaw)
+    # ... which hold the simulator's true head angles too: the run replayed with them (bench.demo_inputs), every
+    # camera of every frame given its true angles but the flow of the first frames, which starts at the keyframe
+    # before the reset (held for at most keyframe_max_frames, 10, frames; both cameras)
+    from fixego_ros.bench.demo_inputs import run_dir
+    assert inputs['messages']['/fixego/ground_truth/right/joint_states'] >= frames['rendered']
+    row = run_dir(out)
+    assert row.missing <= 2 * 10 and all(np.isfinite(row.replayed + row.true_heads)), row
+    assert row.live == pytest.approx((100 * report['refined']['position_error_m']['mean'],
+                                      100 * report['refined']['position_error_m']['terminal']))
 
 
 def test_estimator_node_warns_once_while_the_smoother_falls_behind(ros_context, clean_sequence, tmp_path):

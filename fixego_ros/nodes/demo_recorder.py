@@ -8,9 +8,10 @@ fixation and flow observation arrives, minus its (image) stamp; the observations
 read from the message's first bytes). Names are relative in the default namespace /fixego, like the pipeline's nodes.
 
 From :meth:`Recorder.record_inputs` on (the demo calls it when it resets the estimator) it also writes the estimator's
-inputs, the serialised observations and vergence measurements with the ground truth, to a bag that ``fixego replay``
-runs the estimator alone on (``replay.run.ReplayInput.OBSERVATIONS``): a live run's estimate can be reproduced
-offline, its failures replayed, without recording the images.
+inputs, the serialised observations and vergence measurements with the ground truth (pose and head angles), to a bag
+that ``fixego replay`` runs the estimator alone on (``replay.run.ReplayInput.OBSERVATIONS``): a live run's estimate
+can be reproduced offline, its failures replayed, without recording the images (and ``bench.demo_inputs`` replays it
+with the true head angles too).
 """
 
 from __future__ import annotations
@@ -51,7 +52,8 @@ STAGES = ('joint_state_right', 'joint_state_left', 'fixation_right', 'fixation_l
 # what record_inputs writes: relative topic -> (type, the publishers' QoS)
 INPUTS = {'flow/observation': ('sensor_msgs/msg/PointCloud2', RELIABLE_QOS),
           'vergence': ('geometry_msgs/msg/PoseWithCovarianceStamped', LATCHED_QOS),
-          'ground_truth/pose': ('geometry_msgs/msg/PoseStamped', RELIABLE_QOS)}
+          'ground_truth/pose': ('geometry_msgs/msg/PoseStamped', RELIABLE_QOS),
+          **{f'ground_truth/{side}/joint_states': ('sensor_msgs/msg/JointState', RELIABLE_QOS) for side in SIDES}}
 
 
 class Recorder(Node):
@@ -91,7 +93,7 @@ class Recorder(Node):
             self.create_subscription(JointState, f'{side}/joint_states',
                                      lambda m, s=side: self._on_joints(s, m), RELIABLE_QOS)
             self.create_subscription(JointState, f'ground_truth/{side}/joint_states',
-                                     lambda m, s=side: self._keep_joints(self.true_joints[s], m), RELIABLE_QOS)
+                                     lambda data, s=side: self._on_true_joints(s, data), RELIABLE_QOS, raw=True)
         self.create_subscription(PointCloud2, 'flow/observation', self._on_observation, RELIABLE_QOS, raw=True)
         self.create_subscription(PoseWithCovarianceStamped, 'vergence', self._on_vergence, LATCHED_QOS, raw=True)
         self.reset_client = self.create_client(Trigger, 'estimator_node/reset')
@@ -114,6 +116,10 @@ class Recorder(Node):
         sigma = [float(v) for v in msg.effort[:2]]
         if len(sigma) == 2 and all(math.isfinite(v) and v >= 0.0 for v in sigma):
             self.joint_sigmas[side][stamp_to_sec(msg.header.stamp)] = (sigma[0], sigma[1])
+
+    def _on_true_joints(self, side: str, data: bytes) -> None:
+        self._keep_input(f'ground_truth/{side}/joint_states', data)
+        self._keep_joints(self.true_joints[side], deserialize_message(data, JointState))
 
     def _on_fixation(self, side: str, msg: PointStamped) -> None:
         """Counts valid fixations only (the demo waits for both); the arrival time of every message, the "no valid
