@@ -542,6 +542,10 @@ class Smoother:
         :func:`.resection.resect`); the start when there are too few of them or the fit fails."""
         points, pixels, rotations, centers, focal, sigmas = [], [], [], [], [], []
         cfg = self.settings
+        # a camera whose reading is less sure counts less, as in the two-frame step (JointWeighting): its pixel sigma
+        sigma_px = {side: cfg.pixel_sigma_px / JointWeighting(cfg.pixel_sigma_px / self.projections[side].fx,
+                                                              self.config.joint_sigma_nominal).weight(cam.joint_sigma)
+                    for side in SIDES if (cam := obs.camera(side)) is not None}
         for side, lid, ray, cam in self._sightings(obs):
             index = self._landmarks.get(lid)
             if index is None:
@@ -555,9 +559,7 @@ class Smoother:
             rotations.append(cam.cam_to_rig)
             centers.append(self.rig.center(side))
             focal.append((proj.fx, proj.fy))
-            # a camera whose reading is less sure counts less, as in the two-frame step (JointWeighting)
-            joints = JointWeighting(cfg.pixel_sigma_px / proj.fx, self.config.joint_sigma_nominal)
-            sigmas.append(cfg.pixel_sigma_px / joints.weight(cam.joint_sigma))
+            sigmas.append(sigma_px[side])
         if len(points) < cfg.min_resection:
             return start
         seen = Sightings(np.array(points, float), np.array(pixels), np.array(rotations), np.array(centers),
