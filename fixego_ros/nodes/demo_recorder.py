@@ -81,6 +81,7 @@ class Recorder(Node):
         self._paths: dict[str, bytes | None] = dict.fromkeys(PATHS)
         self._parsed: dict[str, tuple[bytes, Path]] = {}
         self._inputs: BagRecorder | None = None     # the estimator's inputs, from record_inputs() on
+        self._input_names = {topic: self.resolve_topic_name(topic) for topic in INPUTS}   # relative -> absolute
         self.create_subscription(PoseStamped, 'pose', self._on_pose, RELIABLE_QOS)
         self.create_subscription(PoseStamped, 'ground_truth/pose', self._on_truth, RELIABLE_QOS, raw=True)
         for name in PATHS:
@@ -130,11 +131,11 @@ class Recorder(Node):
         self._arrived(f'fixation_{side}', msg.header.stamp)
 
     def record_inputs(self, bag) -> None:
-        """Write every observation, vergence measurement and true pose received from now on to the new bag
-        directory ``bag`` (:class:`~fixego_ros.bags.recorder.RecordError` when it cannot be created)."""
+        """Write every observation, vergence measurement, true pose and true head angle received from now on to the
+        new bag directory ``bag`` (:class:`~fixego_ros.bags.recorder.RecordError` when it cannot be created)."""
         recorder = BagRecorder(bag)
         for topic, (msgtype, qos) in INPUTS.items():
-            recorder.add_topic(self.resolve_topic_name(topic), msgtype, [qos_dict(qos)])
+            recorder.add_topic(self._input_names[topic], msgtype, [qos_dict(qos)])
         self._inputs = recorder
 
     def close_inputs(self) -> RecordSummary | None:
@@ -144,7 +145,7 @@ class Recorder(Node):
 
     def _keep_input(self, topic: str, data: bytes) -> None:
         if self._inputs is not None:
-            self._inputs.put(self.resolve_topic_name(topic), self.get_clock().now().nanoseconds, data)
+            self._inputs.put(self._input_names[topic], self.get_clock().now().nanoseconds, data)
 
     def _on_observation(self, data: bytes) -> None:
         self._keep_input('flow/observation', data)
