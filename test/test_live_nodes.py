@@ -27,25 +27,21 @@ from fixego_ros.pipeline.observation import ROW_DTYPE, observation_to_rows, rows
 
 
 # ---------------------------------------------------------------------------------------------- flow_node
-def test_flow_node_rays_fit_the_true_motion(ros_context, sim_pair, tmp_path):  # noqa: F811
+def _flow_node_with_publishers(ros_context, sim_pair, tmp_path, *extra: Parameter):  # noqa: F811
+    """A flow_node on the sim pair's rig (with ``extra`` parameters), a probe node that publishes each camera's
+    image, joint state and fixation and collects the observations, and an executor spinning both (once every
+    publisher is matched)."""
     from geometry_msgs.msg import PointStamped
     from sensor_msgs.msg import Image, JointState, PointCloud2
 
-    from fixego_ros.nodes.common import (
-        RELIABLE_QOS,
-        SENSOR_QOS,
-        array_to_image,
-        cloud_to_table,
-        sec_to_stamp,
-        stamp_to_sec,
-    )
+    from fixego_ros.nodes.common import RELIABLE_QOS, SENSOR_QOS
     from fixego_ros.nodes.flow_node import FlowNode
 
-    rig, step, _, frames, _, _ = sim_pair
+    rig = sim_pair[0]
     rig_file = tmp_path / 'rig.yaml'
     rig.save(rig_file)
     node = FlowNode(context=ros_context, parameter_overrides=[
-        Parameter('rig_file', value=str(rig_file)), Parameter('keyframe_max_frames', value=1)])
+        Parameter('rig_file', value=str(rig_file)), Parameter('keyframe_max_frames', value=1), *extra])
     probe = rclpy.create_node('probe', context=ros_context)
     ex = executor_for(ros_context, node, probe)
     got: list[PointCloud2] = []
@@ -55,24 +51,47 @@ def test_flow_node_rays_fit_the_true_motion(ros_context, sim_pair, tmp_path):  #
                 probe.create_publisher(PointStamped, f'/fixego/{s}/fixation', RELIABLE_QOS)) for s in SIDES}
     assert spin_until(ex, lambda: all(p[0].get_subscription_count() and p[1].get_subscription_count()
                                       and p[2].get_subscription_count() for p in pubs.values()), 10.0)
+    return node, ex, pubs, got
+
+
+def _joint_state(side: str, t: float, pan: float, tilt: float):
+    from sensor_msgs.msg import JointState
+
+    from fixego_ros.nodes.common import sec_to_stamp
+    msg = JointState(name=[f'{side}_pan', f'{side}_tilt'], position=[pan, tilt])
+    msg.header.stamp = sec_to_stamp(t)
+    return msg
+
+
+def _publish_frame(pubs, frame, t: float) -> None:
+    """One camera frame per side: its image, its joint state and its fixation, all stamped ``t``."""
+    from geometry_msgs.msg import PointStamped
+
+    from fixego_ros.nodes.common import array_to_image, sec_to_stamp
+    stamp = sec_to_stamp(t)
+    for side in SIDES:
+        s = frame[side]
+        img, js, fx = pubs[side]
+        fix = PointStamped()
+        fix.header.stamp = stamp
+        fix.point.x, fix.point.y, fix.point.z = *s.fixation_px, float(s.fixation_id)
+        img.publish(array_to_image(s.gray, stamp, f'{side}_optical_frame'))
+        js.publish(_joint_state(side, t, s.pan, s.tilt))
+        fx.publish(fix)
+
+
+def test_flow_node_rays_fit_the_true_motion(ros_context, sim_pair, tmp_path):  # noqa: F811
+    from fixego_ros.nodes.common import array_to_image, cloud_to_table, sec_to_stamp, stamp_to_sec
+
+    rig, step, _, frames, _, _ = sim_pair
+    node, ex, pubs, got = _flow_node_with_publishers(ros_context, sim_pair, tmp_path)
     stamps = [100.0, 100.0 + 1 / 30]
     try:
         # a wrong-size image first: ignored with a warning, nothing published, node alive
         pubs['right'][0].publish(array_to_image(np.zeros((10, 12), np.uint8), sec_to_stamp(99.0),
                                                 'right_optical_frame'))
         for t, frame in zip(stamps, frames, strict=True):
-            stamp = sec_to_stamp(t)
-            for side in SIDES:
-                s = frame[side]
-                img, js, fx = pubs[side]
-                js_msg = JointState(name=[f'{side}_pan', f'{side}_tilt'], position=[s.pan, s.tilt])
-                js_msg.header.stamp = stamp
-                fix = PointStamped()
-                fix.header.stamp = stamp
-                fix.point.x, fix.point.y, fix.point.z = *s.fixation_px, float(s.fixation_id)
-                img.publish(array_to_image(s.gray, stamp, f'{side}_optical_frame'))
-                js.publish(js_msg)
-                fx.publish(fix)
+            _publish_frame(pubs, frame, t)
             n_before = len(got)
             spin_until(ex, lambda n=n_before: len(got) > n, 5.0)
         assert spin_until(ex, lambda: len(got) >= 2, 5.0), f'{len(got)} observations'
@@ -89,6 +108,83 @@ def test_flow_node_rays_fit_the_true_motion(ros_context, sim_pair, tmp_path):  #
         assert np.median(res_px) < 0.3, side
         wrong = np.abs(sampson_residuals(step.R, -step.t[[2, 0, 1]], pairs)) * rig.camera(side).fx
         assert np.median(wrong) > 5 * np.median(res_px)
+
+
+def test_flow_node_takes_joint_states_while_a_frame_is_processed(ros_context, sim_pair, tmp_path):  # noqa: F811
+    """The frames are processed off the executor: while the front end works on one (here held until released),
+    the node still takes every joint state as it comes. With the processing in the image callbacks, rclpy's
+    executor took one message per subscription per wake, the joint states queued behind the images, came later
+    than the synchroniser's wait and whole frames were lost ("no joints")."""
+    frames = sim_pair[3]
+    node, ex, pubs, got = _flow_node_with_publishers(ros_context, sim_pair, tmp_path)
+    started, holding, release = threading.Event(), threading.Event(), threading.Event()
+    process = node.frontend.process
+
+    def held(*args, **kwargs):
+        started.set()
+        holding.set()
+        release.wait(5.0)
+        holding.clear()
+        return process(*args, **kwargs)
+
+    node.frontend.process = held
+    try:
+        _publish_frame(pubs, frames[0], 100.0)
+        assert spin_until(ex, started.is_set, 10.0), 'the frame never reached the front end'
+        later = [100.0 + k / 30 for k in range(1, 11)]
+        for t in later:
+            for side in SIDES:
+                pubs[side][1].publish(_joint_state(side, t, frames[0][side].pan, frames[0][side].tilt))
+        taken = spin_until(ex, lambda: len(node.joints_in_ms) >= 2 + 2 * len(later), 5.0)
+        assert taken and holding.is_set(), f'{len(node.joints_in_ms)} joint states taken while the frame was held'
+        release.set()
+        assert spin_until(ex, lambda: len(got) >= 1, 10.0)
+    finally:
+        release.set()
+        ex.shutdown()
+        node.destroy_node()
+    assert node.stats['frame_errors'] == 0 and not node._worker.is_alive()
+
+
+@pytest.mark.parametrize('max_lag_s', [0.1, 30.0])
+def test_flow_node_behind_skips_frames_older_than_max_lag(ros_context, sim_pair, tmp_path, max_lag_s):  # noqa: F811
+    """Frames that complete while the front end works on an earlier one, each about 1 s old: with ``max_lag_s``
+    0.1 the newest is processed and the older ones are skipped and counted (they would only come out later still);
+    with 30 s every one is processed in order."""
+    from fixego_ros.nodes.common import stamp_to_sec
+
+    frames = sim_pair[3]
+    node, ex, pubs, got = _flow_node_with_publishers(ros_context, sim_pair, tmp_path,
+                                                     Parameter('max_lag_s', value=max_lag_s))
+    started, release = threading.Event(), threading.Event()
+    process = node.frontend.process
+
+    def held(*args, **kwargs):
+        started.set()
+        release.wait(10.0)
+        return process(*args, **kwargs)
+
+    node.frontend.process = held
+    t0 = node.get_clock().now().nanoseconds * 1e-9 - 1.0
+    stamps = [t0 + k / 30 for k in range(1, 4)]
+    try:
+        _publish_frame(pubs, frames[0], t0)
+        assert spin_until(ex, started.is_set, 10.0)
+        for t in stamps:
+            _publish_frame(pubs, frames[1], t)
+        n = 2 * (1 + len(stamps))
+        assert spin_until(ex, lambda: min(node.stats['images'], node.stats['fixations'],
+                                          len(node.joints_in_ms)) >= n, 5.0)
+        release.set()
+        processed = [t0, stamps[-1]] if max_lag_s < 1.0 else [t0, *stamps]
+        assert spin_until(ex, lambda: len(got) >= len(processed), 10.0)
+        spin_until(ex, lambda: len(got) > len(processed), 0.5)       # nothing more comes
+    finally:
+        release.set()
+        ex.shutdown()
+        node.destroy_node()
+    assert [stamp_to_sec(m.header.stamp) for m in got] == pytest.approx(processed, abs=1e-6)
+    assert node.stats['frames_skipped'] == len(stamps) + 1 - len(processed)
 
 
 # ---------------------------------------------------------------------------------------------- estimator_node

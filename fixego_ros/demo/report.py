@@ -54,6 +54,8 @@ STAGES = (
      'flow_node diagnostics image_dds_ms, last 300 images'),
     ('flow_image_queue', "wait: the image received -> flow_node's callback", 'flow_node diagnostics image_queue_ms, '
      'last 300 images'),
+    ('flow_joints_in', "after the stamp: a joint state reaches flow_node's callback (DDS + its queue)",
+     'flow_node diagnostics joints_in_ms, last 300 joint states'),
     ('flow_ready', 'after the stamp: flow_node has the stereo frame complete (DDS + synchroniser)',
      'flow_node diagnostics ready_ms, last 300 frames'),
     ('flow_compute', 'compute: flow_node front end + publish', 'flow_node diagnostics process_ms, last 300 frames'),
@@ -80,6 +82,7 @@ def latency_stages(rec) -> dict[str, dict[str, Any]]:
         'flow_image_in': _diag_ms(st, 'fixego flow_node', 'image_in_ms'),
         'flow_image_dds': _diag_ms(st, 'fixego flow_node', 'image_dds_ms'),
         'flow_image_queue': _diag_ms(st, 'fixego flow_node', 'image_queue_ms'),
+        'flow_joints_in': _diag_ms(st, 'fixego flow_node', 'joints_in_ms'),
         'flow_ready': _diag_ms(st, 'fixego flow_node', 'ready_ms'),
         'flow_compute': _diag_ms(st, 'fixego flow_node', 'process_ms'),
         'observation': _ms(seen.get('observation', [])),
@@ -251,10 +254,12 @@ def write_report(out: Path, rec, t_start: float, run_args: dict[str, Any],
             files[name] = len(traj)
     live_stamps = {t for t, _ in live}
     dropped = sum(1 for t, _ in truth if t not in live_stamps and t <= (max(live_stamps) if live_stamps else 0.0))
+    # of which flow_node skipped while a whole frame behind (it takes the newest; the rest were lost on the way)
+    flow_skipped = rec.statuses.get('fixego flow_node', {}).get('frames_skipped', '?')
     report: dict[str, Any] = {
         'run': {k: str(v) if isinstance(v, Path) else v for k, v in run_args.items() if k != 'func'},
         'files': files,
-        'frames': {'rendered': len(truth), 'poses': len(live), 'dropped': dropped},
+        'frames': {'rendered': len(truth), 'poses': len(live), 'dropped': dropped, 'flow_skipped': flow_skipped},
         'latency_image_to_pose_ms': _ms(latency),
         'latency_stages_ms': latency_stages(rec),
         'cpu_percent_of_one_core': {**(cpu or {}), 'cores': os.cpu_count()},
@@ -292,7 +297,8 @@ def write_report(out: Path, rec, t_start: float, run_args: dict[str, Any],
                         gt_xyz=gt_xyz - gt_xyz[0], title=f'fixego demo: {run_args.get("trajectory", "")}')
         report['files']['trajectory.png'] = 1
     lines = [f'fixego demo report: {out}',
-             f'  frames rendered {len(truth)}, poses {len(live)}, dropped {dropped}']
+             f'  frames rendered {len(truth)}, poses {len(live)}, dropped {dropped} (flow_node skipped '
+             f'{flow_skipped} while behind)']
     lat = report['latency_image_to_pose_ms']
     if lat:
         lines.append(f'  latency image -> pose: p50 {lat["p50"]:.1f} ms, p95 {lat["p95"]:.1f} ms, '

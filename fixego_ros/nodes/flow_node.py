@@ -12,7 +12,11 @@ and turns every point into rig-frame rays with the pan/tilt of its frame
 (sensor_msgs/PointCloud2 rows: cameras, flow pairs keyframe -> t, live tracks;
 :mod:`fixego_ros.pipeline.observation`) and ``/diagnostics``. A frame with one camera only gives a
 one-camera observation; dropped frames show up as a gap between the observation's ``t0`` and the
-previous frame, which the estimator bridges.
+previous frame, which the estimator bridges. The frames are processed on a worker thread of the node's own
+(:meth:`FlowNode._work`): the executor's callbacks only feed the synchroniser, so a slow frame never holds back
+the joint states and fixations that complete the next ones; when it falls behind, a ready frame older than
+``max_lag_s`` with a newer one ready is skipped (``frames_skipped``). A frame the front end fails on is logged
+once, counted (``frame_errors``) and skipped; the node goes on.
 
 Parameters (:data:`fixego_ros.pipeline.params.FLOW_NODE_PARAMS`) are checked at start and on ``ros2 param
 set``; the tracking thresholds, keyframe policy, synchronisation bounds and diagnostics period change at
@@ -23,6 +27,7 @@ from __future__ import annotations
 
 import dataclasses
 import sys
+import threading
 import time
 from collections import deque
 from collections.abc import Mapping
@@ -70,6 +75,9 @@ LOST_IMAGES_WARN_FRACTION, LOST_IMAGES_MIN_FRAMES = 0.05, 100
 
 
 class FlowNode(Node):
+    WORK_PERIOD_S = 0.02        # the worker looks for expired synchroniser waits this often without new input
+    JOIN_TIMEOUT_S = 2.0        # bound on waiting for the worker's frame in progress at shutdown
+
     def __init__(self, **kwargs) -> None:
         super().__init__('flow_node', **in_namespace(kwargs))
         self.params = g = declare_parameters(self, PARAMS)
@@ -93,10 +101,10 @@ class FlowNode(Node):
                                      RELIABLE_QOS)
             self.create_subscription(PointStamped, f'{ns}/fixation', lambda m, s=side: self._on_fixation(s, m),
                                      RELIABLE_QOS)
-        self.create_timer(0.02, self._drain)
         self.diag_timer = self.create_timer(float(g('diagnostics_period_s')), self._publish_diagnostics)
-        self.stats = {'images': 0, 'bad_images': 0, 'observations': 0, 'keyframes': 0, 'points_right': 0,
-                      'points_left': 0, 'tracks_right': 0, 'tracks_left': 0}
+        self.stats = {'images': 0, 'fixations': 0, 'bad_images': 0, 'observations': 0, 'keyframes': 0,
+                      'points_right': 0, 'points_left': 0, 'tracks_right': 0, 'tracks_left': 0, 'frame_errors': 0,
+                      'frames_skipped': 0}
         self.process_ms: deque[float] = deque(maxlen=300)
         # latency stages (ms from the image stamp): an image received here (DDS), a stereo frame complete (its
         # images, joint states and fixations in: the synchroniser's wait), as in the README's latency breakdown
@@ -104,8 +112,16 @@ class FlowNode(Node):
         self.image_dds_ms: deque[float] = deque(maxlen=300)      # published -> received (the middleware's stamps)
         self.image_queue_ms: deque[float] = deque(maxlen=300)    # received -> this callback
         self.ready_ms: deque[float] = deque(maxlen=300)
+        self.joints_in_ms: deque[float] = deque(maxlen=300)     # a joint state received here (after its stamp)
         self.last_problem = ''
-        self.params.start(self._apply_params, LIVE_FLOW + LIVE_KEYFRAMES + LIVE_SYNC + ('diagnostics_period_s',))
+        self.max_lag_s = float(g('max_lag_s'))
+        self.params.start(self._apply_params, LIVE_FLOW + LIVE_KEYFRAMES + LIVE_SYNC + ('diagnostics_period_s',
+                                                                                        'max_lag_s'))
+        # the frames are processed on a thread of their own: the executor's callbacks only feed the synchroniser
+        self._lock = threading.Lock()           # the synchroniser: fed by the callbacks, emptied by the worker
+        self._wake, self._stop = threading.Event(), threading.Event()
+        self._worker = threading.Thread(target=self._work, name='flow-frames', daemon=True)
+        self._worker.start()
         self.get_logger().info(f'flow: preset {self.flow_params.preset}, window {self.flow_params.window_px} px')
 
     def _now(self) -> float:
@@ -138,8 +154,9 @@ class FlowNode(Node):
         self.once.clear(f'image_{side}', f'{side} images usable again')
         now, t = self._now(), stamp_to_sec(msg.header.stamp)
         self.image_in_ms.append(1e3 * (now - t))
-        self.sync.add_image(side, t, (gray, msg.header.stamp), now)
-        self._drain()
+        with self._lock:
+            self.sync.add_image(side, t, (gray, msg.header.stamp), now)
+        self._wake.set()
 
     def _on_joints(self, side: str, msg: JointState) -> None:
         try:
@@ -147,27 +164,71 @@ class FlowNode(Node):
         except ValueError as e:
             self.once.warn(f'joints_{side}', f'{e}: ignored')
             return
-        if not self.sync.add_joints(side, stamp_to_sec(msg.header.stamp), pan, tilt, joint_sigma(msg, side)):
+        t = stamp_to_sec(msg.header.stamp)
+        self.joints_in_ms.append(1e3 * (self._now() - t))
+        with self._lock:
+            added = self.sync.add_joints(side, t, pan, tilt, joint_sigma(msg, side))
+        if not added:
             self.once.warn(f'joints_bad_{side}', f'{side} joint state non-finite or out of order: ignored')
-        self._drain()
+        self._wake.set()
 
     def _on_fixation(self, side: str, msg: PointStamped) -> None:
         """A fixation pixel, or the camera's "no valid fixation at this stamp" (id -1): either completes the
         camera's part of the frame, so the synchroniser does not wait for a fixation that will not come."""
+        self.stats['fixations'] += 1
         try:
             pixel, fid = fixation_from_msg(msg)
         except ValueError as e:
-            self.sync.stats.rejected += 1
+            with self._lock:
+                self.sync.stats.rejected += 1
             self.once.warn(f'fixation_bad_{side}', f'{side} fixation ignored: {e}')
             return
-        if not self.sync.add_fixation(side, stamp_to_sec(msg.header.stamp), pixel, fid):
+        with self._lock:
+            added = self.sync.add_fixation(side, stamp_to_sec(msg.header.stamp), pixel, fid)
+        if not added:
             self.once.warn(f'fixation_bad_{side}', f'{side} fixation non-finite or late: ignored')
-        self._drain()
+        self._wake.set()
 
     # -------------------------------------------------------------------------------------- processing
+    def _work(self) -> None:
+        """The worker thread: process the frames the synchroniser has ready, woken by each input (and every
+        ``WORK_PERIOD_S``, for the waits that expire). Why a thread: rclpy's executor takes one message per
+        subscription per wake, so with the processing in the image callbacks (20-40 ms a frame on a loaded machine)
+        the joint states and fixations queued up behind the images, arrived later than ``max_wait_s`` and cost whole
+        frames ("no joints"): most demo runs of stop 82 lost 30-50 % of their frames that way, at p50 ~360 ms."""
+        while not self._stop.is_set() and self.context.ok():
+            self._wake.wait(self.WORK_PERIOD_S)
+            self._wake.clear()
+            try:
+                self._drain()
+            except Exception as e:     # a frame that breaks the front end must not stop the node
+                self.stats['frame_errors'] += 1
+                self.last_problem = f'frame not processed: {type(e).__name__}: {e}'
+                self.once.error('frame_error', f'{self.last_problem} (further ones are counted on /diagnostics)')
+
+    def destroy_node(self) -> None:
+        self._stop.set()
+        self._wake.set()
+        if self._worker is not threading.current_thread():
+            self._worker.join(timeout=self.JOIN_TIMEOUT_S)
+        super().destroy_node()
+
     def _drain(self) -> None:
         now = self._now()
-        for frame in self.sync.pop_ready(now):
+        with self._lock:
+            frames = self.sync.pop_ready(now)
+        stale = [f for f in frames[:-1] if now - f.stamp > self.max_lag_s]
+        if stale:
+            # behind: a frame older than max_lag_s with a newer one ready is skipped. It would come out later
+            # still, and the estimator leaves late observations out anyway; the front end tracks across the gap
+            # as across a frame lost on the way
+            self.stats['frames_skipped'] += len(stale)
+            self.once.warn('behind', f'flow_node is behind its input by more than max_lag_s '
+                                     f'({self.max_lag_s:g} s; the front end takes longer than a frame period on '
+                                     f'this machine): the older waiting frames are skipped (frames_skipped on '
+                                     f'/diagnostics)')
+            frames = frames[len(stale):]
+        for frame in frames:
             self.ready_ms.append(1e3 * (now - frame.stamp))
             t = time.perf_counter()
             samples: dict[str, CameraSample | None] = {
@@ -182,6 +243,7 @@ class FlowNode(Node):
                 continue
             self.pub_obs.publish(table_to_cloud(rows, stamp_msg, 'rig'))
             self.process_ms.append((time.perf_counter() - t) * 1e3)
+            self.once.clear('frame_error', 'frames processed again')
             self.stats['observations'] += 1
             self.stats['keyframes'] += int(bool(obs.keyframe))
             for side in SIDES:
@@ -201,11 +263,14 @@ class FlowNode(Node):
         if new_keyframes is not None:
             self.frontend.keyframes = new_keyframes
         if new_sync is not None:    # keep the synchroniser's own fields (queue bounds) that are not parameters
-            self.sync.params = dataclasses.replace(self.sync.params, slop_s=new_sync.slop_s,
-                                                   max_wait_s=new_sync.max_wait_s,
-                                                   joint_extrapolation_s=new_sync.joint_extrapolation_s)
+            with self._lock:
+                self.sync.params = dataclasses.replace(self.sync.params, slop_s=new_sync.slop_s,
+                                                       max_wait_s=new_sync.max_wait_s,
+                                                       joint_extrapolation_s=new_sync.joint_extrapolation_s)
         if 'diagnostics_period_s' in changes:
             set_timer_period(self.diag_timer, float(g('diagnostics_period_s')))
+        if 'max_lag_s' in changes:
+            self.max_lag_s = float(g('max_lag_s'))
 
     # -------------------------------------------------------------------------------------- diagnostics
     def _publish_diagnostics(self) -> None:
@@ -225,12 +290,12 @@ class FlowNode(Node):
                                  'epipolar', 'unregistered')})
         for name, q in (('process_ms', self.process_ms), ('image_in_ms', self.image_in_ms),
                         ('image_dds_ms', self.image_dds_ms), ('image_queue_ms', self.image_queue_ms),
-                        ('ready_ms', self.ready_ms)):
+                        ('ready_ms', self.ready_ms), ('joints_in_ms', self.joints_in_ms)):
             values.update(percentile_values(name, q or (0.0,)))
         level, message = OK, 'tracking flow'
         if self.stats['observations'] == 0:
             level, message = WARN, 'no synchronised frame yet (images, joint states, fixations?)'
-        elif any(self.once.active(f'image_{side}') for side in SIDES):
+        elif any(self.once.active(f'image_{side}') for side in SIDES) or self.once.active('frame_error'):
             level, message = WARN, self.last_problem
         elif s.single_camera_frames > 0 and s.stereo_frames == 0:
             level, message = WARN, 'only one camera delivers frames'

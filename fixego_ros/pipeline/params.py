@@ -446,6 +446,10 @@ FLOW_NODE_PARAMS: Table = _table(
     FLOW_PARAMS,
     _str('observation_topic', 'flow/observation', 'where observations are published (relative: in the node '
                                                'namespace, default /fixego)'),
+    _num('max_lag_s', 0.0, 'when the node is behind its input, a ready frame older than this (s after its stamp) '
+                           'with a newer one ready is skipped and the newest processed (frames_skipped on '
+                           '/diagnostics); 0 = always the newest. Bounds the latency when the front end takes longer '
+                           'than a frame period', ge=0.0, le=60.0, live=True),
     _diagnostics_period(),
 )
 
