@@ -600,8 +600,8 @@ def test_demo_runs_every_node_as_a_process_and_writes_a_report(tmp_path):
     # the latency breakdown: every stage the recorder sees, and the nodes' own, measured (no timing asserted)
     stages = report['latency_stages_ms']
     for name in ('joint_publish', 'joint_state', 'fixation', 'flow_image_in', 'flow_image_dds', 'flow_image_queue',
-                 'flow_ready', 'flow_compute',
-                 'observation', 'estimator_queue', 'estimator_solve', 'pose'):
+                 'flow_joints_in', 'flow_ready', 'flow_compute', 'observation', 'estimator_in', 'estimator_queue',
+                 'estimator_solve', 'estimator_out', 'pose'):
         assert stages[name]['p50'] >= 0 and stages[name]['p95'] >= stages[name]['p50'], (name, stages[name])
     # the camera nodes' joint states against the simulator's true angles at the same image stamps
     for side in ('right', 'left'):

@@ -62,7 +62,11 @@ STAGES = (
     ('observation', 'after the stamp: the flow observation arrives (+ DDS)', 'recorder, whole run'),
     ('estimator_queue', "wait: the observation in estimator_node's queue (receive -> callback)",
      'estimator_node diagnostics queue_ms, last 300 observations'),
+    ('estimator_in', "after the stamp: the observation reaches estimator_node's callback",
+     'estimator_node diagnostics observation_in_ms, last 300 observations'),
     ('estimator_solve', 'compute: estimator_node solve per frame', 'estimator_node diagnostics solve_ms'),
+    ('estimator_out', 'after the stamp: estimator_node has published the pose, odometry (and path, TF)',
+     'estimator_node diagnostics pose_out_ms, last 300 poses'),
     ('pose', 'after the stamp: the pose arrives', 'recorder, whole run'),
 )
 
@@ -87,7 +91,9 @@ def latency_stages(rec) -> dict[str, dict[str, Any]]:
         'flow_compute': _diag_ms(st, 'fixego flow_node', 'process_ms'),
         'observation': _ms(seen.get('observation', [])),
         'estimator_queue': _diag_ms(st, 'fixego estimator_node', 'queue_ms'),
+        'estimator_in': _diag_ms(st, 'fixego estimator_node', 'observation_in_ms'),
         'estimator_solve': _diag_ms(st, 'fixego estimator_node', 'solve_ms'),
+        'estimator_out': _diag_ms(st, 'fixego estimator_node', 'pose_out_ms'),
         'pose': _ms(rec.latency_s),
     }
     out: dict[str, dict[str, Any]] = {}

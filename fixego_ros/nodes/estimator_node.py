@@ -218,6 +218,9 @@ class EstimatorNode(Node):
         self._backward: tuple[float, int] | None = None   # (monotonic start, count) of a run of older stamps
         self.solve_ms: deque[float] = deque(maxlen=300)
         self.queue_ms: deque[float] = deque(maxlen=300)     # receive -> callback, per observation
+        # ms after the image stamp, on this node's clock: an observation at the callback, its pose published
+        self.observation_in_ms: deque[float] = deque(maxlen=300)
+        self.pose_out_ms: deque[float] = deque(maxlen=300)
         self.behind_s: deque[float] = deque(maxlen=300)     # the smoother process's lag behind each frame
         self.last: FrameResult | None = None
         self.last_error = ''
@@ -277,6 +280,7 @@ class EstimatorNode(Node):
         self.once.clear('malformed', 'observations well-formed again')
         now_ns = self.get_clock().now().nanoseconds
         now = now_ns * 1e-9
+        self.observation_in_ms.append(1e3 * (now - stamp))
         # ROS time before the first /clock message reads 0: nothing to compare with then
         if now_ns > 0 and stamp - now > self.max_future_s:
             self._stamp_problem('future_rejected', f'observation stamped {stamp - now:.3f} s ahead of the node '
@@ -476,6 +480,7 @@ class EstimatorNode(Node):
         if self.tf is not None:
             self._send_tf(stamp, live)
         self.stats['published'] += 1
+        self.pose_out_ms.append(1e3 * (self.get_clock().now().nanoseconds * 1e-9 - stamp_to_sec(stamp)))
 
     def _publish_paths(self) -> None:
         """path and path_raw from the stored poses (corrections and rescaling already applied to them), stamped
@@ -582,6 +587,9 @@ class EstimatorNode(Node):
         values.update(percentile_values('solve_ms', self.solve_ms or (0.0,)))
         if self.queue_ms:
             values.update(percentile_values('queue_ms', self.queue_ms))
+        for name, q in (('observation_in_ms', self.observation_in_ms), ('pose_out_ms', self.pose_out_ms)):
+            if q:
+                values.update(percentile_values(name, q))
         level, message = OK, 'estimating'
         if not isinstance(self.estimator, LiveSmoother):     # the papers' local BA: its window and cost
             values.update({'window': self.config.window, 'mode': self.config.mode})
