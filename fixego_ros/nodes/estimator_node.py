@@ -280,8 +280,9 @@ class EstimatorNode(Node):
         self.once.clear('malformed', 'observations well-formed again')
         now_ns = self.get_clock().now().nanoseconds
         now = now_ns * 1e-9
-        self.observation_in_ms.append(1e3 * (now - stamp))
         # ROS time before the first /clock message reads 0: nothing to compare with then
+        if now_ns > 0:
+            self.observation_in_ms.append(1e3 * (now - stamp))
         if now_ns > 0 and stamp - now > self.max_future_s:
             self._stamp_problem('future_rejected', f'observation stamped {stamp - now:.3f} s ahead of the node '
                                                    f'clock (max_future_s {self.max_future_s:g}): rejected')
@@ -480,7 +481,9 @@ class EstimatorNode(Node):
         if self.tf is not None:
             self._send_tf(stamp, live)
         self.stats['published'] += 1
-        self.pose_out_ms.append(1e3 * (self.get_clock().now().nanoseconds * 1e-9 - stamp_to_sec(stamp)))
+        now_ns = self.get_clock().now().nanoseconds
+        if now_ns > 0:          # 0: ROS time before the first /clock message
+            self.pose_out_ms.append(1e3 * (now_ns * 1e-9 - stamp_to_sec(stamp)))
 
     def _publish_paths(self) -> None:
         """path and path_raw from the stored poses (corrections and rescaling already applied to them), stamped
