@@ -146,6 +146,46 @@ def test_flow_node_takes_joint_states_while_a_frame_is_processed(ros_context, si
     assert node.stats['frame_errors'] == 0 and not node._worker.is_alive()
 
 
+def test_flow_node_survives_a_frame_the_front_end_fails_on(ros_context, sim_pair, tmp_path):  # noqa: F811
+    """A frame the front end raises on is counted and reported (WARN on /diagnostics), not fatal: the worker goes
+    on with the next frame, and the warning clears."""
+    from diagnostic_msgs.msg import DiagnosticStatus
+
+    from fixego_ros.nodes.common import stamp_to_sec
+
+    frames = sim_pair[3]
+    node, ex, pubs, got = _flow_node_with_publishers(ros_context, sim_pair, tmp_path)
+    process, calls = node.frontend.process, []
+
+    def broken_second(*args, **kwargs):
+        calls.append(args[0])
+        if len(calls) == 2:
+            raise RuntimeError('a broken frame')
+        return process(*args, **kwargs)
+
+    node.frontend.process = broken_second
+    sent: list = []
+    node.pub_diag.publish = sent.append
+    stamps = [100.0 + k / 30 for k in range(3)]
+    try:
+        _publish_frame(pubs, frames[0], stamps[0])
+        assert spin_until(ex, lambda: len(got) >= 1, 10.0)
+        _publish_frame(pubs, frames[1], stamps[1])
+        assert spin_until(ex, lambda: node.stats['frame_errors'] == 1, 10.0)
+        node._publish_diagnostics()
+        _publish_frame(pubs, frames[1], stamps[2])
+        assert spin_until(ex, lambda: len(got) >= 2, 10.0)
+        node._publish_diagnostics()
+    finally:
+        ex.shutdown()
+        node.destroy_node()
+    assert node.stats['frame_errors'] == 1 and not node._worker.is_alive()
+    assert [stamp_to_sec(m.header.stamp) for m in got] == pytest.approx([stamps[0], stamps[2]])
+    during, after = (next(st for st in d.status if st.name == 'fixego flow_node') for d in sent)
+    assert during.level == DiagnosticStatus.WARN and 'RuntimeError: a broken frame' in during.message
+    assert after.level == DiagnosticStatus.OK
+
+
 @pytest.mark.parametrize('max_lag_s', [0.1, 30.0])
 def test_flow_node_behind_skips_frames_older_than_max_lag(ros_context, sim_pair, tmp_path, max_lag_s):  # noqa: F811
     """Frames that complete while the front end works on an earlier one, each about 1 s old: with ``max_lag_s``
