@@ -191,6 +191,8 @@ def test_flow_node_behind_skips_frames_older_than_max_lag(ros_context, sim_pair,
     """Frames that complete while the front end works on an earlier one, each about 1 s old: with ``max_lag_s``
     0.1 the newest is processed and the older ones are skipped and counted (they would only come out later still);
     with 30 s every one is processed in order."""
+    from diagnostic_msgs.msg import DiagnosticStatus
+
     from fixego_ros.nodes.common import stamp_to_sec
 
     frames = sim_pair[3]
@@ -225,6 +227,17 @@ def test_flow_node_behind_skips_frames_older_than_max_lag(ros_context, sim_pair,
         node.destroy_node()
     assert [stamp_to_sec(m.header.stamp) for m in got] == pytest.approx(processed, abs=1e-6)
     assert node.stats['frames_skipped'] == len(stamps) + 1 - len(processed)
+    # a run that skips more than 5 % of its frames says so on /diagnostics
+    sent: list = []
+    node.pub_diag.publish = sent.append
+    node.sync.stats.frames = 100
+    node._publish_diagnostics()
+    flow = next(st for st in sent[0].status if st.name == 'fixego flow_node')
+    assert flow.level == DiagnosticStatus.OK, flow.message      # 2 or 0 of 100 skipped
+    node.stats['frames_skipped'] = 6
+    node._publish_diagnostics()
+    flow = next(st for st in sent[1].status if st.name == 'fixego flow_node')
+    assert flow.level == DiagnosticStatus.WARN and '6 of 100 frames skipped' in flow.message
 
 
 # ---------------------------------------------------------------------------------------------- estimator_node

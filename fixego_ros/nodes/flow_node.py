@@ -72,6 +72,8 @@ LIVE_KEYFRAMES = ('keyframe_max_frames', 'keyframe_min_parallax_px', 'keyframe_m
 LIVE_SYNC = ('slop_s', 'max_wait_s', 'joint_extrapolation_s')
 # images lost on the way (a frame whose other image never came): warned about once this share of frames is lost
 LOST_IMAGES_WARN_FRACTION, LOST_IMAGES_MIN_FRAMES = 0.05, 100
+# frames skipped while behind (max_lag_s): WARN on /diagnostics once this share of the frames is skipped (same minimum)
+SKIPPED_WARN_FRACTION = 0.05
 
 
 class FlowNode(Node):
@@ -305,6 +307,11 @@ class FlowNode(Node):
                                     f'publisher needs a shared-memory segment of several images: README "Images '
                                     f'over DDS")')
             self.once.warn('images_lost', message)
+        elif s.frames >= LOST_IMAGES_MIN_FRAMES and self.stats['frames_skipped'] > SKIPPED_WARN_FRACTION * s.frames:
+            level, message = WARN, (f"{self.stats['frames_skipped']} of {s.frames} frames skipped: the front end "
+                                    f"takes longer than a frame period here (process_ms), so those frames get no "
+                                    f"pose; fewer processes on the cores, a faster machine or a lower frame rate "
+                                    f"help")
         publish_diagnostics(self, self.pub_diag, [diagnostic_status('fixego flow_node', 'flow', level, message,
                                                                     values),
                                                   self.intrinsics.status('fixego flow_node: intrinsics')])
