@@ -62,7 +62,7 @@ from fixego_ros.pipeline.frontend import CameraSample, StereoFrontEnd
 from fixego_ros.pipeline.messages import fixation_from_msg, gray_for_camera, joint_sigma, pan_tilt
 from fixego_ros.pipeline.observation import observation_to_rows
 from fixego_ros.pipeline.params import FLOW_NODE_PARAMS, Getter, flow_params, keyframe_policy, sync_params
-from fixego_ros.pipeline.sync import StereoSync
+from fixego_ros.pipeline.sync import StereoSync, SyncedFrame
 
 PARAMS = FLOW_NODE_PARAMS
 # applied at run time: the front end and the synchroniser read their params objects at every frame
@@ -201,12 +201,7 @@ class FlowNode(Node):
         while not self._stop.is_set() and self.context.ok():
             self._wake.wait(self.WORK_PERIOD_S)
             self._wake.clear()
-            try:
-                self._drain()
-            except Exception as e:     # a frame that breaks the front end must not stop the node
-                self.stats['frame_errors'] += 1
-                self.last_problem = f'frame not processed: {type(e).__name__}: {e}'
-                self.once.error('frame_error', f'{self.last_problem} (further ones are counted on /diagnostics)')
+            self._drain()
 
     def destroy_node(self) -> None:
         self._stop.set()
@@ -232,26 +227,35 @@ class FlowNode(Node):
             frames = frames[len(stale):]
         for frame in frames:
             self.ready_ms.append(1e3 * (now - frame.stamp))
-            t = time.perf_counter()
-            samples: dict[str, CameraSample | None] = {
-                side: None if c is None else CameraSample(c.image[0], c.pan, c.tilt, c.fixation_px, c.fixation_id,
-                                                  c.joint_sigma)
-                for side, c in frame.cameras.items()}
-            base = frame.cameras['right'] or frame.cameras['left']     # the frame's stamp is the base camera's
-            stamp_msg = base.image[1]
-            obs = self.frontend.process(frame.stamp, samples)
-            rows = observation_to_rows(obs)
-            if len(rows) == 0:
-                continue
-            self.pub_obs.publish(table_to_cloud(rows, stamp_msg, 'rig'))
-            self.process_ms.append((time.perf_counter() - t) * 1e3)
-            self.once.clear('frame_error', 'frames processed again')
-            self.stats['observations'] += 1
-            self.stats['keyframes'] += int(bool(obs.keyframe))
-            for side in SIDES:
-                cam = obs.camera(side)
-                self.stats[f'points_{side}'] = len(cam.flow_prev) if cam is not None else 0
-                self.stats[f'tracks_{side}'] = len(cam.track_ids) if cam is not None else 0
+            try:
+                self._process(frame)
+            except Exception as e:     # a frame that breaks the front end must not stop the node
+                self.stats['frame_errors'] += 1
+                self.last_problem = f'frame not processed: {type(e).__name__}: {e}'
+                self.once.error('frame_error', f'{self.last_problem} (further ones are counted on /diagnostics)')
+
+    def _process(self, frame: SyncedFrame) -> None:
+        """One synchronised frame through the front end; its observation published."""
+        t = time.perf_counter()
+        samples: dict[str, CameraSample | None] = {
+            side: None if c is None else CameraSample(c.image[0], c.pan, c.tilt, c.fixation_px, c.fixation_id,
+                                                      c.joint_sigma)
+            for side, c in frame.cameras.items()}
+        base = frame.cameras['right'] or frame.cameras['left']     # the frame's stamp is the base camera's
+        stamp_msg = base.image[1]
+        obs = self.frontend.process(frame.stamp, samples)
+        rows = observation_to_rows(obs)
+        if len(rows) == 0:
+            return
+        self.pub_obs.publish(table_to_cloud(rows, stamp_msg, 'rig'))
+        self.process_ms.append((time.perf_counter() - t) * 1e3)
+        self.once.clear('frame_error', 'frames processed again')
+        self.stats['observations'] += 1
+        self.stats['keyframes'] += int(bool(obs.keyframe))
+        for side in SIDES:
+            cam = obs.camera(side)
+            self.stats[f'points_{side}'] = len(cam.flow_prev) if cam is not None else 0
+            self.stats[f'tracks_{side}'] = len(cam.track_ids) if cam is not None else 0
 
     # -------------------------------------------------------------------------------------- parameters
     def _apply_params(self, changes: dict[str, object], g: Getter) -> None:
