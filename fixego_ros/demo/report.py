@@ -260,7 +260,8 @@ def write_report(out: Path, rec, t_start: float, run_args: dict[str, Any],
             files[name] = len(traj)
     live_stamps = {t for t, _ in live}
     dropped = sum(1 for t, _ in truth if t not in live_stamps and t <= (max(live_stamps) if live_stamps else 0.0))
-    # of which flow_node skipped while a whole frame behind (it takes the newest; the rest were lost on the way)
+    # frames flow_node skipped while behind (it takes the newest ready frame), counted over the node's whole run,
+    # so also before the reset
     flow_skipped = rec.statuses.get('fixego flow_node', {}).get('frames_skipped', '?')
     report: dict[str, Any] = {
         'run': {k: str(v) if isinstance(v, Path) else v for k, v in run_args.items() if k != 'func'},
@@ -304,7 +305,7 @@ def write_report(out: Path, rec, t_start: float, run_args: dict[str, Any],
         report['files']['trajectory.png'] = 1
     lines = [f'fixego demo report: {out}',
              f'  frames rendered {len(truth)}, poses {len(live)}, dropped {dropped} (flow_node skipped '
-             f'{flow_skipped} while behind)']
+             f'{flow_skipped} while behind, counted from its start)']
     lat = report['latency_image_to_pose_ms']
     if lat:
         lines.append(f'  latency image -> pose: p50 {lat["p50"]:.1f} ms, p95 {lat["p95"]:.1f} ms, '
