@@ -80,6 +80,35 @@ def _publish_frame(pubs, frame, t: float) -> None:
         fx.publish(fix)
 
 
+class _HeldFrontEnd:
+    """Holds ``node``'s front end on each frame until :attr:`release` is set (bounded: ``timeout_s``);
+    :attr:`started` once a frame reached it, :attr:`holding` while one waits."""
+
+    def __init__(self, node, timeout_s: float) -> None:
+        self.started, self.holding, self.release = threading.Event(), threading.Event(), threading.Event()
+        process = node.frontend.process
+
+        def held(*args, **kwargs):
+            self.started.set()
+            self.holding.set()
+            self.release.wait(timeout_s)
+            self.holding.clear()
+            return process(*args, **kwargs)
+
+        node.frontend.process = held
+
+
+def _flow_status(node):
+    """flow_node's own /diagnostics status, as it would publish it now."""
+    sent: list = []
+    publish, node.pub_diag.publish = node.pub_diag.publish, sent.append
+    try:
+        node._publish_diagnostics()
+    finally:
+        node.pub_diag.publish = publish
+    return next(st for st in sent[0].status if st.name == 'fixego flow_node')
+
+
 def test_flow_node_rays_fit_the_true_motion(ros_context, sim_pair, tmp_path):  # noqa: F811
     from fixego_ros.nodes.common import array_to_image, cloud_to_table, sec_to_stamp, stamp_to_sec
 
@@ -117,30 +146,20 @@ def test_flow_node_takes_joint_states_while_a_frame_is_processed(ros_context, si
     than the synchroniser's wait and whole frames were lost ("no joints")."""
     frames = sim_pair[3]
     node, ex, pubs, got = _flow_node_with_publishers(ros_context, sim_pair, tmp_path)
-    started, holding, release = threading.Event(), threading.Event(), threading.Event()
-    process = node.frontend.process
-
-    def held(*args, **kwargs):
-        started.set()
-        holding.set()
-        release.wait(5.0)
-        holding.clear()
-        return process(*args, **kwargs)
-
-    node.frontend.process = held
+    hold = _HeldFrontEnd(node, 5.0)
     try:
         _publish_frame(pubs, frames[0], 100.0)
-        assert spin_until(ex, started.is_set, 10.0), 'the frame never reached the front end'
+        assert spin_until(ex, hold.started.is_set, 10.0), 'the frame never reached the front end'
         later = [100.0 + k / 30 for k in range(1, 11)]
         for t in later:
             for side in SIDES:
                 pubs[side][1].publish(_joint_state(side, t, frames[0][side].pan, frames[0][side].tilt))
         taken = spin_until(ex, lambda: len(node.joints_in_ms) >= 2 + 2 * len(later), 5.0)
-        assert taken and holding.is_set(), f'{len(node.joints_in_ms)} joint states taken while the frame was held'
-        release.set()
+        assert taken and hold.holding.is_set(), f'{len(node.joints_in_ms)} joint states taken while the frame was held'
+        hold.release.set()
         assert spin_until(ex, lambda: len(got) >= 1, 10.0)
     finally:
-        release.set()
+        hold.release.set()
         ex.shutdown()
         node.destroy_node()
     assert node.stats['frame_errors'] == 0 and not node._worker.is_alive()
@@ -164,24 +183,21 @@ def test_flow_node_survives_a_frame_the_front_end_fails_on(ros_context, sim_pair
         return process(*args, **kwargs)
 
     node.frontend.process = broken_second
-    sent: list = []
-    node.pub_diag.publish = sent.append
     stamps = [100.0 + k / 30 for k in range(3)]
     try:
         _publish_frame(pubs, frames[0], stamps[0])
         assert spin_until(ex, lambda: len(got) >= 1, 10.0)
         _publish_frame(pubs, frames[1], stamps[1])
         assert spin_until(ex, lambda: node.stats['frame_errors'] == 1, 10.0)
-        node._publish_diagnostics()
+        during = _flow_status(node)
         _publish_frame(pubs, frames[1], stamps[2])
         assert spin_until(ex, lambda: len(got) >= 2, 10.0)
-        node._publish_diagnostics()
+        after = _flow_status(node)
     finally:
         ex.shutdown()
         node.destroy_node()
     assert node.stats['frame_errors'] == 1 and not node._worker.is_alive()
     assert [stamp_to_sec(m.header.stamp) for m in got] == pytest.approx([stamps[0], stamps[2]])
-    during, after = (next(st for st in d.status if st.name == 'fixego flow_node') for d in sent)
     assert during.level == DiagnosticStatus.WARN and 'RuntimeError: a broken frame' in during.message
     assert after.level == DiagnosticStatus.OK
 
@@ -198,45 +214,33 @@ def test_flow_node_behind_skips_frames_older_than_max_lag(ros_context, sim_pair,
     frames = sim_pair[3]
     node, ex, pubs, got = _flow_node_with_publishers(ros_context, sim_pair, tmp_path,
                                                      Parameter('max_lag_s', value=max_lag_s))
-    started, release = threading.Event(), threading.Event()
-    process = node.frontend.process
-
-    def held(*args, **kwargs):
-        started.set()
-        release.wait(10.0)
-        return process(*args, **kwargs)
-
-    node.frontend.process = held
+    hold = _HeldFrontEnd(node, 10.0)
     t0 = node.get_clock().now().nanoseconds * 1e-9 - 1.0
     stamps = [t0 + k / 30 for k in range(1, 4)]
     try:
         _publish_frame(pubs, frames[0], t0)
-        assert spin_until(ex, started.is_set, 10.0)
+        assert spin_until(ex, hold.started.is_set, 10.0)
         for t in stamps:
             _publish_frame(pubs, frames[1], t)
         n = 2 * (1 + len(stamps))
         assert spin_until(ex, lambda: min(node.stats['images'], node.stats['fixations'],
                                           len(node.joints_in_ms)) >= n, 5.0)
-        release.set()
+        hold.release.set()
         processed = [t0, stamps[-1]] if max_lag_s < 1.0 else [t0, *stamps]
         assert spin_until(ex, lambda: len(got) >= len(processed), 10.0)
         spin_until(ex, lambda: len(got) > len(processed), 0.5)       # nothing more comes
     finally:
-        release.set()
+        hold.release.set()
         ex.shutdown()
         node.destroy_node()
     assert [stamp_to_sec(m.header.stamp) for m in got] == pytest.approx(processed, abs=1e-6)
     assert node.stats['frames_skipped'] == len(stamps) + 1 - len(processed)
     # a run that skips more than 5 % of its frames says so on /diagnostics
-    sent: list = []
-    node.pub_diag.publish = sent.append
     node.sync.stats.frames = 100
-    node._publish_diagnostics()
-    flow = next(st for st in sent[0].status if st.name == 'fixego flow_node')
+    flow = _flow_status(node)
     assert flow.level == DiagnosticStatus.OK, flow.message      # 2 or 0 of 100 skipped
     node.stats['frames_skipped'] = 6
-    node._publish_diagnostics()
-    flow = next(st for st in sent[1].status if st.name == 'fixego flow_node')
+    flow = _flow_status(node)
     assert flow.level == DiagnosticStatus.WARN and '6 of 100 frames skipped' in flow.message
 
 
