@@ -327,6 +327,8 @@ def test_demo_report_joint_errors_compare_published_and_true_angles_at_the_same_
     e = joint_errors(est, true, sigmas=sigmas)
     # 0.2: 0.1 deg off at a stated 0: beyond; 0.7: 0.4 deg off at 0.1: beyond; the 8 others exact
     assert e['stated_frames'] == 10 and e['beyond_3sigma'] == pytest.approx(0.2)
+    # while turning, with a sigma stated (0.5-0.9 s, both axes): one axis 4 sigma off, nine exact
+    assert e['moving_error_over_sigma_rms'] == pytest.approx(np.sqrt(16.0 / 10.0))
     sigmas[0.2] = (0.0, np.radians(0.05))
     sigmas[0.7] = (np.radians(0.2), 0.0)
     assert joint_errors(est, true, sigmas=sigmas)['beyond_3sigma'] == 0.0

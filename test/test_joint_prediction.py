@@ -229,6 +229,7 @@ def test_a_reading_the_host_took_late_is_dated_by_the_commanded_motion():
         loop.step()
     ts = [t - base for t in loop.history._t]        # the loop's clock is the driver's (monotonic)
     assert len(ts) == 3 and loop.stats['late_readings'] == 2
+    assert loop.predictor.calibration.samples == 0      # dated by the motion: no check of the motion's prediction
     assert ts[0] == pytest.approx(0.011, abs=1e-6)              # on time: the middle of its (narrowest) window
     for dated, (true, w) in zip(ts[1:], spec[1:], strict=True):
         assert abs(dated - true) < 0.0015                       # the middle would be off by ~(w - 1 ms) / 2
@@ -300,3 +301,50 @@ def test_a_command_being_written_counts_before_its_ack_dates_it():
     assert jp2.estimate(0.32).pan == 0.0 and jp2.commands() == []
     jp2.expect_command(math.nan, 1.0, 0.0, rate, 0.0)             # ignored
     assert jp2.commands() == []
+
+
+def _calibrated(speed_factor: float, timing_noise_s: float = 0.0, n: int = 120, calibrate: bool = True,
+                seed: int = 0) -> JointPredictor:
+    """A head commanded back and forth at 0.7 rad/s that really runs at ``speed_factor`` times that, read every 30 ms
+    (quantised like a VISCA head, each reading dated ``timing_noise_s`` rms off), each reading checked against the
+    prediction before it joins (``add_reading(calibrate=...)``)."""
+    rng = np.random.default_rng(seed)
+    jp, rate, pos = JointPredictor(), 0.7, 0.0
+    target = 0.3
+    jp.add_command(0.0, target, 0.0, rate, 0.0)
+    t_prev = 0.0
+    for k in range(1, n + 1):
+        t = 0.03 * k
+        step = min(abs(target - pos), speed_factor * rate * (t - t_prev))
+        pos += math.copysign(step, target - pos)
+        t_prev = t
+        if pos == target:                   # at the target: turn back (a new command at the reading)
+            target = -target
+            jp.add_command(t, target, 0.0, rate, 0.0)
+        reading = round(pos / Q[0]) * Q[0]
+        jp.add_reading(t + rng.normal(0.0, timing_noise_s) if timing_noise_s else t, reading, 0.0, calibrate=calibrate)
+    return jp
+
+
+def test_sigma_calibration_shrinks_the_sigma_of_a_head_that_keeps_its_table_speed():
+    jp = _calibrated(1.0, timing_noise_s=0.0005)
+    cal = jp.calibration
+    assert cal.samples >= cal.min_samples and cal.scale < 0.6
+    before = JointPredictor(jp.history)                    # the same readings, the model's sigma as it is
+    for c in jp.commands():
+        before.add_command(c.t, c.pan, c.tilt, c.pan_rate, c.tilt_rate)
+    t = jp.history.latest()[0] + 0.02
+    e, e0 = jp.estimate(t), before.estimate(t)
+    assert e.pan == e0.pan and e.pan_sigma == pytest.approx(max(cal.scale * e0.pan_sigma, Q[0] / math.sqrt(12)))
+
+
+def test_sigma_calibration_grows_the_sigma_of_a_head_slower_than_its_table():
+    # 40 % slow: the model's 15 % speed error understates it
+    cal = _calibrated(0.6).calibration
+    assert cal.scale > 1.5
+
+
+def test_sigma_calibration_needs_samples_and_the_callers_consent():
+    assert _calibrated(1.0, n=5).calibration.scale == 1.0           # too few samples: the model as it is
+    uncalibrated = _calibrated(0.6, calibrate=False).calibration   # late readings (dated by the motion) say nothing
+    assert uncalibrated.samples == 0 and uncalibrated.scale == 1.0

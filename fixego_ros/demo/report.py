@@ -204,7 +204,22 @@ def joint_errors(estimated: dict[float, tuple[float, float]], true: dict[float, 
         beyond = np.any(np.abs(off[stated]) > 3.0 * sig + 1e-12, axis=1)
         out['stated_frames'] = len(stated)
         out['beyond_3sigma'] = float(beyond.mean())
+        # while turning, each axis's error over its stated sigma (1 = the sigma is the error's size; at rest the
+        # node states 0 for a head read exactly)
+        turning = moving[stated]
+        ratio = np.abs(off[stated][turning]) / np.where(sig[turning] > 0.0, sig[turning], np.nan)
+        ratio = ratio[np.isfinite(ratio)]
+        if ratio.size:
+            out['moving_error_over_sigma_rms'] = float(np.sqrt(np.mean(ratio ** 2)))
     return out
+
+
+def _sigma_scale(camera: dict[str, object]) -> str:
+    """The camera node's predicted-sigma scale, as its last diagnostics stated it (SigmaCalibration)."""
+    scale = camera.get('joint_sigma_scale')
+    if scale is None:
+        return ''
+    return f' (sigma scaled x{float(scale):.2f} from {camera.get("joint_sigma_samples", 0)} readings)'
 
 
 def blind_frames(valid: dict[str, dict[float, bool]], t_start: float, t_end: float,
@@ -370,6 +385,9 @@ def write_report(out: Path, rec, t_start: float, run_args: dict[str, Any],
     je = [f'{side} p50 {e["p50_deg"]:.3f}, p95 {e["p95_deg"]:.3f}, max {e["max_deg"]:.3f}'
           + (f', p95 {e["moving_p95_deg"]:.3f} while turning' if 'moving_p95_deg' in e else '')
           + (f', {100 * e["beyond_3sigma"]:.1f} % beyond 3 stated sigma' if 'beyond_3sigma' in e else '')
+          + (f', error / stated sigma RMS {e["moving_error_over_sigma_rms"]:.2f} while turning'
+             if 'moving_error_over_sigma_rms' in e else '')
+          + _sigma_scale(report['diagnostics'].get(f'fixego camera_node {side}', {}))
           for side, e in report['joint_error_deg'].items() if e]
     if je:
         lines.append('  joint states against the true angles, deg: ' + '; '.join(je))

@@ -721,8 +721,11 @@ class CameraNode(Node):
                            **(percentile_values('joint_latency_ms', self.joint_latency_ms)
                               if self.joint_latency_ms else {}),
                            'servo_commands': self.loop.stats['commands'],
-                           # PosInq replies the host read too late to date them: kept out of the joint history
-                           'servo_late_readings': self.loop.stats['late_readings']})
+                           # PosInq replies the host read too late to date them by their window (dated by the motion)
+                           'servo_late_readings': self.loop.stats['late_readings'],
+                           # the predicted joint sigmas' scale, measured against each new reading (SigmaCalibration)
+                           'joint_sigma_scale': round(self.loop.predictor.calibration.scale, 3),
+                           'joint_sigma_samples': self.loop.predictor.calibration.samples})
             if not self.driver.connected:
                 level, message = ERROR, f'serial port {self.driver.state}: {self.driver.last_error}'
         publish_diagnostics(self, self.pub_diag, [diagnostic_status(

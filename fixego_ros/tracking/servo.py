@@ -277,10 +277,13 @@ class ServoLoop:
         pan, tilt = pr.pan_rad(r.pan), pr.tilt_rad(r.tilt)
         lo, hi = self._to_clock(r.earliest), self._to_clock(r.latest)
         t = 0.5 * (lo + hi)
-        if excess > self.params.reading_window_s:
+        late = excess > self.params.reading_window_s
+        if late:
             self.stats['late_readings'] += 1
             t = self._date_by_motion(lo, hi, pan, tilt)
-        self.history.add(t, pan, tilt)
+        # a late reading is dated by the motion the predictor expects: checking the prediction against it would
+        # measure nothing, so only those dated by their own window calibrate the predictor's sigma
+        self.predictor.add_reading(t, pan, tilt, calibrate=not late)
 
     def _date_by_motion(self, lo: float, hi: float, pan: float, tilt: float) -> float:
         """The time in [lo, hi] at which the predictor's motion (earlier readings, commands) is nearest the reading,
