@@ -215,11 +215,13 @@ def joint_errors(estimated: dict[float, tuple[float, float]], true: dict[float, 
 
 
 def _sigma_scale(camera: dict[str, object]) -> str:
-    """The camera node's predicted-sigma scale, as its last diagnostics stated it (SigmaCalibration)."""
-    scale = camera.get('joint_sigma_scale')
-    if scale is None:
+    """What the camera node measured of its predictions at its readings, and the scale its sigmas took from that,
+    as its last diagnostics stated them (SigmaCalibration)."""
+    measured, scale = camera.get('joint_sigma_measured'), camera.get('joint_sigma_scale')
+    if measured is None or scale is None:
         return ''
-    return f' (sigma scaled x{float(scale):.2f} from {camera.get("joint_sigma_samples", 0)} readings)'
+    return (f' (at its readings the errors measured x{float(measured):.2f} the model\'s sigma over '
+            f'{camera.get("joint_sigma_samples", 0)} axes; sigma scaled x{float(scale):.2f})')
 
 
 def blind_frames(valid: dict[str, dict[float, bool]], t_start: float, t_end: float,

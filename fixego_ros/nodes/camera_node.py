@@ -723,7 +723,9 @@ class CameraNode(Node):
                            'servo_commands': self.loop.stats['commands'],
                            # PosInq replies the host read too late to date them by their window (dated by the motion)
                            'servo_late_readings': self.loop.stats['late_readings'],
-                           # the predicted joint sigmas' scale, measured against each new reading (SigmaCalibration)
+                           # the predictions' errors at the new readings over their sigmas, and the scale the
+                           # sigmas take from it (>= 1: SigmaCalibration)
+                           'joint_sigma_measured': round(self.loop.predictor.calibration.measured, 3),
                            'joint_sigma_scale': round(self.loop.predictor.calibration.scale, 3),
                            'joint_sigma_samples': self.loop.predictor.calibration.samples})
             if not self.driver.connected:
