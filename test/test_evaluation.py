@@ -389,3 +389,27 @@ def test_the_demo_reports_true_distance_follows_the_rig_through_odom_into_the_si
         assert 0.5 < expected < 20.0
         assert at(100.0, 1.7 * u) == pytest.approx(expected, abs=1e-9)   # only the direction counts
     assert at(100.5, np.array([0.0, 0.0, 1.0])) is None                  # no truth at that stamp
+
+
+def test_evaluation_says_where_the_error_came_from():
+    """The terminal error along the true direction of travel (a lost scale) and across it (a lost heading), and the
+    stretch of the run where the unaligned error grew most."""
+    from fixego_ros.evaluation.cli import where_text
+    from fixego_ros.evaluation.metrics import along_track, error_growth
+    t = np.arange(0.0, 20.0 + 1e-9, 0.1)
+    gt = np.column_stack([0.1 * t, np.zeros_like(t), np.zeros_like(t)])          # 0.1 m/s along x
+    ahead = 0.1 * np.clip((t - 10.0) / 4.0, 0.0, 1.0)                            # 10 cm ahead, gained in 10-14 s
+    est = gt + np.column_stack([ahead, np.full_like(t, 0.02), np.zeros_like(t)])  # and 2 cm to the side
+    track = along_track(est, gt)
+    assert track['along_m'] == pytest.approx(0.1) and track['across_m'] == pytest.approx(0.02)
+    assert along_track(gt - np.array([0.05, 0.0, 0.0]), gt)['along_m'] == pytest.approx(-0.05)     # behind
+    assert along_track(gt, np.zeros_like(gt)) == {'along_m': None, 'across_m': None}              # never moved
+    err = np.linalg.norm(est - gt, axis=1)
+    g = error_growth(t, err, window_s=4.0)
+    assert 9.9 <= g['from_s'] <= 10.1 and g['to_s'] == pytest.approx(g['from_s'] + 4.0)
+    assert g['growth_m'] == pytest.approx(err[-1] - 0.02, abs=2e-3)
+    assert error_growth(t[:5], err[:5], window_s=4.0)['to_s'] == pytest.approx(0.4)   # shorter than the window
+    poses = [Pose(np.eye(3), p) for p in est]
+    summary = evaluate(t, poses, t, [Pose(np.eye(3), p) for p in gt]).summary['position_error_m']
+    assert summary['terminal_track']['along_m'] == pytest.approx(0.1)
+    assert where_text(summary).startswith('terminal along the path +10.00 cm, across 2.00 cm; grew most from 10')

@@ -665,6 +665,13 @@ def test_demo_runs_every_node_as_a_process_and_writes_a_report(tmp_path):
         je = report['joint_error_deg'][side]
         assert je['frames'] >= 10 and 0.0 <= je['p50_deg'] <= je['p95_deg'] <= je['max_deg'] < 5.0, (side, je)
     assert 'joint states against the true angles' in (out / 'report.txt').read_text()
+    # each camera node's check of its predicted sigma at its readings (SigmaCalibration), and where the refined
+    # trajectory's error came from
+    for side in ('right', 'left'):
+        cam = report['diagnostics'][f'fixego camera_node {side}']
+        assert int(cam['joint_sigma_samples']) >= 0 and float(cam['joint_sigma_scale']) >= 1.0, cam
+    track = report['refined']['position_error_m']['terminal_track']
+    assert 'terminal along the path' in (out / 'report.txt').read_text() and set(track) == {'along_m', 'across_m'}
     # each vergence measurement against the true distance in the simulated room: the one asked for while the rig
     # stands (after the reset, so the recorder has the truth) is within a few tenths of a percent (stop 66: 0.1 %)
     v = report['vergence']

@@ -14,6 +14,7 @@ import numpy as np
 
 from fixego_ros.estimation.covariance import std_along
 from fixego_ros.estimation.stage_times import Stage
+from fixego_ros.evaluation.cli import where_text
 from fixego_ros.evaluation.metrics import EvaluationError, evaluate
 from fixego_ros.evaluation.plot import plot_evaluation
 from fixego_ros.evaluation.tum import write_tum
@@ -346,6 +347,8 @@ def write_report(out: Path, rec, t_start: float, run_args: dict[str, Any],
                      + (f'{100 * se3:.2f} cm' if se3 is not None else 'n/a')
                      + f'; path length {pl["estimate"]:.2f} / {pl["ground_truth"]:.2f} m'
                      + (f' (scale error {100 * s["scale_error"]:+.1f} %)' if 'scale_error' in s else ''))
+        if label == 'refined' and 'terminal_track' in pe:
+            lines.append(f'           {where_text(pe)}')
     v = report['vergence']
     lines.append(f'  vergence: {v["measurements"]} measurements ({v["measurements_in_run"]} during the run); left '
                  f'camera steps {v.get("successes", "?")}/{v.get("attempts", "?")} done, interrupted at most '

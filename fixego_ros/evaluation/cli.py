@@ -43,6 +43,17 @@ def _cm(x: float | None) -> str:
     return _num(None if x is None else 100.0 * x, '.2f', ' cm')
 
 
+def where_text(pe: dict[str, Any]) -> str:
+    """Where a position error came from (``position_error_m``'s ``terminal_track`` and ``largest_growth``): the
+    terminal error along the path (a scale lost) and across it (a heading lost), and the stretch where it grew."""
+    track, growth = pe.get('terminal_track') or {}, pe.get('largest_growth') or {}
+    along = track.get('along_m')
+    sign = '+' if along is not None and along >= 0 else ''
+    return (f'terminal along the path {sign}{_cm(along)}, across {_cm(track.get("across_m"))}; grew most from '
+            f'{_num(growth.get("from_s"), ".1f", " s")} to {_num(growth.get("to_s"), ".1f", " s")} '
+            f'(+{_cm(growth.get("growth_m"))})')
+
+
 def summary_lines(name: str, s: dict[str, Any]) -> list[str]:
     """A short human summary of one evaluation summary dict (any number may be None: printed as n/a)."""
     pe, pl, ape, rpe = s['position_error_m'], s['path_length_m'], s['ape_translation_m'], s['rpe']
@@ -55,6 +66,7 @@ def summary_lines(name: str, s: dict[str, Any]) -> list[str]:
         f'(ratio {_num(pl["ratio"], ".3f")})',
         f'  position error, no alignment: mean {_cm(pe["mean"])}, std {_cm(pe["std"])}, max {_cm(pe["max"])}, '
         f'terminal {_cm(pe["terminal"])}',
+        f'  {where_text(pe)}',
         f'  ATE rmse: unaligned {_cm(ape["none"].get("rmse"))}, SE(3) {_cm(ape["se3"].get("rmse"))}, '
         f'Sim(3) {_cm(sim3.get("rmse"))}{scale}',
         f'  RPE rmse per frame: {_cm(rpe["translation_m"].get("rmse"))}, '

@@ -30,6 +30,8 @@ from evo.core.trajectory import PoseTrajectory3D
 from fixego_ros.geometry.rotation import Pose
 
 DEFAULT_MAX_DT = 0.01  # s; images at 30 Hz are 33 ms apart, so a 10 ms window never pairs the wrong frame
+GROWTH_WINDOW_S = 4.0  # s; the stretch over which :func:`error_growth` looks for the error's largest rise
+HEADING_BACK_M = 0.5   # m of the true path before the end that give the direction of travel there
 
 
 class EvaluationError(ValueError):
@@ -171,6 +173,32 @@ def evaluate(est_stamps: Sequence[float] | np.ndarray, est_poses: Sequence[Pose]
                          rpe_delta_m=rpe_delta_m, name=name)
 
 
+def error_growth(stamps: np.ndarray, err: np.ndarray, window_s: float = GROWTH_WINDOW_S) -> dict[str, float | None]:
+    """Where a run lost its accuracy: the stretch of at most ``window_s`` over which the unaligned position error
+    rose most (``from_s``/``to_s`` after the first stamp, ``growth_m``; the whole run when it is shorter)."""
+    t = np.asarray(stamps, float) - float(stamps[0])
+    end = np.searchsorted(t, t + window_s, side='right') - 1        # the last stamp within the window of each
+    rise = err[end] - err
+    k = int(np.argmax(rise))
+    return {'from_s': _num(t[k]), 'to_s': _num(t[end[k]]), 'growth_m': _num(rise[k])}
+
+
+def along_track(est_xyz: np.ndarray, gt_xyz: np.ndarray, back_m: float = HEADING_BACK_M) -> dict[str, float | None]:
+    """The final position error split along the true direction of travel at the end (over the last ``back_m`` of
+    the true path; positive: the estimate is ahead) and across it: a lost scale shows along the path, a lost heading
+    across. None without a direction (a rig that never moved)."""
+    steps = _norms(np.diff(gt_xyz, axis=0))
+    dist = np.concatenate([[0.0], np.cumsum(steps)])
+    i = max(0, int(np.searchsorted(dist, dist[-1] - back_m, side='right')) - 1)
+    heading = gt_xyz[-1] - gt_xyz[i]
+    n = float(np.linalg.norm(heading))
+    if not (np.isfinite(n) and n > 1e-6):
+        return {'along_m': None, 'across_m': None}
+    off = est_xyz[-1] - gt_xyz[-1]
+    along = float(off @ heading) / n
+    return {'along_m': _num(along), 'across_m': _num(float(np.linalg.norm(off - along * heading / n)))}
+
+
 def _norms(v: np.ndarray) -> np.ndarray:
     """Row norms that do not overflow before the result does (|(1e160, 0, 0)| is 1e160, not inf)."""
     return np.hypot(np.hypot(v[:, 0], v[:, 1]), v[:, 2])
@@ -194,7 +222,9 @@ def _evaluate(est_stamps: Sequence[float] | np.ndarray, est_poses: Sequence[Pose
     err = _norms(est.positions_xyz - gt.positions_xyz)
     len_est, len_gt = float(est.path_length), float(gt.path_length)
     position = {**_stats(err), 'terminal': _num(err[-1]),
-                'terminal_percent_of_path': _num(100.0 * err[-1] / len_gt) if len_gt > 0 else None}
+                'terminal_percent_of_path': _num(100.0 * err[-1] / len_gt) if len_gt > 0 else None,
+                'terminal_track': along_track(est.positions_xyz, gt.positions_xyz),
+                'largest_growth': error_growth(np.asarray(est.timestamps, float), err)}
 
     ape: dict[str, Any] = {}
     for align in ('none', 'se3', 'sim3'):
