@@ -151,7 +151,7 @@ class SigmaCalibration:
 
     A head predicted better than the model says keeps the model's sigma. Its terms are a real head's (``rate_rel``:
     the speed 15 % off the table while it accelerates), and the emulator keeps its table speed: on demo runs its
-    moving heads measured 0.25-0.3. Scaled down to that (stop 84, five demo runs against five of the old code,
+    heads measure 0.18-0.27. Scaled down to that (stop 84: x 0.25, five demo runs against five of the old code,
     alternated), the sigmas were honest for the bulk of the frames (error / stated RMS 0.73-1.04 while turning) but
     1.3-1.8 % of the frames lay beyond 3 sigma (host timing, up to 1.3 deg), and the estimator, now trusting the turning
     cameras, failed twice (55 cm and 3 m terminal; the same inputs with the model's sigma: 4.8 cm). The model's
