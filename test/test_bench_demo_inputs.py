@@ -46,3 +46,44 @@ def test_each_camera_is_turned_to_its_true_angles_and_keeps_its_measurements():
     assert out.left.joint_sigma == np.radians(0.3)
     assert np.array_equal(out.left.cam_to_rig, rig.cam_to_rig('left', -0.3, 0.0))
     assert hook.missing == 3
+
+
+def test_the_true_angles_can_keep_the_stated_sigma_be_rounded_to_the_reading_unit_or_be_noisy():
+    """The sensitivity variants: TRUE_STATED keeps each camera's stated sigma (TRUE states them exact); QUANTISED
+    rounds each axis to its reading unit (off by at most half a unit, and by more than nothing somewhere); NOISY
+    adds the asked-for spread, the same draw each time."""
+    import math
+
+    from fixego_ros.bench.demo_inputs import AngleSettings, HeadAngles, head_angles, noisy, quantised
+    rig = load_rig(default_rig_path())
+    rng = np.random.default_rng(2)
+    stamps = np.arange(400) / 30.0
+    truth = {side: {float(t): (float(a), float(b)) for t, a, b in zip(stamps, rng.uniform(-1, 1, 400),
+                                                                          rng.uniform(-0.3, 0.3, 400), strict=True)}
+             for side in ('right', 'left')}
+    unit = (math.radians(0.1125), math.radians(0.075))
+    q = quantised(truth, unit)
+    for side in truth:
+        err = np.array([np.subtract(q[side][t], truth[side][t]) for t in stamps])
+        half = np.array(unit) / 2
+        assert np.all(np.abs(err) <= half + 1e-15) and np.all(np.abs(err).max(axis=0) > 0.8 * half)
+        steps = np.array([q[side][t] for t in stamps]) / np.array(unit)
+        np.testing.assert_allclose(steps, np.round(steps), atol=1e-9)
+    sd = math.radians(0.05)
+    n1, n2 = noisy(truth, sd, seed=3), noisy(truth, sd, seed=3)
+    assert n1 == n2 and n1 != noisy(truth, sd, seed=4)
+    err = np.array([np.subtract(n1['right'][t], truth['right'][t]) for t in stamps])
+    assert 0.85 * sd < err.std() < 1.15 * sd and abs(err.mean()) < 0.2 * sd
+
+    def obs(stamp: float) -> FrameObservation:
+        C = rig.cam_to_rig('right', 0.0, 0.0)
+        cam = CameraFrame(C @ np.array([0.0, 0.0, 1.0]), 1, C, joint_sigma=np.radians(0.4))
+        return FrameObservation(stamp, cam, None, keyframe=True)
+
+    t0 = float(stamps[0])
+    stated = head_angles(HeadAngles.TRUE_STATED, rig, truth, AngleSettings(unit, sd))(obs(t0)).right
+    exact = head_angles(HeadAngles.TRUE, rig, truth, AngleSettings(unit, sd))(obs(t0)).right
+    assert stated.joint_sigma == np.radians(0.4) and exact.joint_sigma == 0.0
+    np.testing.assert_allclose(stated.cam_to_rig, rig.cam_to_rig('right', *truth['right'][t0]), atol=1e-12)
+    rounded = head_angles(HeadAngles.QUANTISED, rig, truth, AngleSettings(unit, sd))(obs(t0)).right
+    np.testing.assert_allclose(rounded.cam_to_rig, rig.cam_to_rig('right', *q['right'][t0]), atol=1e-12)

@@ -733,10 +733,10 @@ def test_demo_runs_every_node_as_a_process_and_writes_a_report(tmp_path):
     # ... which hold the simulator's true head angles too: the run replayed with them (bench.demo_inputs), every
     # camera of every frame given its true angles but the flow of the first frames, which starts at the keyframe
     # before the reset (held for at most keyframe_max_frames, 10, frames; both cameras)
-    from fixego_ros.bench.demo_inputs import run_dir
+    from fixego_ros.bench.demo_inputs import HeadAngles, run_dir
     assert inputs['messages']['/fixego/ground_truth/right/joint_states'] >= frames['rendered']
     row = run_dir(out)
-    assert row.missing <= 2 * 10 and all(np.isfinite(row.replayed + row.true_heads)), row
+    assert row.missing <= 2 * 10 and all(np.isfinite(row.replayed + row.angles[HeadAngles.TRUE])), row
     assert row.live == pytest.approx((100 * report['refined']['position_error_m']['mean'],
                                       100 * report['refined']['position_error_m']['terminal']))
 

@@ -14,7 +14,12 @@ twice, as ``fixego replay`` replays such a bag (the estimator alone, determinist
 The difference is what the camera nodes' joint states cost the run. On this stop's recorded runs it was most of a
 failed run's terminal error in some (docs/results.md "Stop 82"), and nothing in others.
 
-    python -m fixego_ros.bench.demo_inputs demo_out [more demo folders ...]
+``--angles`` adds other head angles (:class:`HeadAngles`), each a column, to measure how much angle error the
+estimator tolerates: the true angles with the sigma the camera nodes stated (the weighting of the live run, the
+values exact), rounded to the head's reading unit (``--profile``), or with Gaussian noise (``--noise-deg`` per axis
+and frame, seeded). Stop 85 measured them (docs/results.md "Stop 85").
+
+    python -m fixego_ros.bench.demo_inputs demo_out [more demo folders ...] [--angles true true-stated quantised noisy]
 """
 
 from __future__ import annotations
@@ -23,7 +28,8 @@ import argparse
 import json
 import math
 import sys
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
+from enum import Enum
 from pathlib import Path
 
 import numpy as np
@@ -39,13 +45,45 @@ def _key(stamp: float) -> float:
     return round(float(stamp), STAMP_DECIMALS)
 
 
+Angles = dict[str, dict[float, tuple[float, float]]]     # per side, image stamp -> (pan, tilt) readings (rad)
+
+
+class HeadAngles(Enum):
+    """The head angles a replay gives each camera instead of the recorded ones (its rays turned with them)."""
+
+    TRUE = 'true'                   # the simulator's, stated exact (joint_sigma 0)
+    TRUE_STATED = 'true-stated'     # the simulator's, with the sigma the camera node stated (the live weighting)
+    QUANTISED = 'quantised'         # the simulator's rounded to the head's reading unit, the stated sigma
+    NOISY = 'noisy'                 # the simulator's plus Gaussian noise per axis and frame, the stated sigma
+
+
+def quantised(truth: Angles, unit_rad: tuple[float, float]) -> Angles:
+    """``truth`` rounded to the reading unit (pan, tilt), as the head's position inquiry reports it."""
+    qp, qt = unit_rad
+    return {side: {t: (round(p / qp) * qp, round(q / qt) * qt) for t, (p, q) in v.items()} for side, v in truth.items()}
+
+
+def noisy(truth: Angles, sigma_rad: float, seed: int = 0) -> Angles:
+    """``truth`` plus independent Gaussian noise of ``sigma_rad`` on each axis of each stamp (seeded, in stamp order:
+    the same draw for the same folder)."""
+    rng = np.random.default_rng(seed)
+    out: Angles = {}
+    for side in sorted(truth):
+        stamps = sorted(truth[side])
+        e = sigma_rad * rng.standard_normal((len(stamps), 2))
+        out[side] = {t: (truth[side][t][0] + a, truth[side][t][1] + b) for t, (a, b) in zip(stamps, e, strict=True)}
+    return out
+
+
 class TrueHeads:
     """``replay``'s observe hook: each camera at its true head angles (see the module docstring). ``truth``: per side,
     image stamp -> true (pan, tilt) readings. A camera whose stamp has no true angles, or whose flow starts at a frame
-    that had none, keeps what was recorded (counted in :attr:`missing`)."""
+    that had none, keeps what was recorded (counted in :attr:`missing`). The angles given are stated exact
+    (``joint_sigma`` 0) unless ``keep_sigma``: then each camera keeps the sigma its camera node stated."""
 
-    def __init__(self, rig: Rig, truth: dict[str, dict[float, tuple[float, float]]]) -> None:
+    def __init__(self, rig: Rig, truth: Angles, keep_sigma: bool = False) -> None:
         self.rig = rig
+        self.keep_sigma = keep_sigma
         self.truth = {side: {_key(t): q for t, q in truth.get(side, {}).items()} for side in SIDES}
         self._turns: dict[tuple[str, float], np.ndarray] = {}     # (side, stamp) -> rotation applied to its rays
         self.missing = 0
@@ -68,7 +106,7 @@ class TrueHeads:
                        flow_prev=np.asarray(cam.flow_prev, float).reshape(-1, 3) @ before.T,
                        flow_curr=np.asarray(cam.flow_curr, float).reshape(-1, 3) @ turn.T,
                        track_rays=np.asarray(cam.track_rays, float).reshape(-1, 3) @ turn.T,
-                       joint_sigma=0.0 if q is not None else cam.joint_sigma)
+                       joint_sigma=0.0 if q is not None and not self.keep_sigma else cam.joint_sigma)
 
 
 class DemoInputsError(Exception):
@@ -77,26 +115,28 @@ class DemoInputsError(Exception):
 
 @dataclass
 class RunRow:
-    """One demo run: mean / terminal position error (cm, no alignment) live, replayed, with the true head angles."""
+    """One demo run: mean / terminal position error (cm, no alignment) live, replayed, and replayed with each of the
+    head angles asked for."""
 
     name: str
     live: tuple[float, float] | None
     replayed: tuple[float, float]
-    true_heads: tuple[float, float]
-    missing: int          # cameras left as recorded for lack of true angles
+    angles: dict[HeadAngles, tuple[float, float]] = field(default_factory=dict)
+    missing: int = 0          # cameras left as recorded for lack of true angles (in the first variant)
 
     def line(self) -> str:
         cell = lambda v: 'n/a' if v is None else f'{v[0]:.2f} / {v[1]:.2f}'  # noqa: E731
-        return f'| {self.name} | {cell(self.live)} | {cell(self.replayed)} | {cell(self.true_heads)} |'
+        return '| ' + ' | '.join([self.name, cell(self.live), cell(self.replayed),
+                                  *(cell(v) for v in self.angles.values())]) + ' |'
 
 
-def true_angles(bag, topics) -> dict[str, dict[float, tuple[float, float]]]:
+def true_angles(bag, topics) -> Angles:
     """Per side, stamp -> the simulator's true (pan, tilt) readings from the bag's ground_truth joint states."""
     from fixego_ros.pipeline.messages import pan_tilt, stamp_to_sec
     names = {topics.name(f'ground_truth/{side}/joint_states'): side for side in SIDES}
     if not all(n in bag.topics for n in names):
         raise DemoInputsError(f'{bag.path}: no {" / ".join(names)} (a demo before stop 82 did not record them)')
-    out: dict[str, dict[float, tuple[float, float]]] = {side: {} for side in SIDES}
+    out: Angles = {side: {} for side in SIDES}
     for m in bag.messages(names):
         side = names[m.topic]
         msg = bag.decode(m)
@@ -118,36 +158,81 @@ def _live(folder: Path) -> tuple[float, float] | None:
         return None
 
 
-def run_dir(folder: str | Path) -> RunRow:
-    """Replay one demo folder's estimator inputs as recorded and with the true head angles."""
+@dataclass(frozen=True)
+class AngleSettings:
+    """What the :class:`HeadAngles` other than TRUE need: the head's reading unit (rad, pan and tilt) and the noise."""
+
+    unit_rad: tuple[float, float] = (math.radians(0.1125), math.radians(0.075))     # EVI-D30
+    noise_rad: float = math.radians(0.05)
+    seed: int = 0
+
+
+def head_angles(which: HeadAngles, rig: Rig, truth: Angles, settings: AngleSettings) -> TrueHeads:
+    """The observe hook that gives every camera ``which`` angles."""
+    if which is HeadAngles.TRUE:
+        return TrueHeads(rig, truth)
+    if which is HeadAngles.QUANTISED:
+        truth = quantised(truth, settings.unit_rad)
+    elif which is HeadAngles.NOISY:
+        truth = noisy(truth, settings.noise_rad, settings.seed)
+    return TrueHeads(rig, truth, keep_sigma=True)
+
+
+def run_dir(folder: str | Path, angles: tuple[HeadAngles, ...] = (HeadAngles.TRUE,),
+            settings: AngleSettings | None = None) -> RunRow:
+    """Replay one demo folder's estimator inputs as recorded and with each of ``angles``."""
     from fixego_ros.bags.reader import Bag, BagError
     from fixego_ros.replay.run import ReplayError, ReplaySettings, ReplayTopics, bag_defaults, replay
 
     folder = Path(folder)
+    settings = settings or AngleSettings()
     try:
         bag = Bag(folder / INPUTS)
         rig = load_rig(folder / INPUTS / 'rig.yaml')
         topics = ReplayTopics()
-        settings = ReplaySettings.from_getters(rig, **bag_defaults(bag, topics))
+        replay_settings = ReplaySettings.from_getters(rig, **bag_defaults(bag, topics))
         truth = true_angles(bag, topics)
-        recorded = replay(bag, rig, settings, topics)
-        oracle = TrueHeads(rig, truth)
-        exact = replay(bag, rig, settings, topics, observe=oracle)
+        row = RunRow(folder.name, _live(folder), _errors(replay(bag, rig, replay_settings, topics)))
+        for i, which in enumerate(angles):
+            hook = head_angles(which, rig, truth, settings)
+            row.angles[which] = _errors(replay(bag, rig, replay_settings, topics, observe=hook))
+            if i == 0:
+                row.missing = hook.missing
     except (BagError, ReplayError, OSError, ValueError) as e:
         raise DemoInputsError(f'{folder}: {" ".join(str(e).split())}') from None
-    return RunRow(folder.name, _live(folder), _errors(recorded), _errors(exact), oracle.missing)
+    return row
+
+
+def _summary(what: str, cells: list[tuple[float, float]]) -> str:
+    ok = sum(1 for m, t in cells if m <= 5.0 and t <= 5.0)
+    medians = [float(np.median([c[k] for c in cells])) if cells else math.nan for k in (0, 1)]
+    return f'{what}: {ok} of {len(cells)} within 5 / 5 cm; median {medians[0]:.2f} / {medians[1]:.2f} cm'
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog='python -m fixego_ros.bench.demo_inputs', description=__doc__.split('\n\n')[0])
     ap.add_argument('folders', nargs='+', type=Path, help='fixego demo output folders (with estimator_inputs/)')
+    ap.add_argument('--angles', nargs='+', choices=[a.value for a in HeadAngles], default=[HeadAngles.TRUE.value],
+                    help='head angles to replay with besides the recorded ones, a column each (default: true)')
+    ap.add_argument('--noise-deg', type=float, default=0.05, help='noisy: Gaussian noise per axis and frame (deg)')
+    ap.add_argument('--profile', default='evi_d30', help="quantised: the camera profile whose reading unit to use")
     args = ap.parse_args(argv)
-    print('| run | live mean / terminal cm | replayed | true head angles |')
-    print('|---|---|---|---|')
+    from fixego_ros.visca.profiles import get_profile
+    try:
+        profile = get_profile(args.profile)
+    except (ValueError, OSError) as e:
+        ap.error(str(e))
+    if not (math.isfinite(args.noise_deg) and args.noise_deg >= 0.0):
+        ap.error(f'--noise-deg must be finite and >= 0, got {args.noise_deg}')
+    angles = tuple(dict.fromkeys(HeadAngles(a) for a in args.angles))
+    unit = (math.radians(1.0 / profile.pan_units_per_deg), math.radians(1.0 / profile.tilt_units_per_deg))
+    settings = AngleSettings(unit, math.radians(args.noise_deg))
+    print('| run | live mean / terminal cm | replayed | ' + ' | '.join(a.value for a in angles) + ' |')
+    print('|---|---|---|' + '---|' * len(angles))
     rows = []
     for folder in args.folders:
         try:
-            row = run_dir(folder)
+            row = run_dir(folder, angles, settings)
         except DemoInputsError as e:
             print(f'python -m fixego_ros.bench.demo_inputs: {e}', file=sys.stderr)
             continue
@@ -155,11 +240,10 @@ def main(argv: list[str] | None = None) -> int:
         print(row.line() + (f' ({row.missing} cameras without true angles)' if row.missing else ''), flush=True)
     if not rows:
         return 1
-    for what in ('live', 'replayed', 'true_heads'):
-        cells = [getattr(r, what) for r in rows if getattr(r, what) is not None]
-        ok = sum(1 for m, t in cells if m <= 5.0 and t <= 5.0)
-        medians = [float(np.median([c[k] for c in cells])) if cells else math.nan for k in (0, 1)]
-        print(f'{what}: {ok} of {len(cells)} within 5 / 5 cm; median {medians[0]:.2f} / {medians[1]:.2f} cm')
+    print(_summary('live', [r.live for r in rows if r.live is not None]))
+    print(_summary('replayed', [r.replayed for r in rows]))
+    for a in angles:
+        print(_summary(a.value, [r.angles[a] for r in rows]))
     return 0
 
 

@@ -500,6 +500,7 @@ class CameraNode(Node):
                               ncc_min=float(g('vergence_ncc_min')),
                               match_ncc_min=float(g('vergence_match_ncc_min')),
                               margin_min=float(g('vergence_margin_min')),
+                              max_rel_std=float(g('vergence_max_rel_std')),
                               pixel_sigma_px=float(g('vergence_pixel_sigma_px')),
                               joint_sigma_deg=float(g('vergence_joint_sigma_deg')),
                               timing_sigma_s=1e-3 * float(g('vergence_timing_sigma_ms')),

@@ -428,6 +428,10 @@ CAMERA_NODE_PARAMS: Table = _table(
                                          '(such steps were 1-13 % off)', ge=-1.0, le=1.0),
     _num('vergence_margin_min', 0.1, 'partner point: best minus second-best NCC peak below this is ambiguous',
          ge=0.0, le=2.0),
+    _num('vergence_max_rel_std', 0.05, 'vergence: a measurement whose std exceeds this share of its distance is not '
+                                       'published (the step fails; near the baseline its std understates: 5 demo '
+                                       'steps 21-72 % off were all above 5 %, docs/results.md "Stop 85")', gt=0.0,
+         le=1.0),
     _num('vergence_pixel_sigma_px', 0.3, 'vergence: pixel noise of the two fixations used for the covariance (one '
                                          'correspondence per step: not reduced by averaging)', gt=0.0),
     _num('vergence_joint_sigma_deg', 0.033, 'vergence: reading noise of a moving head used for the covariance (EVI-D30 '
