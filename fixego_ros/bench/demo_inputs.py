@@ -36,6 +36,7 @@ import numpy as np
 
 from fixego_ros.estimation.frames import CameraFrame, FrameObservation
 from fixego_ros.geometry.rig import SIDES, Rig, load_rig
+from fixego_ros.tracking.joint_prediction import PredictionParams
 
 INPUTS = 'estimator_inputs'
 STAMP_DECIMALS = 6        # an observation's stamp and a joint state's name the same image
@@ -162,7 +163,7 @@ def _live(folder: Path) -> tuple[float, float] | None:
 class AngleSettings:
     """What the :class:`HeadAngles` other than TRUE need: the head's reading unit (rad, pan and tilt) and the noise."""
 
-    unit_rad: tuple[float, float] = (math.radians(0.1125), math.radians(0.075))     # EVI-D30
+    unit_rad: tuple[float, float] = PredictionParams().quantum_rad      # an EVI-D30's (pan, tilt)
     noise_rad: float = math.radians(0.05)
     seed: int = 0
 
