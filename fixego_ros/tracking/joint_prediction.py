@@ -333,7 +333,7 @@ class JointPredictor:
         """The command the head was running at a reading (the last one it received by then; None before the
         first) and those it received after it, in order (of ``cmds``, default :meth:`commands`)."""
         cmds = self.commands() if cmds is None else cmds
-        i = bisect.bisect_right([c.t for c in cmds], t_reading)
+        i = bisect.bisect_right(cmds, t_reading, key=lambda c: c.t)
         return (cmds[i - 1] if i > 0 else None), cmds[i:]
 
     def _interpolate(self, t: float) -> JointEstimate | None:
