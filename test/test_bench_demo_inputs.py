@@ -87,3 +87,53 @@ def test_the_true_angles_can_keep_the_stated_sigma_be_rounded_to_the_reading_uni
     np.testing.assert_allclose(stated.cam_to_rig, rig.cam_to_rig('right', *truth['right'][t0]), atol=1e-12)
     rounded = head_angles(HeadAngles.QUANTISED, rig, truth, AngleSettings(unit, sd))(obs(t0)).right
     np.testing.assert_allclose(rounded.cam_to_rig, rig.cam_to_rig('right', *q['right'][t0]), atol=1e-12)
+
+
+def test_a_span_gives_the_angles_to_its_frames_and_cameras_only():
+    """``Span``: the true angles replace the recorded ones from START up to END seconds after the run's first image,
+    for its cameras only; the other frames and cameras stay as recorded (counted as cameras without true angles). A
+    span with no frames, or naming no camera, is refused."""
+    import math
+
+    import pytest
+
+    from fixego_ros.bench.demo_inputs import AngleSettings, HeadAngles, Span, head_angles, within
+    rig = load_rig(default_rig_path())
+    stamps = 100.0 + np.arange(12) / 4.0            # the first image at 100 s, then every 0.25 s
+    truth = {side: {float(t): (0.2 + 0.01 * k, 0.05) for k, t in enumerate(stamps)} for side in ('right', 'left')}
+    span = Span(1.0, 2.0, ('left',))
+    kept = within(truth, span)
+    assert kept['right'] == {} and sorted(kept['left']) == [101.0, 101.25, 101.5, 101.75]
+    assert within(truth, Span()) == truth
+
+    recorded = {side: rig.cam_to_rig(side, 0.1, 0.0) for side in ('right', 'left')}
+
+    def obs(stamp: float) -> FrameObservation:
+        cams = {side: CameraFrame(None, -1, recorded[side], joint_sigma=np.radians(0.2)) for side in recorded}
+        return FrameObservation(stamp, cams['right'], cams['left'], keyframe=True)
+
+    hook = head_angles(HeadAngles.TRUE, rig, truth, AngleSettings(span=span))
+    out = [hook(obs(float(t))) for t in stamps]
+    for t, o in zip(stamps, out, strict=True):
+        inside = 1.0 <= t - 100.0 < 2.0
+        want = rig.cam_to_rig('left', *truth['left'][float(t)]) if inside else recorded['left']
+        np.testing.assert_allclose(o.left.cam_to_rig, want, atol=1e-12)
+        assert o.left.joint_sigma == (0.0 if inside else np.radians(0.2))
+        np.testing.assert_array_equal(o.right.cam_to_rig, recorded['right'])
+    assert hook.missing == 2 * len(stamps) - 4
+    for bad in ((2.0, 1.0), (1.0, 1.0), (math.nan, 1.0)):
+        with pytest.raises(ValueError, match='start < end'):
+            Span(*bad)
+    with pytest.raises(ValueError, match='sides'):
+        Span(0.0, 1.0, ())
+    with pytest.raises(ValueError, match='sides'):
+        Span(0.0, 1.0, ('middle',))
+
+
+def test_the_command_line_refuses_an_empty_span(capsys):
+    import pytest
+
+    from fixego_ros.bench.demo_inputs import main
+    with pytest.raises(SystemExit) as stop:
+        main(['nowhere', '--span', '3', '2'])
+    assert stop.value.code == 2 and 'start < end' in capsys.readouterr().err

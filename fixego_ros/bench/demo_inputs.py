@@ -19,7 +19,12 @@ estimator tolerates: the true angles with the sigma the camera nodes stated (the
 values exact), rounded to the head's reading unit (``--profile``), or with Gaussian noise (``--noise-deg`` per axis
 and frame, seeded). Stop 85 measured them (docs/results.md "Stop 85").
 
+``--span START END`` (seconds after the run's first image) and ``--sides`` give those angles to the frames of that
+span and those cameras only, the rest as recorded: which frames' angles decide a run. Halving the span finds them in
+a dozen replays; stop 86 found a failed run's 25 cm in 0.18 s of one camera (docs/results.md "Stop 86").
+
     python -m fixego_ros.bench.demo_inputs demo_out [more demo folders ...] [--angles true true-stated quantised noisy]
+        [--span 22.7 23.0 --sides left]
 """
 
 from __future__ import annotations
@@ -76,6 +81,30 @@ def noisy(truth: Angles, sigma_rad: float, seed: int = 0) -> Angles:
     return out
 
 
+@dataclass(frozen=True)
+class Span:
+    """The frames and cameras a replay gives other head angles (the rest keep the recorded ones): image stamps from
+    ``start_s`` up to ``end_s`` seconds after the run's first image, of the cameras in ``sides``."""
+
+    start_s: float = -math.inf
+    end_s: float = math.inf
+    sides: tuple[str, ...] = SIDES
+
+    def __post_init__(self) -> None:
+        if math.isnan(self.start_s) or math.isnan(self.end_s) or not self.start_s < self.end_s:
+            raise ValueError(f'a span needs start < end, got {self.start_s} .. {self.end_s}')
+        if not self.sides or set(self.sides) - set(SIDES):
+            raise ValueError(f'a span\'s sides are some of {SIDES}, got {self.sides}')
+
+
+def within(truth: Angles, span: Span) -> Angles:
+    """``truth`` for the stamps and sides of ``span`` only (:class:`TrueHeads` leaves the other cameras as
+    recorded). The run's first image is the earliest stamp of either side."""
+    first = min((t for v in truth.values() for t in v), default=0.0)
+    return {side: ({t: q for t, q in v.items() if span.start_s <= t - first < span.end_s}
+                   if side in span.sides else {}) for side, v in truth.items()}
+
+
 class TrueHeads:
     """``replay``'s observe hook: each camera at its true head angles (see the module docstring). ``truth``: per side,
     image stamp -> true (pan, tilt) readings. A camera whose stamp has no true angles, or whose flow starts at a frame
@@ -123,7 +152,7 @@ class RunRow:
     live: tuple[float, float] | None
     replayed: tuple[float, float]
     angles: dict[HeadAngles, tuple[float, float]] = field(default_factory=dict)
-    missing: int = 0          # cameras left as recorded for lack of true angles (in the first variant)
+    missing: int = 0          # cameras left as recorded (no true angles, or outside the span; first variant)
 
     def line(self) -> str:
         cell = lambda v: 'n/a' if v is None else f'{v[0]:.2f} / {v[1]:.2f}'  # noqa: E731
@@ -166,17 +195,16 @@ class AngleSettings:
     unit_rad: tuple[float, float] = PredictionParams().quantum_rad      # an EVI-D30's (pan, tilt)
     noise_rad: float = math.radians(0.05)
     seed: int = 0
+    span: Span = Span()     # where they replace the recorded angles (everywhere by default)
 
 
 def head_angles(which: HeadAngles, rig: Rig, truth: Angles, settings: AngleSettings) -> TrueHeads:
-    """The observe hook that gives every camera ``which`` angles."""
-    if which is HeadAngles.TRUE:
-        return TrueHeads(rig, truth)
+    """The observe hook that gives the cameras of ``settings.span`` ``which`` angles."""
     if which is HeadAngles.QUANTISED:
         truth = quantised(truth, settings.unit_rad)
     elif which is HeadAngles.NOISY:
         truth = noisy(truth, settings.noise_rad, settings.seed)
-    return TrueHeads(rig, truth, keep_sigma=True)
+    return TrueHeads(rig, within(truth, settings.span), keep_sigma=which is not HeadAngles.TRUE)
 
 
 def run_dir(folder: str | Path, angles: tuple[HeadAngles, ...] = (HeadAngles.TRUE,),
@@ -217,6 +245,9 @@ def main(argv: list[str] | None = None) -> int:
                     help='head angles to replay with besides the recorded ones, a column each (default: true)')
     ap.add_argument('--noise-deg', type=float, default=0.05, help='noisy: Gaussian noise per axis and frame (deg)')
     ap.add_argument('--profile', default='evi_d30', help="quantised: the camera profile whose reading unit to use")
+    ap.add_argument('--span', nargs=2, type=float, metavar=('START', 'END'),
+                    help="those angles only for images START..END s after the run's first (the rest as recorded)")
+    ap.add_argument('--sides', nargs='+', choices=SIDES, default=list(SIDES), help='... and only for these cameras')
     args = ap.parse_args(argv)
     from fixego_ros.visca.profiles import get_profile
     try:
@@ -227,7 +258,12 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f'--noise-deg must be finite and >= 0, got {args.noise_deg}')
     angles = tuple(dict.fromkeys(HeadAngles(a) for a in args.angles))
     unit = (math.radians(1.0 / profile.pan_units_per_deg), math.radians(1.0 / profile.tilt_units_per_deg))
-    settings = AngleSettings(unit, math.radians(args.noise_deg))
+    try:
+        span = Span(*(args.span or (-math.inf, math.inf)), tuple(dict.fromkeys(args.sides)))
+    except ValueError as e:
+        ap.error(str(e))
+    settings = AngleSettings(unit, math.radians(args.noise_deg), span=span)
+    partial = span != Span()
     print('| run | live mean / terminal cm | replayed | ' + ' | '.join(a.value for a in angles) + ' |')
     print('|---|---|---|' + '---|' * len(angles))
     rows = []
@@ -238,7 +274,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f'python -m fixego_ros.bench.demo_inputs: {e}', file=sys.stderr)
             continue
         rows.append(row)
-        print(row.line() + (f' ({row.missing} cameras without true angles)' if row.missing else ''), flush=True)
+        note = ('outside the span or without true angles' if partial else 'without true angles')
+        print(row.line() + (f' ({row.missing} cameras {note})' if row.missing else ''), flush=True)
     if not rows:
         return 1
     print(_summary('live', [r.live for r in rows if r.live is not None]))
