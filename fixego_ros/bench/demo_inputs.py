@@ -259,7 +259,7 @@ def main(argv: list[str] | None = None) -> int:
     angles = tuple(dict.fromkeys(HeadAngles(a) for a in args.angles))
     unit = (math.radians(1.0 / profile.pan_units_per_deg), math.radians(1.0 / profile.tilt_units_per_deg))
     try:
-        span = Span(*(args.span or (-math.inf, math.inf)), tuple(s for s in SIDES if s in args.sides))
+        span = Span(*(args.span or ()), sides=tuple(s for s in SIDES if s in args.sides))
     except ValueError as e:
         ap.error(str(e))
     settings = AngleSettings(unit, math.radians(args.noise_deg), span=span)
