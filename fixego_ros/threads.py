@@ -64,7 +64,9 @@ def portable_opencv() -> None:
     difference on (the scale of an unaided walk most of all): at stop 67 the shipped ``walk`` bag replayed 8.1 cm RMS
     apart between this machine's AVX-512 paths and an SSE3 machine's (``OPENCV_CPU_DISABLE``), 0.0000 cm with the
     baseline paths, which are the same code on every x86-64 CPU the wheel runs on. The cost, measured with
-    ``fixego_ros.bench.flow`` (full preset, one stereo frame): ~10 -> ~12 ms. Called by ``fixego replay`` only: the
+    ``fixego_ros.bench.flow`` (full preset, one stereo frame): ~10 -> ~12 ms. Called by ``fixego replay`` and by the
+    simulator that writes bags (:class:`~fixego_ros.sim.run.Simulation`: its warped and remapped images differed by a
+    grey level here and there between AVX2 and SSE paths, and the seeds' replays by up to 0.3 cm, stop 87). The
     nodes keep OpenCV's fast paths, since a live run depends on its timing anyway and its two cores are short (demo
     runs on a saturated machine at stop 67: flow_compute p50 53 and 37 ms in two with every node portable, 33 in two
     without)."""

@@ -6,8 +6,11 @@ fixation points the heads choose, and the replayed error depends on all three. T
 with seeds ``0 .. n-1``, replays each as ``fixego replay BAG`` does (default settings, the bag's own vergence
 measurements) and reports every seed and the distribution: median, mean and worst of the papers' unaligned mean and
 terminal errors, and how many seeds meet issue 16's goal (mean <= 3.36 cm and terminal <= 4 cm, the papers' Table 1).
-Both the simulator and the replay are deterministic, so the figures repeat exactly; the seeds run in
-``workers`` processes.
+Both the simulator and the replay are deterministic and run OpenCV's portable code paths, so the figures repeat
+exactly on any machine (until stop 87 the simulator's images took this CPU's SIMD paths, and seed 28 replayed 1.87 /
+3.70 cm on an AVX-512 machine against 2.01 / 3.96 elsewhere); the seeds run in ``workers`` processes. The shipped
+``bags/paper`` was written before that: it equals seed 0's bag within :func:`~fixego_ros.bags.shipped.compare`'s
+tolerances, and replays 0.73 / 1.51 cm against 0.73 / 1.33.
 
 Draws: each bag is also replayed ``draws - 1`` more times with every ray the front end hands on perturbed by
 ``jitter_px`` (0.01 px) of white noise (:class:`~fixego_ros.bench.jitter.RayJitter`, seeded by the draw). The first
@@ -16,12 +19,20 @@ flip between outcomes on the last bits of their input (stop 55: one seed went 11
 the method is judged by the range over draws, not by one replay.
 
     python -m fixego_ros.bench.seeds [--out bench] [--seeds 32] [--draws 3] [--workers 2]
+    python -m fixego_ros.bench.seeds --only 6,18,28 --keep /tmp/seeds --draws 1
+
+``--only`` replays the seeds named (the table and the statistics are over them); ``--keep DIR`` writes each bag to
+``DIR/paper_<seed>`` and leaves it there, so that one seed can be replayed again (``fixego replay DIR/paper_28``)
+while a change to the method is traced on it.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import re
 import tempfile
+from collections.abc import Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
 from multiprocessing import get_context
@@ -46,16 +57,18 @@ def paper_spec(seed: int):
     return replace(spec, settings=replace(spec.settings, seed=seed))
 
 
-def one_seed(seed: int, draws: int = DRAWS) -> list[dict[str, float]]:
-    """Write the ``paper`` recipe with ``seed`` into a temporary folder and replay it ``draws`` times (the first as
-    it is, then jittered); the trajectory figures of each replay."""
+def one_seed(seed: int, draws: int = DRAWS, keep: Path | None = None) -> list[dict[str, float]]:
+    """Write the ``paper`` recipe with ``seed`` into a temporary folder (``keep``: into ``keep/paper_<seed>``, left
+    there) and replay it ``draws`` times (the first as it is, then jittered); the trajectory figures of each
+    replay."""
     from fixego_ros.bags.shipped import generate
     from fixego_ros.bench.jitter import RayJitter
     from fixego_ros.bench.replay import replay_bag, trajectory_figures
     from fixego_ros.geometry.rig import load_rig
     figures = []
-    with tempfile.TemporaryDirectory(prefix='fixego-seeds-') as tmp:
-        path = Path(tmp) / f'paper_{seed}'
+    with contextlib.nullcontext(keep) if keep is not None else tempfile.TemporaryDirectory(prefix='fixego-seeds-') \
+            as folder:
+        path = Path(folder) / f'paper_{seed}'
         generate(paper_spec(seed), path)
         rig = load_rig(path / 'rig.yaml')             # the rig the replay uses (the bag's resolution)
         for draw in range(draws):
@@ -70,15 +83,15 @@ def _within(figures: dict[str, float]) -> bool:
     return figures['mean_error_cm'] <= GOAL_MEAN_CM and figures['terminal_error_cm'] <= GOAL_TERMINAL_CM
 
 
-def summarise(per_seed: list[list[dict[str, float]]]) -> dict[str, float]:
+def summarise(per_seed: Mapping[int, list[dict[str, float]]]) -> dict[str, float]:
     """``per_seed[k]``: seed k's figures, one dict per draw (the first unperturbed). Per seed ``seed<k>.<figure>``
     (first draw) and ``seed<k>.mean_error_cm.draws_min|draws_max``; over the seeds ``<figure>.median|mean|max`` (first
     draw), how many are ``within_goal`` (first draw) and ``within_goal.draws_min|draws_max`` (over the draws), the
-    ``unstable`` seeds (their mean error over the draws spans more than ``UNSTABLE_RATIO``), ``seeds`` and
-    ``draws``."""
+    ``unstable`` seeds (their mean error over the draws spans more than ``UNSTABLE_RATIO``), ``seeds`` (how many)
+    and ``draws``."""
     out: dict[str, float] = {}
-    first = [draws[0] for draws in per_seed]
-    for seed, draws in enumerate(per_seed):
+    first = [draws[0] for draws in per_seed.values()]
+    for seed, draws in per_seed.items():
         out.update({f'seed{seed}.{k}': float(draws[0][k]) for k in FIGURES})
         means = [d['mean_error_cm'] for d in draws]
         out.update({f'seed{seed}.mean_error_cm.draws_min': float(min(means)),
@@ -87,22 +100,28 @@ def summarise(per_seed: list[list[dict[str, float]]]) -> dict[str, float]:
         values = np.array([f[k] for f in first], float)
         out.update({f'{k}.median': float(np.median(values)), f'{k}.mean': float(np.mean(values)),
                     f'{k}.max': float(np.max(values))})
-    n_draws = min(len(draws) for draws in per_seed)
-    within = [sum(_within(draws[d]) for draws in per_seed) for d in range(n_draws)]
+    n_draws = min(len(draws) for draws in per_seed.values())
+    within = [sum(_within(draws[d]) for draws in per_seed.values()) for d in range(n_draws)]
     out['within_goal'] = float(within[0])
     out['within_goal.draws_min'], out['within_goal.draws_max'] = float(min(within)), float(max(within))
     out['unstable'] = float(sum(out[f'seed{s}.mean_error_cm.draws_max'] >
-                                UNSTABLE_RATIO * out[f'seed{s}.mean_error_cm.draws_min'] for s in range(len(per_seed))))
+                                UNSTABLE_RATIO * out[f'seed{s}.mean_error_cm.draws_min'] for s in per_seed))
     out['seeds'], out['draws'] = float(len(per_seed)), float(n_draws)
     return out
 
 
-def run(seeds: int = SEEDS, workers: int = WORKERS, draws: int = DRAWS) -> dict[str, float]:
-    """:func:`summarise` over seeds ``0 .. seeds-1`` (computed once per process)."""
+def run(seeds: int | Sequence[int] = SEEDS, workers: int = WORKERS, draws: int = DRAWS, keep: Path | None = None
+        ) -> dict[str, float]:
+    """:func:`summarise` over seeds ``0 .. seeds-1`` (or the seeds listed), computed once per process; ``keep``: as
+    :func:`one_seed`'s."""
     global _results
     if _results is None:
+        ids = list(range(seeds)) if isinstance(seeds, int) else list(seeds)
+        if keep is not None:
+            keep.mkdir(parents=True, exist_ok=True)
         with ProcessPoolExecutor(max_workers=workers, mp_context=get_context('spawn')) as pool:
-            _results = summarise(list(pool.map(one_seed, range(seeds), [draws] * seeds)))
+            _results = summarise(dict(zip(ids, pool.map(one_seed, ids, [draws] * len(ids), [keep] * len(ids)),
+                                          strict=True)))
     return dict(_results)
 
 
@@ -110,16 +129,26 @@ def table(results: dict[str, float]) -> str:
     """Markdown: one row per seed (with its mean error's range over the draws), then the median, mean and worst."""
     rows = ['| seed | mean (cm) | terminal (cm) | ATE Sim(3) (cm) | path est/true | mean over the draws (cm) |',
             '|---|---:|---:|---:|---:|---:|']
-    for seed in range(int(results['seeds'])):
+    for seed in seed_list(results):
         r = [results[f'seed{seed}.{k}'] for k in FIGURES]
         lo, hi = (results[f'seed{seed}.mean_error_cm.draws_{m}'] for m in ('min', 'max'))
-        note = ' (`bags/paper`)' if seed == 0 else ''
+        note = ' (`bags/paper`\'s recipe)' if seed == 0 else ''
         flips = ' **flips**' if hi > UNSTABLE_RATIO * lo else ''
         rows.append(f'| {seed}{note} | {r[0]:.2f} | {r[1]:.2f} | {r[2]:.2f} | {r[3]:.3f} | {lo:.2f}–{hi:.2f}{flips} |')
     for stat in ('median', 'mean', 'max'):
         r = [results[f'{k}.{stat}'] for k in FIGURES]
         rows.append(f'| **{stat}** | {r[0]:.2f} | {r[1]:.2f} | {r[2]:.2f} | {r[3]:.3f} | |')
     return '\n'.join(rows) + '\n'
+
+
+def seed_list(results: dict[str, float]) -> list[int]:
+    """The seeds ``results`` are over, in order (those with a ``seed<k>.mean_error_cm``)."""
+    return sorted(int(m[1]) for k in results if (m := re.fullmatch(r'seed(\d+)\.mean_error_cm', k)))
+
+
+def _seed_range(results: dict[str, float]) -> str:
+    seeds = seed_list(results)
+    return f'{seeds[0]}–{seeds[-1]}' if seeds == list(range(seeds[0], seeds[-1] + 1)) else ', '.join(map(str, seeds))
 
 
 def report(out: Path) -> None:
@@ -129,12 +158,23 @@ def report(out: Path) -> None:
     (out / 'seeds.md').write_text(
         "# The papers' loop over simulator seeds (deterministic replays)\n\n"
         'Produced by `python -m fixego_ros.bench.seeds`; see the module docstring. The shipped `paper` recipe '
-        f'with seeds 0–{int(res["seeds"]) - 1}, each replayed with default settings. Seeds within the goal (mean ≤ '
+        f'with seeds {_seed_range(res)}, each replayed with default settings. Seeds within the goal (mean ≤ '
         f'{GOAL_MEAN_CM} cm and terminal ≤ {GOAL_TERMINAL_CM:g} cm): **{int(res["within_goal"])} of '
         f'{int(res["seeds"])}**; over {int(res["draws"])} draws (the others with every ray jittered by {JITTER_PX:g} '
         f'px) {int(res["within_goal.draws_min"])}–{int(res["within_goal.draws_max"])}, and {int(res["unstable"])} '
         f'seed(s) flip between outcomes (mean error over the draws spanning more than ×{UNSTABLE_RATIO:g}).\n\n'
         + table(res))
+
+
+def _seed_numbers(text: str) -> list[int]:
+    """``--only``: comma-separated seed numbers, each once, none negative."""
+    try:
+        seeds = [int(s) for s in text.split(',')]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f'not a comma-separated list of seed numbers: {text!r}') from None
+    if any(s < 0 for s in seeds) or len(set(seeds)) != len(seeds):
+        raise argparse.ArgumentTypeError(f'seeds must be >= 0 and each named once: {text!r}')
+    return seeds
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -143,10 +183,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--seeds', type=int, default=SEEDS)
     ap.add_argument('--workers', type=int, default=WORKERS)
     ap.add_argument('--draws', type=int, default=DRAWS, help='replays per bag: the first as it is, the others jittered')
+    ap.add_argument('--only', type=_seed_numbers, metavar='S,S,...', help='these seeds instead of 0 .. --seeds - 1')
+    ap.add_argument('--keep', type=Path, metavar='DIR', help='write the bags to DIR/paper_<seed> and keep them')
     args = ap.parse_args(argv)
     if args.seeds < 1 or args.workers < 1 or args.draws < 1:
         ap.error('--seeds, --workers and --draws must be >= 1')
-    res = run(args.seeds, args.workers, args.draws)
+    res = run(args.only or args.seeds, args.workers, args.draws, args.keep)
     report(Path(args.out))
     print(table(res))
     return 0

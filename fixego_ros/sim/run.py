@@ -33,6 +33,7 @@ from fixego_ros.sim.vergence_measure import VERGENCE_MODES, VergenceMeasurement,
 from fixego_ros.sim.vergence_on_point import OnPointVergence
 from fixego_ros.sim.vergence_step import VergenceStep
 from fixego_ros.sim.world import TEXEL_RANGE, World, make_room
+from fixego_ros.threads import portable_opencv
 
 EPOCH = 1_700_000_000.0  # s: bag stamps start here, so output is deterministic
 
@@ -175,6 +176,9 @@ class Simulation:
 
     def __init__(self, rig: Rig, settings: SimSettings = SimSettings(), world: World | None = None,
                  servo_params: ServoParams | None = None, vergence_params: VergenceParams | None = None) -> None:
+        # OpenCV's baseline code paths: its SIMD warps and remaps round by CPU, so the images (and a replay of them:
+        # bench.seeds' seed 28 2.01 / 3.96 cm here, 1.87 / 3.70 from AVX2's) depended on the machine (stop 87)
+        portable_opencv()
         self.rig, self.s = rig, settings
         self.world = world if world is not None else make_room(settings.seed, settings.texel)
         self.trajectory = build_trajectory(settings)
