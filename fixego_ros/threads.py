@@ -66,7 +66,8 @@ def portable_opencv() -> None:
     baseline paths, which are the same code on every x86-64 CPU the wheel runs on. The cost, measured with
     ``fixego_ros.bench.flow`` (full preset, one stereo frame): ~10 -> ~12 ms. Called by ``fixego replay`` and by the
     simulator that writes bags (:class:`~fixego_ros.sim.run.Simulation`: its warped and remapped images differed by a
-    grey level here and there between AVX2 and SSE paths, and the seeds' replays by up to 0.3 cm, stop 87). The
+    grey level here and there between the AVX2 and the SSE or baseline paths, and a replay of them by 0.3 cm, stop
+    87). The setting is global: it stays off in a process once a replay has run. The
     nodes keep OpenCV's fast paths, since a live run depends on its timing anyway and its two cores are short (demo
     runs on a saturated machine at stop 67: flow_compute p50 53 and 37 ms in two with every node portable, 33 in two
     without)."""

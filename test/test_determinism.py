@@ -90,11 +90,11 @@ def _sensors(bag: Path) -> dict[str, list[bytes]]:
 @pytest.mark.skipif(platform.machine() not in ('x86_64', 'AMD64'), reason='forces x86-64 SIMD paths')
 def test_simulated_images_are_the_same_on_any_cpu(tmp_path):
     """A bag the simulator writes has the same images and joint states, to the byte, under every CPU's code paths:
-    the benchmarks
-    replay bags written on the machine they run on, and OpenCV's SIMD warps round a texel here and there the other
-    way (stop 87: the bench's seed 28 replayed 1.87 / 3.70 cm from this machine's images, 2.01 / 3.96 from an SSE3
-    machine's). The other numbers (ground truth, vergence) may round their last bit by CPU
-    (:func:`~fixego_ros.bags.shipped.compare`'s tolerances)."""
+    the benchmarks replay bags written on the machine they run on, and OpenCV's SIMD warps round a texel here and
+    there the other way (stop 87: the bench's seed 28 replayed 1.87 / 3.70 cm from the AVX2 paths' images, 2.01 /
+    3.96 from the SSE3 or baseline paths'). The other numbers (ground truth, vergence) may round their last bit by
+    CPU (:func:`~fixego_ros.bags.shipped.compare`'s tolerances). Each bag is written in a fresh process, where
+    OpenCV's fast paths are on."""
     args = ['sim', '--trajectory', 'paper', '--duration', '1.5', '--fps', '4', '--width', '320', '--seed', '28',
             '--vergence', 'physical', '--no-progress']
     _run([*args, '--out', str(tmp_path / 'default')], {})

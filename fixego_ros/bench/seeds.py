@@ -7,10 +7,12 @@ with seeds ``0 .. n-1``, replays each as ``fixego replay BAG`` does (default set
 measurements) and reports every seed and the distribution: median, mean and worst of the papers' unaligned mean and
 terminal errors, and how many seeds meet issue 16's goal (mean <= 3.36 cm and terminal <= 4 cm, the papers' Table 1).
 Both the simulator and the replay are deterministic and run OpenCV's portable code paths, so the figures repeat
-exactly on any machine (until stop 87 the simulator's images took this CPU's SIMD paths, and seed 28 replayed 1.87 /
-3.70 cm on an AVX-512 machine against 2.01 / 3.96 elsewhere); the seeds run in ``workers`` processes. The shipped
-``bags/paper`` was written before that: it equals seed 0's bag within :func:`~fixego_ros.bags.shipped.compare`'s
-tolerances, and replays 0.73 / 1.51 cm against 0.73 / 1.33.
+exactly on any machine and with any number of workers; the seeds run in ``workers`` processes. (Until stop 87 the
+simulator took OpenCV's fast paths in a fresh process: the first seed of each worker was written with this CPU's
+SIMD rounding and the others, after a replay in the same process, with the baseline's; seed 28 alone replayed 1.87 /
+3.70 cm on an AVX2 machine, 2.01 / 3.96 in the table.) The shipped ``bags/paper`` was written with the fast paths:
+it equals seed 0's bag within :func:`~fixego_ros.bags.shipped.compare`'s tolerances and replays 0.73 / 1.51 cm
+against 0.73 / 1.33.
 
 Draws: each bag is also replayed ``draws - 1`` more times with every ray the front end hands on perturbed by
 ``jitter_px`` (0.01 px) of white noise (:class:`~fixego_ros.bench.jitter.RayJitter`, seeded by the draw). The first

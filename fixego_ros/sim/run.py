@@ -176,8 +176,9 @@ class Simulation:
 
     def __init__(self, rig: Rig, settings: SimSettings = SimSettings(), world: World | None = None,
                  servo_params: ServoParams | None = None, vergence_params: VergenceParams | None = None) -> None:
-        # OpenCV's baseline code paths: its SIMD warps and remaps round by CPU, so the images (and a replay of them:
-        # bench.seeds' seed 28 2.01 / 3.96 cm here, 1.87 / 3.70 from AVX2's) depended on the machine (stop 87)
+        # OpenCV's baseline code paths: its SIMD warps and remaps round by CPU, so the images depended on the machine
+        # (and on the process: bench.seeds wrote a worker's first seed with the fast paths, the others after a replay
+        # had switched them off; seed 28 replays 1.87 / 3.70 cm from AVX2's images, 2.01 / 3.96 from these; stop 87)
         portable_opencv()
         self.rig, self.s = rig, settings
         self.world = world if world is not None else make_room(settings.seed, settings.texel)
