@@ -17,17 +17,32 @@ def private_domain_id() -> int:
     return random.Random(os.getpid()).randint(120, 200)
 
 
-@pytest.fixture
-def ros_context():
-    """An initialised rclpy Context on a private domain, shut down after the test."""
+@pytest.fixture(scope='session')
+def _ros_session():
+    """The session's rclpy Context (see :func:`ros_context`) and a node of its own that outlives every test's."""
     rclpy = pytest.importorskip('rclpy')
     ctx = rclpy.context.Context()
     rclpy.init(context=ctx, domain_id=private_domain_id())
+    keeper = rclpy.create_node('fixego_test_session', context=ctx)
     try:
         yield ctx
     finally:
+        keeper.destroy_node()
         if ctx.ok():
             rclpy.shutdown(context=ctx)
+
+
+@pytest.fixture
+def ros_context(_ros_session):
+    """An initialised rclpy Context on a private domain, shared by the session's ROS tests (each destroys its nodes).
+
+    Why shared, with a node that outlives the tests': deleting a context's last node deletes its Fast DDS
+    participant, and the Fast DDS 2.14 of the wheels can spin there for ever (eProsima/Fast-DDS#6513; at stop 87
+    ``make test`` hung 20 min in a test that created a node and destroyed it at once, one context per test then).
+    So a session deletes one participant, not one per test."""
+    if not _ros_session.ok():
+        pytest.fail('the session\'s rclpy context was shut down by an earlier test')
+    return _ros_session
 
 
 def executor_for(context, *nodes, factory=None):

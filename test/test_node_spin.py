@@ -63,3 +63,43 @@ def test_a_camera_node_on_the_events_executor_ends_at_once_on_a_signal(sig, tmp_
         if proc.poll() is None:
             proc.kill()
             proc.wait(timeout=10.0)
+
+
+def test_a_node_whose_teardown_hangs_ends_after_the_limit():
+    """A teardown that never returns (Fast DDS can spin for ever deleting a participant, holding the GIL) ends the
+    process with exit code 1 and the tracebacks on stderr, after ``TEARDOWN_LIMIT_S``; without the bound it would
+    run until killed."""
+    code = """
+import fixego_ros.nodes.common as common
+from rclpy.node import Node
+
+class Stuck(Node):
+    def destroy_node(self):
+        while True:         # holds the GIL, as the C call does
+            pass
+
+common.TEARDOWN_LIMIT_S = 1.0
+common.spin_node(lambda: Stuck('stuck_teardown'), [], finished=lambda n: True, domain_id=89)
+print('returned')
+"""
+    t0 = time.monotonic()
+    p = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 1, (p.returncode, p.stdout, p.stderr)
+    assert 'returned' not in p.stdout
+    assert 'destroy_node' in p.stderr and 'Timeout' in p.stderr, p.stderr
+    assert time.monotonic() - t0 < 60.0
+
+
+def test_a_normal_teardown_leaves_no_watchdog_armed():
+    """After a clean teardown the process goes on: the watchdog is cancelled, not left to kill it later."""
+    code = """
+import time
+import fixego_ros.nodes.common as common
+from rclpy.node import Node
+common.TEARDOWN_LIMIT_S = 1.0
+common.spin_node(lambda: Node('clean_teardown'), [], finished=lambda n: True, domain_id=89)
+time.sleep(2.0)
+print('alive')
+"""
+    p = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0 and 'alive' in p.stdout, (p.returncode, p.stdout, p.stderr)

@@ -5,6 +5,8 @@ One place for each: nodes must use these rather than re-implement them.
 
 from __future__ import annotations
 
+import contextlib
+import faulthandler
 import math
 import sys
 import time
@@ -200,6 +202,26 @@ def events_executor(context: Context) -> Executor:
     return EventsExecutor(context=context)
 
 
+# how long a node's teardown (executor, node, context) may take before the process ends with exit code 1
+TEARDOWN_LIMIT_S = 10.0
+
+
+@contextlib.contextmanager
+def bounded_teardown(limit_s: float):
+    """End the process (exit code 1, every thread's traceback on stderr) if the block takes over ``limit_s``.
+
+    Why: destroying a context's last node deletes its Fast DDS participant, and Fast DDS 2.14 (the PyPI wheel) can
+    spin there for ever: ``DomainParticipant::set_listener(nullptr)`` busy-waits for a discovery callback in flight
+    while that callback waits for the mutex the spinning thread holds (eProsima/Fast-DDS#6513; seen once in
+    ``make test`` at stop 87, a test's node created and destroyed at once). The call holds the GIL, so no Python
+    timer can act; ``faulthandler``'s watchdog is a C thread that can."""
+    faulthandler.dump_traceback_later(limit_s, exit=True)
+    try:
+        yield
+    finally:
+        faulthandler.cancel_dump_traceback_later()
+
+
 def spin_node(factory: Callable[[], Node], args: list[str] | None = None, *,
               finished: Callable[[Node], bool] | None = None, domain_id: int | None = None,
               images: bool = False, executor: Callable[[Context], Executor] | None = None) -> Node | None:
@@ -211,7 +233,7 @@ def spin_node(factory: Callable[[], Node], args: list[str] | None = None, *,
     BLAS and one OpenCV thread unless the environment sets a count (:func:`~fixego_ros.threads.limit_threads`).
     ``executor``: makes the node's executor from its context (default ``SingleThreadedExecutor``; see
     :func:`events_executor`). It is spun a bounded 0.1 s at a time until the context shuts down (Ctrl-C, SIGTERM):
-    ``EventsExecutor.spin()`` went on spinning after SIGTERM."""
+    ``EventsExecutor.spin()`` went on spinning after SIGTERM. The teardown is bounded (:func:`bounded_teardown`)."""
     notes = [limit_threads(), use_image_profile() if images else '']
     rclpy.init(args=args, domain_id=domain_id)
     node, ex = None, None
@@ -226,11 +248,12 @@ def spin_node(factory: Callable[[], Node], args: list[str] | None = None, *,
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
-        if ex is not None:
-            ex.shutdown(timeout_sec=1.0)
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+        with bounded_teardown(TEARDOWN_LIMIT_S):
+            if ex is not None:
+                ex.shutdown(timeout_sec=1.0)
+            if node is not None:
+                node.destroy_node()
+            rclpy.try_shutdown()
     return node
 
 
