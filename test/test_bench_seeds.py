@@ -6,7 +6,7 @@ import argparse
 
 import pytest
 
-from fixego_ros.bench.seeds import GOAL_MEAN_CM, GOAL_TERMINAL_CM, _seed_numbers, seed_list, summarise, table
+from fixego_ros.bench.seeds import GOAL_MEAN_CM, GOAL_TERMINAL_CM, _seed_numbers, main, seed_list, summarise, table
 
 
 def _seed(mean: float, terminal: float) -> dict[str, float]:
@@ -66,3 +66,12 @@ def test_only_takes_distinct_non_negative_seed_numbers():
     for bad in ('6,,8', 'six', '-1', '6,6'):
         with pytest.raises(argparse.ArgumentTypeError):
             _seed_numbers(bad)
+
+
+def test_keep_refuses_a_folder_that_has_a_seeds_bag_already(tmp_path, capsys):
+    (tmp_path / 'paper_18').mkdir()
+    with pytest.raises(SystemExit) as e:
+        main(['--only', '6,18', '--keep', str(tmp_path), '--out', str(tmp_path / 'out')])
+    assert e.value.code == 2
+    assert 'seeds 18 exist already' in capsys.readouterr().err
+    assert not (tmp_path / 'out').exists() and not (tmp_path / 'paper_6').exists()     # nothing ran

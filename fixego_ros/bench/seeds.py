@@ -190,7 +190,10 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if args.seeds < 1 or args.workers < 1 or args.draws < 1:
         ap.error('--seeds, --workers and --draws must be >= 1')
-    res = run(args.only or args.seeds, args.workers, args.draws, args.keep)
+    seeds = args.only or list(range(args.seeds))
+    if args.keep is not None and (there := [s for s in seeds if (args.keep / f'paper_{s}').exists()]):
+        ap.error(f'--keep {args.keep}: the bags of seeds {", ".join(map(str, there))} exist already (not overwritten)')
+    res = run(seeds, args.workers, args.draws, args.keep)
     report(Path(args.out))
     print(table(res))
     return 0
