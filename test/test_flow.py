@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
+import fixego_ros.pipeline.frontend as frontend
 from fixego_ros.estimation.coplanarity import RayPairs, sampson_residuals
 from fixego_ros.geometry.rig import SIDES, default_rig_path, load_rig
 from fixego_ros.geometry.rotation import Pose
@@ -31,6 +32,7 @@ from fixego_ros.tracking.fixation import NO_FIXATION_ID
 from fixego_ros.tracking.flow import (
     REGISTER_MIN_NCC,
     FlowParams,
+    _solve_spd,
     aligned,
     birth_patches,
     detect_corners,
@@ -282,6 +284,24 @@ def small_rig():
     return resize_rig(load_rig(default_rig_path()), W, H)
 
 
+@pytest.mark.parametrize('step_s, warps', [(1 / 30, False), (2 / 30, False), (0.1, True), (1 / 5.1, True)])
+def test_lk_starts_from_the_affine_prewarp_only_over_long_steps(small_rig, monkeypatch, step_s, warps):
+    """At 30 Hz (also across one skipped frame) LK tracks from the previous image as it is: the pre-warp cost a
+    quarter of the front end there and changed no accuracy; at 10 Hz and the papers' 5.1 Hz it still runs."""
+    calls = []
+
+    def spy(*args, **kwargs):
+        calls.append(1)
+        return aligned(*args, **kwargs)
+
+    fe = StereoFrontEnd(small_rig, WINDOW, CONSECUTIVE)
+    monkeypatch.setattr(frontend, 'aligned', spy)
+    for k in range(4):
+        fe.process(step_s * k, synthetic_samples(k))
+    assert (len(calls) > 0) == warps
+    assert fe.last['right'].counts.kept > 20        # tracked either way
+
+
 def test_missing_camera_and_gaps(small_rig):
     fe = StereoFrontEnd(small_rig, WINDOW, CONSECUTIVE)
     o0 = fe.process(0.0, synthetic_samples(0))
@@ -435,6 +455,15 @@ def test_a_birth_patch_registers_where_its_point_is_after_the_scene_came_closer(
         errors[how] = float(np.median(np.linalg.norm(pts - (on_texture * s + A[:, 2]), axis=1)[alive]))
     assert errors['registered'] < 0.03 and errors['aligned'] > 2 * errors['registered']
     np.testing.assert_allclose(np.median(linear[alive], axis=0), np.eye(2) * s, atol=0.01)
+
+
+def test_the_written_out_solve_of_the_registration_matches_lapack():
+    """The birth patches' 6x6 solves avoid LAPACK (it rounds by CPU); they must still solve the systems."""
+    rng = np.random.default_rng(4)
+    sd = rng.normal(size=(9, 6, 441))
+    hess = np.einsum('nip,njp->nij', sd, sd) + np.eye(6)
+    np.testing.assert_allclose(_solve_spd(hess, sd), np.linalg.solve(hess, sd), rtol=1e-9, atol=1e-12)
+    assert _solve_spd(hess[:0], sd[:0]).shape == (0, 6, 441)
 
 
 def test_a_patch_that_is_not_one_static_point_does_not_register():

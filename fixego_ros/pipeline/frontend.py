@@ -13,13 +13,16 @@ its flow pair at that frame, then ends. Regions follow the fixation pixel at t (
 quarter of its side each way; ``full``: ``max_corners`` over the whole image. Each :class:`CameraFrame`
 carries every live track at t (``track_ids``, ``track_rays``).
 
-**Registered against the birth patch.** Each track keeps the patch it was detected on. After LK each frame, the
-patch is registered with an affine warp at LK's position (:func:`~fixego_ros.tracking.flow.register`), and the
-registered position is the track's. LK from frame to frame drifts off the point as the scene comes closer; the
-registration does not (0.20 -> 0.06 px median after 16 frames on the papers' loop). A track whose patch no longer
-registers (correlation below ``REGISTER_MIN_NCC`` after the warp, or landing far from LK) ends: it is not on one
-static point, e.g. a corner formed by two surfaces at different depths that slides as they part. Those few tracks
-tilted the papers' loop by 0.3-0.5 deg on its first straight (docs/results.md "Stop 74").
+**Registered against the birth patch.** Each track keeps the patch it was detected on. After LK, about once every
+``register_period_s`` (every frame at the papers' rates), the patch is registered with an affine warp at LK's
+position (:func:`~fixego_ros.tracking.flow.register`), and the registered position is the track's. LK from frame to
+frame drifts off the point as the scene comes closer; the registration does not (0.20 -> 0.06 px median after 16
+frames on the papers' loop). A track whose patch no longer registers (correlation below ``REGISTER_MIN_NCC`` after
+the warp, or landing far from LK) ends: it is not on one static point, e.g. a corner formed by two surfaces at
+different depths that slides as they part. Those few tracks tilted the papers' loop by 0.3-0.5 deg on its first
+straight (docs/results.md "Stop 74"). Over steps longer than :data:`PREWARP_MIN_STEP_S` LK runs on the previous image
+warped by the points' affine motion (stop 53); at 30 Hz that warp cost a quarter of the front end and, with the
+registration, changed no accuracy (docs/results.md "Stop 88").
 
 **Predicted LK.** Image motion between frames can be large (a head lags its fixation point or swings
 back at a pan limit), so LK starts from a prediction: the pan/tilt of both frames are known, and the
@@ -89,6 +92,13 @@ from fixego_ros.tracking.flow import (
 # new tracks are detected once the region lacks this share of its target (at least one): a detection costs the
 # same for one corner as for twenty, and a frame usually loses one or two tracks
 REPLENISH_FRACTION = 0.05
+
+# LK starts from the previous image warped by the points' affine motion (:func:`~fixego_ros.tracking.flow.aligned`)
+# only over steps longer than this: the papers' 5.1 Hz and 10 Hz bags as before, a 30 Hz stream (also across one
+# skipped frame) without. At 30 Hz the warp cost a quarter of the front end and changed no accuracy on twelve bags of
+# the loop; at 5.1 Hz leaving it out lost one seed of 32 and took `bags/paper` from 1.51 to 4.10 cm terminal
+# (docs/results.md "Stop 88")
+PREWARP_MIN_STEP_S = 0.075
 
 # per-camera outcome of a frame
 OK = 'ok'                        # tracked from the previous frame; flow from the keyframe (it may still have 0 pairs)
@@ -309,13 +319,13 @@ class StereoFrontEnd:
         follows: dict[str, _Follow | None] = {}
         measured: dict[str, np.ndarray] = {}
         for side in SIDES:
-            follows[side] = f = self._follow(side, current[side], R_pred) if frames[side] is not None else None
+            follows[side] = f = self._follow(side, current[side], R_pred, dt) if frames[side] is not None else None
             if f is not None and len(f.step[0]) >= MIN_ROTATION_PAIRS:
                 measured[side] = R_pred = kabsch_rotation(*f.step)
         for side in SIDES:            # a camera that lost most points: once more with the other's rotation
             f, other = follows[side], [R for o, R in measured.items() if o != side]
             if f is not None and other and 2 * f.flow.counts.kept < len(self._tracks[side]):
-                follows[side] = self._follow(side, current[side], other[0], f)
+                follows[side] = self._follow(side, current[side], other[0], dt, f)
         step = [f.step for f in follows.values() if f is not None and len(f.step[0]) >= MIN_ROTATION_PAIRS]
         if step and dt > 0.0:
             self._omega = log_so3(kabsch_rotation(np.concatenate([a for a, _ in step]),
@@ -406,7 +416,7 @@ class StereoFrontEnd:
             out[front] = self.rig.camera(side).rays_to_pixels(d[front])
         return out
 
-    def _follow(self, side: str, now: CameraSample, R_pred: np.ndarray,
+    def _follow(self, side: str, now: CameraSample, R_pred: np.ndarray, dt: float,
                 before: _Follow | None = None) -> _Follow | None:
         """Track the live tracks of the previous frame into ``now``, LK from the predicted positions. First call
         (``before`` None): when most points fail, once more from zero motion and once more shifted by the fixation
@@ -418,8 +428,11 @@ class StereoFrontEnd:
             return None
         p = self.params
         guess = self._predict(side, tracks, now.pan, now.tilt, R_pred)
-        warped, start, landed = aligned(last.gray, now.gray, tracks.px, p, guess)
-        flow = track_points(warped, now.gray, start, p, landed)
+        if dt > PREWARP_MIN_STEP_S:
+            warped, start, landed = aligned(last.gray, now.gray, tracks.px, p, guess)
+            flow = track_points(warped, now.gray, start, p, landed)
+        else:
+            flow = track_points(last.gray, now.gray, tracks.px, p, guess)
         if before is not None:
             if flow.counts.kept <= before.flow.counts.kept:
                 return replace(before, retry=True)

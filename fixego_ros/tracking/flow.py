@@ -433,20 +433,17 @@ def _grid(h: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _solve_spd(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """x with a @ x = b for a stack of small symmetric positive definite ``a`` (N, k, k), ``b`` (N, k, m): Gaussian
-    elimination written out, so that no LAPACK kernel (which rounds differently on each CPU) is involved."""
-    a, x = a.astype(np.float64).copy(), b.astype(np.float64).copy()
+    """x with a @ x = b for a stack of small symmetric positive definite ``a`` (N, k, k), ``b`` (N, k, m): Gauss-Jordan
+    elimination written out, so that no LAPACK kernel (which rounds differently on each CPU) is involved. On the
+    augmented rows [a | b], one whole-array update per column (the pivot row's own factor is zero)."""
     k = a.shape[1]
+    m = np.concatenate([a.astype(np.float64), b.astype(np.float64)], axis=2)
     for j in range(k):
-        piv = a[:, j, j][:, None].copy()
-        a[:, j, :] /= piv
-        x[:, j, :] /= piv
-        for i in range(k):
-            if i != j:
-                f = a[:, i, j][:, None].copy()
-                a[:, i, :] -= f * a[:, j, :]
-                x[:, i, :] -= f * x[:, j, :]
-    return x
+        m[:, j, :] /= m[:, j, j][:, None].copy()
+        f = m[:, :, j].copy()
+        f[:, j] = 0.0
+        m -= f[:, :, None] * m[:, j, None, :]
+    return m[:, :, k:]
 
 
 def birth_patches(gray: np.ndarray, pts: np.ndarray, half: int = REGISTER_HALF) -> BirthPatches:
