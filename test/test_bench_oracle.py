@@ -26,3 +26,52 @@ def test_track_drift_is_reported_by_age_and_stays_small(seed1):
     assert medians[-1] < 0.4                      # 16+ frames: 0.2 px since the alignment (0.62 before)
     assert all(seed1[f'drift_px.{a}.p90'] >= m for a, m in zip(ages, medians, strict=True))
 
+
+
+def test_true_angles_remove_the_readings_error_and_keep_the_rays(seed1):
+    assert seed1['true_angles.mean_error_cm'] < 10.0
+    assert 0.9 < seed1['true_angles.path_length_ratio'] < 1.1
+
+
+@pytest.fixture(scope='module')
+def two_frames():
+    """The truth of two frames of the paper loop (small images) and an observation of the second one whose joint
+    readings are 0.2 deg off in pan."""
+    import numpy as np
+
+    from fixego_ros.bench.oracle import STAMP_DECIMALS, Truth
+    from fixego_ros.estimation.frames import CameraFrame, FrameObservation
+    from fixego_ros.geometry.rig import default_rig_path, load_rig, normalize_rays
+    from fixego_ros.sim.run import SimSettings, Simulation, resize_rig
+    rig = resize_rig(load_rig(default_rig_path()), 160, 120)
+    sim = Simulation(rig, SimSettings(trajectory='paper', fps=5.0, duration=0.2, texel=0.006, vergence='off'))
+    frames = list(sim.frames())
+    truth = Truth(rig, sim.world, {round(f.t, STAMP_DECIMALS): (f.rig_pose, {s: (st.pan, st.tilt)
+                                                                              for s, st in f.states.items()})
+                                   for f in frames})
+    f = frames[-1]
+    cams = {}
+    for side in ('right', 'left'):
+        pan, tilt = f.states[side].pan, f.states[side].tilt
+        read = rig.cam_to_rig(side, pan + np.radians(0.2), tilt)
+        rays = normalize_rays(np.array([[0.0, 0.0, 1.0], [0.05, -0.03, 1.0], [-0.04, 0.02, 1.0]]) @ read.T)
+        cams[side] = CameraFrame(rays[0], 0, read, track_ids=np.array([1, 2]), track_rays=rays[1:])
+    return truth, f, FrameObservation(f.t, cams['right'], cams['left'])
+
+
+def test_true_angles_turn_each_ray_into_the_true_head_angles_within_the_span_only(two_frames):
+    import numpy as np
+
+    from fixego_ros.bench.oracle import Oracle, Substitute
+    truth, f, obs = two_frames
+    out = Oracle(truth, Substitute.TRUE_ANGLES)(obs)
+    for side in ('right', 'left'):
+        was, now = obs.camera(side), out.camera(side)
+        true = truth.rig.cam_to_rig(side, f.states[side].pan, f.states[side].tilt)
+        assert np.allclose(now.cam_to_rig, true)
+        assert not np.allclose(was.cam_to_rig, true, atol=1e-4)
+        # the same pixels: each ray's optical-frame direction is what it was under the readings
+        assert np.allclose(now.track_rays @ now.cam_to_rig, was.track_rays @ was.cam_to_rig)
+        assert np.allclose(now.fixation_ray @ now.cam_to_rig, was.fixation_ray @ was.cam_to_rig)
+    assert Oracle(truth, Substitute.TRUE_ANGLES, span=(f.t + 1.0, f.t + 2.0))(obs) is obs
+    assert Oracle(truth, Substitute.NOTHING)(obs) is obs

@@ -11,15 +11,24 @@ angles, and its bag replayed as ``fixego replay`` does, with each observation lo
   instead of the readings: what the back end reaches on perfect observations of the same points.
 * **exact rays + noise** (``--noise-px``): the same with white noise of that many pixels per axis on every ray (a
   fixed random seed): how the back end degrades on small, unbiased errors (docs/results.md "Stop 55").
+* **true angles**: the front end's own rays, but through the true head angles instead of the joint readings (each
+  ray turned from the reading's optical frame into the true one): what the readings' quantisation costs. On the
+  papers' loop it separates the seeds that miss the goal into those the readings sink (seed 2: 6.11 -> 0.78 cm mean)
+  and those whose scale is off by their vergence measurements (seed 20: 5.89 -> 4.45; docs/results.md "Stop 89").
 
-    python -m fixego_ros.bench.oracle [--seeds 1,2,3] [--noise-px 0.15]
+``--span START END`` (seconds after the first frame) hands on the truth only within that span, to find where a
+run goes wrong; the drift is measured over the whole run.
+
+    python -m fixego_ros.bench.oracle [--seeds 1,2,3] [--noise-px 0.15] [--span 9 11]
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import tempfile
 from dataclasses import dataclass, field, replace
+from enum import Enum
 from pathlib import Path
 
 import numpy as np
@@ -63,13 +72,22 @@ def simulate(seed: int, out: Path) -> Truth:
     return Truth(rig, sim.world, frames)
 
 
+class Substitute(Enum):
+    """What :class:`Oracle` hands the estimator instead of the front end's observation."""
+
+    NOTHING = 'front_end'        # the observation as it is (the drift is measured)
+    TRUE_ANGLES = 'true_angles'  # the front end's rays through the true head angles
+    EXACT = 'exact'              # the true projections of the tracked points, through the true head angles
+
+
 @dataclass
 class Oracle:
-    """``observe`` hook of :func:`~fixego_ros.replay.run.replay`: records each ray's drift; with ``exact`` hands
-    on the true projections (and the true head angles) instead."""
+    """``observe`` hook of :func:`~fixego_ros.replay.run.replay`: records each ray's drift and hands on what
+    ``substitute`` says, within ``span`` (seconds after the first frame of the truth)."""
 
     truth: Truth
-    exact: bool = False
+    substitute: Substitute = Substitute.NOTHING
+    span: tuple[float, float] = (-math.inf, math.inf)
     points: dict[tuple, np.ndarray | None] = field(default_factory=dict)   # (side, kind, id) -> world point
     seen: dict[tuple, int] = field(default_factory=dict)                   # ... -> frames seen before
     drift: list[tuple[int, float]] = field(default_factory=list)          # (frames since the first, px)
@@ -79,7 +97,10 @@ class Oracle:
         if self.truth.at(obs.stamp) is None:
             return obs
         cams = {side: self._camera(side, obs.camera(side), obs.stamp, obs.prev_stamp) for side in SIDES}
-        return replace(obs, right=cams['right'], left=cams['left']) if self.exact else obs
+        within = self.span[0] <= obs.stamp - min(self.truth.frames) <= self.span[1]
+        if self.substitute is Substitute.NOTHING or not within:
+            return obs
+        return replace(obs, right=cams['right'], left=cams['left'])
 
     def _seen(self, side: str, stamp: float, cam_to_rig: np.ndarray, rays: np.ndarray) -> np.ndarray:
         """``rays`` (rig frame, through ``cam_to_rig``: the readings) through the true head angles instead."""
@@ -114,13 +135,36 @@ class Oracle:
                 age = self.seen[key] = self.seen.get(key, -1) + 1
                 if age:
                     self.drift.append((age, float(np.linalg.norm(np.cross(exact[key], seen))) * rig.camera(side).fx))
-        if not self.exact:
+        if self.substitute is Substitute.NOTHING:
             return cam
+        if self.substitute is Substitute.TRUE_ANGLES:
+            return self._through_true_angles(side, cam, stamp, key_stamp)
         tracks = np.array([exact.get(k, r) for k, r in zip(keys, track_rays, strict=False)]).reshape(-1, 3)
         fixation = exact.get((side, 'fixation', int(cam.fixation_id)), fix)
         prev, curr = self._pairs(side, cam, stamp, key_stamp)
         return replace(cam, cam_to_rig=rig.cam_to_rig(side, *angles[side]), track_rays=tracks, fixation_ray=fixation,
                        flow_prev=prev, flow_curr=curr)
+
+    def _through_true_angles(self, side: str, cam: CameraFrame, stamp: float, key_stamp: float | None
+                             ) -> CameraFrame:
+        """``cam`` with the true head angles and every ray of it turned into them (the flow pairs' keyframe rays
+        through that frame's readings and angles); a keyframe without a recorded reading leaves its rays as read."""
+        _, angles = self.truth.at(stamp)
+        true = self.truth.rig.cam_to_rig(side, *angles[side])
+        fix = cam.fixation_ray
+        if fix is not None and np.all(np.isfinite(fix)):
+            fix = self._seen(side, stamp, cam.cam_to_rig, np.asarray(fix, float)[None])[0]
+        prev = np.asarray(cam.flow_prev, float).reshape(-1, 3)
+        reading = self.readings.get((round(key_stamp, STAMP_DECIMALS), side)) if key_stamp is not None else None
+        if len(prev) and reading is not None and self.truth.at(key_stamp) is not None:
+            prev = self._seen(side, key_stamp, reading, prev)
+        return replace(cam, cam_to_rig=true, track_rays=self._turned(side, stamp, cam.cam_to_rig, cam.track_rays),
+                       fixation_ray=fix, flow_prev=prev,
+                       flow_curr=self._turned(side, stamp, cam.cam_to_rig, cam.flow_curr))
+
+    def _turned(self, side: str, stamp: float, cam_to_rig: np.ndarray, rays: np.ndarray) -> np.ndarray:
+        rays = np.asarray(rays, float).reshape(-1, 3)
+        return self._seen(side, stamp, cam_to_rig, rays) if len(rays) else rays
 
     def _pairs(self, side: str, cam: CameraFrame, stamp: float, key_stamp: float | None
                ) -> tuple[np.ndarray, np.ndarray]:
@@ -164,23 +208,25 @@ class Oracle:
         return out
 
 
-def run_seed(seed: int, noise_px: float = 0.0) -> dict[str, float]:
-    """Drift of the front end's rays, and the trajectory figures with its rays, with exact ones and (``noise_px``
-    > 0) with exact ones plus that much white noise."""
+def run_seed(seed: int, noise_px: float = 0.0, span: tuple[float, float] = (-math.inf, math.inf)
+             ) -> dict[str, float]:
+    """Drift of the front end's rays, and the trajectory figures with its rays, with them through the true head
+    angles, with exact ones and (``noise_px`` > 0) with exact ones plus that much white noise; the truth handed on
+    within ``span`` only."""
     from fixego_ros.bench.replay import replay_bag, trajectory_figures
     out: dict[str, float] = {}
-    runs = [('front_end', False, 0.0), ('exact', True, 0.0)]
+    runs = [(s.value, s, 0.0) for s in Substitute]
     if noise_px > 0:
-        runs.append((f'exact_noise_{noise_px:g}px', True, noise_px))
+        runs.append((f'exact_noise_{noise_px:g}px', Substitute.EXACT, noise_px))
     with tempfile.TemporaryDirectory(prefix='fixego-oracle-') as tmp:
         path = Path(tmp) / f'paper_{seed}'
         truth = simulate(seed, path)
-        for name, exact, noise in runs:
-            oracle = Oracle(truth, exact)
+        for name, substitute, noise in runs:
+            oracle = Oracle(truth, substitute, span)
             jitter = RayJitter(truth.rig, noise)            # noise on what the oracle hands on (none at 0 px)
             res = replay_bag(path, 1, observe=lambda obs, o=oracle, j=jitter: j(o(obs)))
             trajectory_figures(out, name, res.stamps, res.poses, res)
-            if not exact:
+            if substitute is Substitute.NOTHING:
                 out.update(oracle.drift_table())
     return out
 
@@ -190,11 +236,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--seeds', default='1', help='comma-separated seeds of the paper recipe')
     ap.add_argument('--noise-px', type=float, default=0.0,
                     help='also run exact rays with this much white noise (px per axis; 0: not)')
+    ap.add_argument('--span', type=float, nargs=2, metavar=('START', 'END'), default=(-math.inf, math.inf),
+                    help='hand on the truth only from START to END s after the first frame (default: everywhere)')
     args = ap.parse_args(argv)
     if not (np.isfinite(args.noise_px) and args.noise_px >= 0):
         ap.error('--noise-px must be finite and >= 0')
+    if math.isnan(args.span[0]) or math.isnan(args.span[1]) or args.span[0] > args.span[1]:
+        ap.error('--span needs START <= END')
     for seed in (int(s) for s in args.seeds.split(',')):
-        for k, v in run_seed(seed, args.noise_px).items():
+        for k, v in run_seed(seed, args.noise_px, tuple(args.span)).items():
             print(f'seed {seed} {k:36s} {v:8.3f}')
     return 0
 
