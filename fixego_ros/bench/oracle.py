@@ -158,13 +158,11 @@ class Oracle:
         reading = self.readings.get((round(key_stamp, STAMP_DECIMALS), side)) if key_stamp is not None else None
         if len(prev) and reading is not None and self.truth.at(key_stamp) is not None:
             prev = self._seen(side, key_stamp, reading, prev)
-        return replace(cam, cam_to_rig=true, track_rays=self._turned(side, stamp, cam.cam_to_rig, cam.track_rays),
-                       fixation_ray=fix, flow_prev=prev,
-                       flow_curr=self._turned(side, stamp, cam.cam_to_rig, cam.flow_curr))
+        def turned(rays: np.ndarray) -> np.ndarray:
+            return self._seen(side, stamp, cam.cam_to_rig, np.asarray(rays, float).reshape(-1, 3))
 
-    def _turned(self, side: str, stamp: float, cam_to_rig: np.ndarray, rays: np.ndarray) -> np.ndarray:
-        rays = np.asarray(rays, float).reshape(-1, 3)
-        return self._seen(side, stamp, cam_to_rig, rays) if len(rays) else rays
+        return replace(cam, cam_to_rig=true, track_rays=turned(cam.track_rays), fixation_ray=fix, flow_prev=prev,
+                       flow_curr=turned(cam.flow_curr))
 
     def _pairs(self, side: str, cam: CameraFrame, stamp: float, key_stamp: float | None
                ) -> tuple[np.ndarray, np.ndarray]:
