@@ -49,9 +49,6 @@ from fixego_ros.threads import limit_threads
 
 SENSOR_QOS: QoSProfile = qos_profile_sensor_data
 RELIABLE_QOS = QoSProfile(depth=50)
-# the simulator's ground truth: deep enough that a recorder lagging on a loaded machine loses none of what it scores
-# against (at 50 a `fixego demo` test counted a pose for a frame whose truth never reached the recorder, stop 89)
-TRUTH_QOS = QoSProfile(depth=1000)
 # latched: occasional measurements (the vergence steps) whose recent ones a node started later must still get
 LATCHED_QOS = QoSProfile(depth=20, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 

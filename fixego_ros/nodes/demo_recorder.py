@@ -34,7 +34,7 @@ from fixego_ros.bags.recorder import BagRecorder, RecordSummary
 from fixego_ros.geometry.rig import SIDES
 from fixego_ros.geometry.rotation import Pose
 from fixego_ros.nodes.bag_recorder import qos_dict
-from fixego_ros.nodes.common import LATCHED_QOS, RELIABLE_QOS, TRUTH_QOS, in_namespace, msg_to_pose, stamp_to_sec
+from fixego_ros.nodes.common import LATCHED_QOS, RELIABLE_QOS, in_namespace, msg_to_pose, stamp_to_sec
 
 
 def cdr_stamp(data: bytes) -> float | None:
@@ -52,8 +52,8 @@ STAGES = ('joint_state_right', 'joint_state_left', 'fixation_right', 'fixation_l
 # what record_inputs writes: relative topic -> (type, the publishers' QoS)
 INPUTS = {'flow/observation': ('sensor_msgs/msg/PointCloud2', RELIABLE_QOS),
           'vergence': ('geometry_msgs/msg/PoseWithCovarianceStamped', LATCHED_QOS),
-          'ground_truth/pose': ('geometry_msgs/msg/PoseStamped', TRUTH_QOS),
-          **{f'ground_truth/{side}/joint_states': ('sensor_msgs/msg/JointState', TRUTH_QOS) for side in SIDES}}
+          'ground_truth/pose': ('geometry_msgs/msg/PoseStamped', RELIABLE_QOS),
+          **{f'ground_truth/{side}/joint_states': ('sensor_msgs/msg/JointState', RELIABLE_QOS) for side in SIDES}}
 
 
 class Recorder(Node):
@@ -83,7 +83,7 @@ class Recorder(Node):
         self._inputs: BagRecorder | None = None     # the estimator's inputs, from record_inputs() on
         self._input_names = {topic: self.resolve_topic_name(topic) for topic in INPUTS}   # relative -> absolute
         self.create_subscription(PoseStamped, 'pose', self._on_pose, RELIABLE_QOS)
-        self.create_subscription(PoseStamped, 'ground_truth/pose', self._on_truth, TRUTH_QOS, raw=True)
+        self.create_subscription(PoseStamped, 'ground_truth/pose', self._on_truth, RELIABLE_QOS, raw=True)
         for name in PATHS:
             self.create_subscription(Path, name, lambda data, n=name: self._paths.__setitem__(n, data), RELIABLE_QOS,
                                      raw=True)
@@ -94,7 +94,7 @@ class Recorder(Node):
             self.create_subscription(JointState, f'{side}/joint_states',
                                      lambda m, s=side: self._on_joints(s, m), RELIABLE_QOS)
             self.create_subscription(JointState, f'ground_truth/{side}/joint_states',
-                                     lambda data, s=side: self._on_true_joints(s, data), TRUTH_QOS, raw=True)
+                                     lambda data, s=side: self._on_true_joints(s, data), RELIABLE_QOS, raw=True)
         self.create_subscription(PointCloud2, 'flow/observation', self._on_observation, RELIABLE_QOS, raw=True)
         self.create_subscription(PoseWithCovarianceStamped, 'vergence', self._on_vergence, LATCHED_QOS, raw=True)
         self.reset_client = self.create_client(Trigger, 'estimator_node/reset')
