@@ -118,6 +118,8 @@ class Oracle:
             return cam
         rig = self.truth.rig
         self.readings[(round(stamp, STAMP_DECIMALS), side)] = cam.cam_to_rig
+        if self.substitute is Substitute.TRUE_ANGLES:     # no scene points needed: no ray-casting, no drift
+            return self._through_true_angles(side, cam, stamp, key_stamp)
         track_rays = np.asarray(cam.track_rays, float).reshape(-1, 3)
         keys = [(side, 'track', int(i)) for i in cam.track_ids]
         rays = list(track_rays)
@@ -137,8 +139,6 @@ class Oracle:
                     self.drift.append((age, float(np.linalg.norm(np.cross(exact[key], seen))) * rig.camera(side).fx))
         if self.substitute is Substitute.NOTHING:
             return cam
-        if self.substitute is Substitute.TRUE_ANGLES:
-            return self._through_true_angles(side, cam, stamp, key_stamp)
         tracks = np.array([exact.get(k, r) for k, r in zip(keys, track_rays, strict=False)]).reshape(-1, 3)
         fixation = exact.get((side, 'fixation', int(cam.fixation_id)), fix)
         prev, curr = self._pairs(side, cam, stamp, key_stamp)
