@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
+from rclpy.duration import Duration
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, JointState
 from std_srvs.srv import Trigger
@@ -62,6 +63,8 @@ PARAMS = SIM_RIG_NODE_PARAMS
 
 class SimRigNode(Node):
     """Renders the rig's two cameras from the trajectory and the emulated heads' true angles."""
+
+    ACK_TIMEOUT_S = 1.0     # per reliable publisher, at the end of the trajectory
 
     def __init__(self, **kwargs) -> None:
         super().__init__('sim_rig_node', **in_namespace(kwargs))
@@ -211,8 +214,20 @@ class SimRigNode(Node):
         publish_diagnostics(self, self.pub_diag, [self._status(OK, 'trajectory finished')])
         self.get_logger().info(f'trajectory {self.p["trajectory"]!r} finished after {self.frames} frames')
         if self.p['exit_at_end']:
-            self.finished = True
             self.timer.cancel()
+            self._wait_for_truth_acked()
+            self.finished = True
+
+    def _wait_for_truth_acked(self) -> None:
+        """Before the process exits, let every reliable subscriber acknowledge the last frame's ground truth: a
+        writer destroyed with samples unacknowledged loses the ones still to be resent, and a pose would then have
+        no truth to be scored against (the demo's recorder saw this under load). Bounded per publisher."""
+        reliable = (self.pub_gt, *self.pub_gt_joints.values(), self.pub_diag)
+        late = [pub.topic_name for pub in reliable
+                if not pub.wait_for_all_acked(Duration(seconds=self.ACK_TIMEOUT_S))]
+        if late:
+            self.get_logger().warning(f'exiting with the last messages on {", ".join(late)} not acknowledged '
+                                      f'within {self.ACK_TIMEOUT_S:.1f} s each')
 
     def _status(self, level, message: str):
         ms = np.array(self._render_ms[-100:]) if self._render_ms else np.zeros(1)
