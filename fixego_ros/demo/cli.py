@@ -182,6 +182,7 @@ def _run(args: argparse.Namespace, out: Path, rig_path: Path, launcher) -> int:
             return 1
         _say(args, f'fixego demo: pipeline up in {time.monotonic() - t_ready:.1f} s; resetting the estimator and '
                    'starting the rig')
+        _open_inputs(node, out / INPUTS_DIR)     # before the reset: creating the bag takes seconds on a loaded machine
         t_reset = node.get_clock().now().nanoseconds * 1e-9
         for client, what in ((node.reset_client, 'estimator reset'), (node.start_client, 'rig start')):
             if client is node.start_client:
@@ -193,7 +194,7 @@ def _run(args: argparse.Namespace, out: Path, rig_path: Path, launcher) -> int:
             if client is node.reset_client:
                 node.clear()
                 t_reset = node.get_clock().now().nanoseconds * 1e-9
-                _record_inputs(node, out / INPUTS_DIR)
+                node.start_inputs()
         t_run = time.monotonic()
         last_print = last_cpu = 0.0
         cpu = CpuSampler({n: p.pid for n, p in launcher.procs.items()}, {'fixego demo (recorder)': os.getpid()})
@@ -237,14 +238,14 @@ def _run(args: argparse.Namespace, out: Path, rig_path: Path, launcher) -> int:
     return 0
 
 
-def _record_inputs(node, bag: Path) -> None:
-    """Start writing the estimator's inputs to ``bag`` (a previous run's in a reused --out is replaced); a bag that
-    cannot be created costs the run nothing but the bag (said once)."""
+def _open_inputs(node, bag: Path) -> None:
+    """Create the bag of the estimator's inputs, ``bag`` (a previous run's in a reused --out is replaced), written
+    from the reset on; a bag that cannot be created costs the run nothing but the bag (said once)."""
     from fixego_ros.bags.recorder import RecordError
     try:
         if bag.exists():
             shutil.rmtree(bag)
-        node.record_inputs(bag)
+        node.open_inputs(bag)
     except (OSError, RecordError) as e:
         print(f'fixego demo: the estimator inputs are not recorded: {" ".join(str(e).split())}', file=sys.stderr)
 

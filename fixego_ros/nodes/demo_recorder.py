@@ -7,11 +7,13 @@ diagnostics traffic the console progress line shows. For the latency breakdown i
 fixation and flow observation arrives, minus its (image) stamp; the observations are not deserialised (the stamp is
 read from the message's first bytes). Names are relative in the default namespace /fixego, like the pipeline's nodes.
 
-From :meth:`Recorder.record_inputs` on (the demo calls it when it resets the estimator) it also writes the estimator's
+From :meth:`Recorder.start_inputs` on (the demo calls it when it resets the estimator) it also writes the estimator's
 inputs, the serialised observations and vergence measurements with the ground truth (pose and head angles), to a bag
 that ``fixego replay`` runs the estimator alone on (``replay.run.ReplayInput.OBSERVATIONS``): a live run's estimate
 can be reproduced offline, its failures replayed, without recording the images (and ``bench.demo_inputs`` replays it
-with the true head angles too).
+with the true head angles too). The bag is created beforehand (:meth:`Recorder.open_inputs`): that takes ~0.4 s, 2 s
+on a loaded machine, and done after the reset it kept the node from spinning while its readers' queues overflowed,
+losing the run's first ground truth (a pose without its truth in the report, cameras without true angles in the bag).
 """
 
 from __future__ import annotations
@@ -34,7 +36,7 @@ from fixego_ros.bags.recorder import BagRecorder, RecordSummary
 from fixego_ros.geometry.rig import SIDES
 from fixego_ros.geometry.rotation import Pose
 from fixego_ros.nodes.bag_recorder import qos_dict
-from fixego_ros.nodes.common import LATCHED_QOS, RELIABLE_QOS, in_namespace, msg_to_pose, stamp_to_sec
+from fixego_ros.nodes.common import LATCHED_QOS, RELIABLE_QOS, TRUTH_QOS, in_namespace, msg_to_pose, stamp_to_sec
 
 
 def cdr_stamp(data: bytes) -> float | None:
@@ -49,11 +51,11 @@ def cdr_stamp(data: bytes) -> float | None:
 # the stages the recorder sees arrive (s after the image stamp); see fixego_ros.demo.report.latency_stages
 PATHS = ('path', 'path_raw')
 STAGES = ('joint_state_right', 'joint_state_left', 'fixation_right', 'fixation_left', 'observation')
-# what record_inputs writes: relative topic -> (type, the publishers' QoS)
+# what the inputs bag holds: relative topic -> (type, the publishers' QoS)
 INPUTS = {'flow/observation': ('sensor_msgs/msg/PointCloud2', RELIABLE_QOS),
           'vergence': ('geometry_msgs/msg/PoseWithCovarianceStamped', LATCHED_QOS),
-          'ground_truth/pose': ('geometry_msgs/msg/PoseStamped', RELIABLE_QOS),
-          **{f'ground_truth/{side}/joint_states': ('sensor_msgs/msg/JointState', RELIABLE_QOS) for side in SIDES}}
+          'ground_truth/pose': ('geometry_msgs/msg/PoseStamped', TRUTH_QOS),
+          **{f'ground_truth/{side}/joint_states': ('sensor_msgs/msg/JointState', TRUTH_QOS) for side in SIDES}}
 
 
 class Recorder(Node):
@@ -80,10 +82,11 @@ class Recorder(Node):
         # the last path / path_raw received (bytes: deserialised only when asked for, then cached with its bytes)
         self._paths: dict[str, bytes | None] = dict.fromkeys(PATHS)
         self._parsed: dict[str, tuple[bytes, Path]] = {}
-        self._inputs: BagRecorder | None = None     # the estimator's inputs, from record_inputs() on
+        self._inputs: BagRecorder | None = None     # the estimator's inputs (open_inputs) ...
+        self._writing_inputs = False                # ... written from start_inputs() on
         self._input_names = {topic: self.resolve_topic_name(topic) for topic in INPUTS}   # relative -> absolute
         self.create_subscription(PoseStamped, 'pose', self._on_pose, RELIABLE_QOS)
-        self.create_subscription(PoseStamped, 'ground_truth/pose', self._on_truth, RELIABLE_QOS, raw=True)
+        self.create_subscription(PoseStamped, 'ground_truth/pose', self._on_truth, TRUTH_QOS, raw=True)
         for name in PATHS:
             self.create_subscription(Path, name, lambda data, n=name: self._paths.__setitem__(n, data), RELIABLE_QOS,
                                      raw=True)
@@ -94,7 +97,7 @@ class Recorder(Node):
             self.create_subscription(JointState, f'{side}/joint_states',
                                      lambda m, s=side: self._on_joints(s, m), RELIABLE_QOS)
             self.create_subscription(JointState, f'ground_truth/{side}/joint_states',
-                                     lambda data, s=side: self._on_true_joints(s, data), RELIABLE_QOS, raw=True)
+                                     lambda data, s=side: self._on_true_joints(s, data), TRUTH_QOS, raw=True)
         self.create_subscription(PointCloud2, 'flow/observation', self._on_observation, RELIABLE_QOS, raw=True)
         self.create_subscription(PoseWithCovarianceStamped, 'vergence', self._on_vergence, LATCHED_QOS, raw=True)
         self.reset_client = self.create_client(Trigger, 'estimator_node/reset')
@@ -130,21 +133,26 @@ class Recorder(Node):
         self.fixation_valid[side][stamp_to_sec(msg.header.stamp)] = msg.point.z >= 0
         self._arrived(f'fixation_{side}', msg.header.stamp)
 
-    def record_inputs(self, bag) -> None:
-        """Write every observation, vergence measurement, true pose and true head angle received from now on to the
-        new bag directory ``bag`` (:class:`~fixego_ros.bags.recorder.RecordError` when it cannot be created)."""
+    def open_inputs(self, bag) -> None:
+        """Create the new bag directory ``bag`` for the estimator's inputs, written from :meth:`start_inputs` on
+        (:class:`~fixego_ros.bags.recorder.RecordError` when it cannot be created)."""
         recorder = BagRecorder(bag)
         for topic, (msgtype, qos) in INPUTS.items():
             recorder.add_topic(self._input_names[topic], msgtype, [qos_dict(qos)])
-        self._inputs = recorder
+        self._inputs, self._writing_inputs = recorder, False
+
+    def start_inputs(self) -> None:
+        """Write every observation, vergence measurement, true pose and true head angle received from now on to the
+        bag :meth:`open_inputs` created (nothing when none was)."""
+        self._writing_inputs = True
 
     def close_inputs(self) -> RecordSummary | None:
-        """Finish the inputs bag (bounded); its summary, None when none is being written."""
-        recorder, self._inputs = self._inputs, None
+        """Finish the inputs bag (bounded); its summary, None when none was opened."""
+        recorder, self._inputs, self._writing_inputs = self._inputs, None, False
         return None if recorder is None else recorder.close()
 
     def _keep_input(self, topic: str, data: bytes) -> None:
-        if self._inputs is not None:
+        if self._inputs is not None and self._writing_inputs:
             self._inputs.put(self._input_names[topic], self.get_clock().now().nanoseconds, data)
 
     def _on_observation(self, data: bytes) -> None:

@@ -41,6 +41,7 @@ from fixego_ros.nodes.common import (
     OK,
     RELIABLE_QOS,
     SENSOR_QOS,
+    TRUTH_QOS,
     WARN,
     array_to_image,
     declare_parameters,
@@ -111,9 +112,9 @@ class SimRigNode(Node):
         self.pub_info = {s: self.create_publisher(CameraInfo, f'{s}/camera_info', SENSOR_QOS)
                          for s in SIDES}
         self._info = {s: camera_info_msg(self.rig, s, 0.0) for s in SIDES}   # constant but for the stamp
-        self.pub_gt = self.create_publisher(PoseStamped, 'ground_truth/pose', RELIABLE_QOS)
+        self.pub_gt = self.create_publisher(PoseStamped, 'ground_truth/pose', TRUTH_QOS)
         # each head's true angles at the image stamp: what the camera nodes' joint_states estimate
-        self.pub_gt_joints = {s: self.create_publisher(JointState, f'ground_truth/{s}/joint_states', RELIABLE_QOS)
+        self.pub_gt_joints = {s: self.create_publisher(JointState, f'ground_truth/{s}/joint_states', TRUTH_QOS)
                               for s in SIDES}
         self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', RELIABLE_QOS)
 
