@@ -639,6 +639,7 @@ def test_demo_runs_every_node_as_a_process_and_writes_a_report(tmp_path):
     # far behind for, and the report counts them); enough are estimated for the checks below
     frames = report['frames']
     assert frames['poses'] + frames['dropped'] <= frames['rendered'] and frames['poses'] >= 10, frames
+    assert frames['poses_without_truth'] == 0, frames    # the recorder got every frame's truth (stop 90)
     from fixego_ros.evaluation.tum import read_tum
     stamps, est = read_tum(out / 'estimate.tum')
     _, truth = read_tum(out / 'ground_truth.tum')

@@ -278,13 +278,18 @@ def write_report(out: Path, rec, t_start: float, run_args: dict[str, Any],
             files[name] = len(traj)
     live_stamps = {t for t, _ in live}
     dropped = sum(1 for t, _ in truth if t not in live_stamps and t <= (max(live_stamps) if live_stamps else 0.0))
+    # poses whose frame's ground truth the recorder never got (its reader lost it): not scored, and counted so a loss
+    # shows here instead of as a frame count that does not add up
+    truth_stamps = {t for t, _ in truth}
+    without_truth = sum(1 for t in live_stamps if t not in truth_stamps)
     # frames flow_node skipped while behind (it takes the newest ready frame), counted over the node's whole run,
     # so also before the reset
     flow_skipped = rec.statuses.get('fixego flow_node', {}).get('frames_skipped', '?')
     report: dict[str, Any] = {
         'run': {k: str(v) if isinstance(v, Path) else v for k, v in run_args.items() if k != 'func'},
         'files': files,
-        'frames': {'rendered': len(truth), 'poses': len(live), 'dropped': dropped, 'flow_skipped': flow_skipped},
+        'frames': {'rendered': len(truth), 'poses': len(live), 'dropped': dropped, 'flow_skipped': flow_skipped,
+                   'poses_without_truth': without_truth},
         'latency_image_to_pose_ms': _ms(latency),
         'latency_stages_ms': latency_stages(rec),
         'cpu_percent_of_one_core': {**(cpu or {}), 'cores': os.cpu_count()},
@@ -323,7 +328,9 @@ def write_report(out: Path, rec, t_start: float, run_args: dict[str, Any],
         report['files']['trajectory.png'] = 1
     lines = [f'fixego demo report: {out}',
              f'  frames rendered {len(truth)}, poses {len(live)}, dropped {dropped} (flow_node skipped '
-             f'{flow_skipped} while behind, counted from its start)']
+             f'{flow_skipped} while behind, counted from its start)'
+             + (f'; {without_truth} poses without a recorded ground truth (the recorder lost it)' if without_truth
+                else '')]
     lat = report['latency_image_to_pose_ms']
     if lat:
         lines.append(f'  latency image -> pose: p50 {lat["p50"]:.1f} ms, p95 {lat["p95"]:.1f} ms, '
