@@ -222,7 +222,8 @@ class SimRigNode(Node):
     def _wait_for_truth_acked(self) -> None:
         """Before the process exits, let every reliable subscriber acknowledge the last frame's ground truth: a
         writer destroyed with samples unacknowledged loses the ones still to be resent, and a pose would then have
-        no truth to be scored against (the demo's recorder saw this under load). Bounded per publisher."""
+        no truth to be scored against (a precaution: the losses the demo's recorder showed at stop 90 were its own,
+        at the start of the run). Bounded per publisher."""
         reliable = (self.pub_gt, *self.pub_gt_joints.values(), self.pub_diag)
         late = [pub.topic_name for pub in reliable
                 if not pub.wait_for_all_acked(Duration(seconds=self.ACK_TIMEOUT_S))]
