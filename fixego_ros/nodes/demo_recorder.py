@@ -21,7 +21,7 @@ from __future__ import annotations
 import math
 import struct
 import time
-from collections import Counter
+from collections import Counter, deque
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
@@ -59,6 +59,11 @@ INPUTS = {'flow/observation': ('sensor_msgs/msg/PointCloud2', RELIABLE_QOS),
 
 
 class Recorder(Node):
+    # ground truth received before the reset, put in the inputs bag when it starts: the observations the estimator
+    # takes after the reset include frames stamped before it (the pipeline's backlog, up to ~2.5 s on a loaded
+    # machine), whose truth came before the reset
+    TRUTH_BEFORE_S = 5.0
+
     def __init__(self, **kwargs) -> None:
         super().__init__('fixego_demo', **in_namespace(kwargs))
         self.poses: list[tuple[float, Pose]] = []
@@ -84,6 +89,7 @@ class Recorder(Node):
         self._parsed: dict[str, tuple[bytes, Path]] = {}
         self._inputs: BagRecorder | None = None     # the estimator's inputs (open_inputs) ...
         self._writing_inputs = False                # ... written from start_inputs() on
+        self._truth_before: deque[tuple[str, int, bytes]] = deque()   # (topic, receive ns, message), till then
         self._input_names = {topic: self.resolve_topic_name(topic) for topic in INPUTS}   # relative -> absolute
         self.create_subscription(PoseStamped, 'pose', self._on_pose, RELIABLE_QOS)
         self.create_subscription(PoseStamped, 'ground_truth/pose', self._on_truth, TRUTH_QOS, raw=True)
@@ -143,7 +149,12 @@ class Recorder(Node):
 
     def start_inputs(self) -> None:
         """Write every observation, vergence measurement, true pose and true head angle received from now on to the
-        bag :meth:`open_inputs` created (nothing when none was)."""
+        bag :meth:`open_inputs` created (nothing when none was), after the ground truth of the last
+        :attr:`TRUTH_BEFORE_S` seconds."""
+        if self._inputs is not None:
+            for topic, ns, data in self._truth_before:
+                self._inputs.put(self._input_names[topic], ns, data)
+        self._truth_before.clear()
         self._writing_inputs = True
 
     def close_inputs(self) -> RecordSummary | None:
@@ -152,8 +163,15 @@ class Recorder(Node):
         return None if recorder is None else recorder.close()
 
     def _keep_input(self, topic: str, data: bytes) -> None:
-        if self._inputs is not None and self._writing_inputs:
-            self._inputs.put(self._input_names[topic], self.get_clock().now().nanoseconds, data)
+        if self._inputs is None:
+            return
+        now = self.get_clock().now().nanoseconds
+        if self._writing_inputs:
+            self._inputs.put(self._input_names[topic], now, data)
+        elif topic.startswith('ground_truth/'):
+            self._truth_before.append((topic, now, data))
+            while self._truth_before and now - self._truth_before[0][1] > self.TRUTH_BEFORE_S * 1e9:
+                self._truth_before.popleft()
 
     def _on_observation(self, data: bytes) -> None:
         self._keep_input('flow/observation', data)
