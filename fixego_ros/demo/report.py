@@ -277,7 +277,8 @@ def write_report(out: Path, rec, t_start: float, run_args: dict[str, Any],
             write_tum(out / name, [t for t, _ in traj], [p for _, p in traj])
             files[name] = len(traj)
     live_stamps = {t for t, _ in live}
-    dropped = sum(1 for t, _ in truth if t not in live_stamps and t <= (max(live_stamps) if live_stamps else 0.0))
+    last_live = max(live_stamps, default=0.0)
+    dropped = sum(1 for t, _ in truth if t not in live_stamps and t <= last_live)
     # poses whose frame's ground truth the recorder never got (its reader lost it): not scored, and counted so a loss
     # shows here instead of as a frame count that does not add up
     truth_stamps = {t for t, _ in truth}

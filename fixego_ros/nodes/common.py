@@ -49,9 +49,9 @@ from fixego_ros.threads import limit_threads
 
 SENSOR_QOS: QoSProfile = qos_profile_sensor_data
 RELIABLE_QOS = QoSProfile(depth=50)
-# the simulator's ground truth: a sample a loaded reader missed (its shared-memory buffer recycled by the images the
-# same writer sends) is resent after the next heartbeat (Fast DDS: every 3 s) only while the writer still holds it,
-# so keep 10 s of 30 Hz frames on both sides (measured at depth 50: a few truth stamps lost in some demo runs)
+# the simulator's ground truth: a reliable sample a loaded reader missed is resent after the next heartbeat (Fast DDS:
+# every 3 s) only while the writer still holds it, and a reader that falls behind drops the oldest beyond its depth;
+# so keep 10 s of 30 Hz frames on both sides (at depth 50 one loaded demo run lost two truth stamps mid-run, stop 90)
 TRUTH_QOS = QoSProfile(depth=300)
 # latched: occasional measurements (the vergence steps) whose recent ones a node started later must still get
 LATCHED_QOS = QoSProfile(depth=20, durability=DurabilityPolicy.TRANSIENT_LOCAL)

@@ -89,7 +89,7 @@ class Recorder(Node):
         self._parsed: dict[str, tuple[bytes, Path]] = {}
         self._inputs: BagRecorder | None = None     # the estimator's inputs (open_inputs) ...
         self._writing_inputs = False                # ... written from start_inputs() on
-        self._truth_before: deque[tuple[str, int, bytes]] = deque()   # (topic, receive ns, message), till then
+        self._truth_before: deque[tuple[str, int, bytes]] = deque()   # (topic, receive ns, message) till then
         self._input_names = {topic: self.resolve_topic_name(topic) for topic in INPUTS}   # relative -> absolute
         self.create_subscription(PoseStamped, 'pose', self._on_pose, RELIABLE_QOS)
         self.create_subscription(PoseStamped, 'ground_truth/pose', self._on_truth, TRUTH_QOS, raw=True)
@@ -151,9 +151,10 @@ class Recorder(Node):
         """Write every observation, vergence measurement, true pose and true head angle received from now on to the
         bag :meth:`open_inputs` created (nothing when none was), after the ground truth of the last
         :attr:`TRUTH_BEFORE_S` seconds."""
-        if self._inputs is not None:
-            for topic, ns, data in self._truth_before:
-                self._inputs.put(self._input_names[topic], ns, data)
+        if self._inputs is None:
+            return
+        for topic, ns, data in self._truth_before:
+            self._inputs.put(self._input_names[topic], ns, data)
         self._truth_before.clear()
         self._writing_inputs = True
 
@@ -163,10 +164,10 @@ class Recorder(Node):
         return None if recorder is None else recorder.close()
 
     def _keep_input(self, topic: str, data: bytes) -> None:
-        if self._inputs is None:
-            return
+        """Into the inputs bag while it is written; before that, the ground truth into the last
+        :attr:`TRUTH_BEFORE_S` seconds (also while the bag is being created: the reset's backlog can be older)."""
         now = self.get_clock().now().nanoseconds
-        if self._writing_inputs:
+        if self._writing_inputs and self._inputs is not None:
             self._inputs.put(self._input_names[topic], now, data)
         elif topic.startswith('ground_truth/'):
             self._truth_before.append((topic, now, data))
